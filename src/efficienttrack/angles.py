@@ -1,0 +1,22 @@
+"""The single definition of angle wrapping: every angle difference in the package goes through it."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+
+def wrap(angle):
+    """Wrap angles (rad) to (-π, π].
+
+    Args:
+        angle: numpy array, torch tensor or float, any shape, rad.
+
+    Returns:
+        The same kind and shape (a float becomes a 0-d numpy float), each value in (-π, π].
+    """
+    if isinstance(angle, torch.Tensor):
+        return math.pi - torch.remainder(math.pi - angle, 2 * math.pi)
+    return math.pi - np.remainder(math.pi - np.asarray(angle, dtype=np.float64), 2 * math.pi)

@@ -1,0 +1,110 @@
+"""The PD position controller of the real XE75 and its composition with a plant.
+
+Per joint, with e[t] = wrap(q_ref[t] − q[t]):
+
+    u[t] = clip(s·(kp·e[t] + kd·(e[t] − e[t−1]) + c·sign(e[t])), −u_max, u_max)
+
+At the first step of an episode the previous error is taken equal to the current one.
+Gains of the real machine were fitted on its logs (see the data README): they reproduce the
+logged PWM exactly.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from efficienttrack.angles import wrap
+from efficienttrack.errors import EfficientTrackError
+
+
+@dataclass(frozen=True)
+class PDGains:
+    """Gains of the per-joint PD law (joint order boom, arm, bucket, swing)."""
+
+    kp: tuple[float, float, float, float]
+    """Proportional gain, PWM per rad."""
+    kd: tuple[float, float, float, float]
+    """Gain on the error difference over one step, PWM per rad."""
+    sign: tuple[float, float, float, float]
+    """Sign from the error to the PWM: −1 where a positive PWM moves the joint to smaller angles."""
+    c: float = 400.0
+    """Constant push in the direction of the error, PWM (overcomes the valve dead zone)."""
+    u_max: float = 1000.0
+    """PWM saturation."""
+
+    def command(self, e: np.ndarray, e_prev: np.ndarray) -> np.ndarray:
+        """PWM for errors ``e`` and previous errors ``e_prev``, both (..., 4) rad → (..., 4) PWM."""
+        kp, kd, s = np.asarray(self.kp), np.asarray(self.kd), np.asarray(self.sign)
+        raw = s * (kp * e + kd * (e - e_prev) + self.c * np.sign(e))
+        return np.clip(raw, -self.u_max, self.u_max)
+
+    @classmethod
+    def load(cls, spec: str) -> PDGains:
+        """A named preset (``xe75``) or a JSON file with the fields of this class."""
+        if spec in PD_PRESETS:
+            return PD_PRESETS[spec]
+        path = Path(spec)
+        if not path.is_file():
+            raise EfficientTrackError(f"PD gains '{spec}': neither a preset ({', '.join(PD_PRESETS)}) nor a JSON file")
+        try:
+            fields: dict[str, Any] = json.loads(path.read_text())
+            gains = cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()})
+        except (json.JSONDecodeError, TypeError) as exc:
+            raise EfficientTrackError(f"{path}: not a valid PD gains file: {exc}") from exc
+        for name in ("kp", "kd", "sign"):
+            if len(getattr(gains, name)) != 4:
+                raise EfficientTrackError(f"{path}: field '{name}' needs 4 values (boom, arm, bucket, swing)")
+        return gains
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-serializable fields."""
+        return asdict(self)
+
+
+XE75_PD = PDGains(kp=(5000.0, 1000.0, 1000.0, 500.0), kd=(15006.0, 6016.0, 4284.0, 7000.0), sign=(-1.0, -1.0, -1.0, 1.0))
+PD_PRESETS: dict[str, PDGains] = {"xe75": XE75_PD}
+
+
+class ClosedLoop:
+    """A Plant under PD position control: a ClosedLoopSystem.
+
+    ``step(q_ref)`` computes the PWM from the current position and ``q_ref`` (the target for
+    the next step), applies it to the plant and returns the next observation. Batched exactly
+    when the plant is.
+
+    Args:
+        plant: any Plant (``reset(q0) -> obs``, ``step(u) -> obs``).
+        gains: the PD law; the XE75's by default.
+    """
+
+    def __init__(self, plant: Any, gains: PDGains = XE75_PD) -> None:
+        self.plant = plant
+        self.gains = gains
+        self.dt = plant.dt
+        self.batched = bool(getattr(plant, "batched", False))
+        self.last_command: np.ndarray | None = None
+        self._q: np.ndarray | None = None
+        self._e_prev: np.ndarray | None = None
+
+    def reset(self, q0: np.ndarray) -> np.ndarray:
+        """Reset the plant at ``q0`` (4,)/(N, 4) rad; return obs (8,)/(N, 8)."""
+        obs = np.asarray(self.plant.reset(q0), dtype=np.float64)
+        self._q = obs[..., :4]
+        self._e_prev = None
+        self.last_command = None
+        return obs
+
+    def step(self, q_ref: np.ndarray) -> np.ndarray:
+        """Track ``q_ref`` (4,)/(N, 4) rad for one step; return obs (8,)/(N, 8)."""
+        if self._q is None:
+            raise EfficientTrackError("ClosedLoop.step called before reset")
+        e = wrap(np.asarray(q_ref, dtype=np.float64) - self._q)
+        u = self.gains.command(e, e if self._e_prev is None else self._e_prev)
+        obs = np.asarray(self.plant.step(u), dtype=np.float64)
+        self._e_prev, self._q, self.last_command = e, obs[..., :4], u
+        return obs

@@ -1,0 +1,204 @@
+"""The two interfaces every machine or simulator is seen through, and how to load one by name.
+
+``Plant`` (PWM level)
+    ``dt`` control period in s (0.05 for the XE75); ``reset(q0) -> obs``; ``step(u) -> obs``.
+``ClosedLoopSystem`` (reference level)
+    ``dt``; ``reset(q0) -> obs``; ``step(q_ref_next) -> obs``. A plant wrapped with its position
+    controller, or a real machine whose own controller takes position references.
+
+Channels (joint order boom, arm, bucket, swing everywhere):
+
+======== ============ ========================== ======================================
+name     shape        unit                       meaning
+======== ============ ========================== ======================================
+q0       (4,)/(N, 4)  rad                        initial joint positions for ``reset``
+u        (4,)/(N, 4)  PWM, −1000 … 1000          valve command (``Plant.step``)
+q_ref    (4,)/(N, 4)  rad                        position reference for the next step
+obs      (8,)/(N, 8)  [q rad, q̇ rad/s]           observation after reset / the step
+======== ============ ========================== ======================================
+
+Batch semantics: a system that sets the attribute ``batched = True`` accepts ``(N, 4)`` inputs
+and returns ``(N, 8)`` observations for any N it was reset with. Without it, the system takes
+single ``(4,)`` arrays only (a real machine is N = 1); the package then runs it one episode at a
+time. A closed-loop system may expose ``last_command`` (the PWM it applied in the last step,
+``(4,)``/``(N, 4)``); it is recorded when present.
+
+Loading: ``load_system(spec)`` and ``load_plant(spec)`` take a built-in name (``xe75``) or an
+import path ``"module.path:callable"``; the callable is called with the keyword options and
+must return the system.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable, Mapping
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from efficienttrack.errors import EfficientTrackError
+
+N_JOINTS = 4
+OBS_DIM = 8
+
+BUILTIN_SYSTEMS: dict[str, str] = {"xe75": "efficienttrack.systems.hydraulic:xe75_closed_loop"}
+BUILTIN_PLANTS: dict[str, str] = {"xe75": "efficienttrack.systems.hydraulic:xe75_plant"}
+
+
+@runtime_checkable
+class Plant(Protocol):
+    """PWM-level machine or simulator: ``reset(q0) -> obs``, ``step(u) -> obs``."""
+
+    dt: float
+
+    def reset(self, q0: np.ndarray) -> np.ndarray:
+        """Put the machine at ``q0`` (4,)/(N, 4) rad at rest; return obs (8,)/(N, 8)."""
+        ...
+
+    def step(self, u: np.ndarray) -> np.ndarray:
+        """Apply PWM ``u`` (4,)/(N, 4) for one period ``dt``; return the next obs (8,)/(N, 8)."""
+        ...
+
+
+@runtime_checkable
+class ClosedLoopSystem(Protocol):
+    """Reference-level system: ``reset(q0) -> obs``, ``step(q_ref_next) -> obs``."""
+
+    dt: float
+
+    def reset(self, q0: np.ndarray) -> np.ndarray:
+        """Put the machine at ``q0`` (4,)/(N, 4) rad at rest; return obs (8,)/(N, 8)."""
+        ...
+
+    def step(self, q_ref: np.ndarray) -> np.ndarray:
+        """Track ``q_ref`` (4,)/(N, 4) rad for one period ``dt``; return the next obs (8,)/(N, 8)."""
+        ...
+
+
+class BatchedSystem:
+    """A uniform, checked, batched view of any Plant or ClosedLoopSystem.
+
+    Inputs and outputs are always ``(N, 4)`` / ``(N, 8)`` float64. An unbatched system is
+    driven with N = 1 (``max_batch`` is 1). Every observation is checked for shape and
+    finiteness, so a misbehaving user system fails with a message naming it instead of
+    producing silently wrong numbers downstream.
+
+    Args:
+        system: the Plant or ClosedLoopSystem to wrap.
+        name: how to name it in errors (the spec it was loaded from).
+    """
+
+    def __init__(self, system: Any, name: str = "system") -> None:
+        self.system = system
+        self.name = name
+        dt = getattr(system, "dt", None)
+        if not isinstance(dt, int | float) or not np.isfinite(dt) or dt <= 0:
+            raise EfficientTrackError(f"{name}: attribute 'dt' must be a positive number of seconds, got {dt!r}")
+        for method in ("reset", "step"):
+            if not callable(getattr(system, method, None)):
+                raise EfficientTrackError(f"{name}: has no method '{method}'")
+        self.dt = float(dt)
+        self.batched = bool(getattr(system, "batched", False))
+        self.max_batch: int | None = None if self.batched else 1
+        self._n = 0
+
+    def reset(self, q0: np.ndarray) -> np.ndarray:
+        """Reset N machines; ``q0`` (N, 4) rad → obs (N, 8)."""
+        q0 = np.asarray(q0, dtype=np.float64)
+        if q0.ndim != 2 or q0.shape[1] != N_JOINTS:
+            raise EfficientTrackError(f"{self.name}: reset expects q0 of shape (N, 4), got {q0.shape}")
+        self._check_batch(len(q0))
+        self._n = len(q0)
+        return self._checked(self.system.reset(q0 if self.batched else q0[0]), "reset")
+
+    def step(self, x: np.ndarray) -> np.ndarray:
+        """Step N machines with ``x`` (N, 4) (PWM or q_ref) → obs (N, 8)."""
+        x = np.asarray(x, dtype=np.float64)
+        if x.shape != (self._n, N_JOINTS):
+            raise EfficientTrackError(f"{self.name}: step expects ({self._n}, 4) after reset, got {x.shape}")
+        return self._checked(self.system.step(x if self.batched else x[0]), "step")
+
+    @property
+    def last_command(self) -> np.ndarray | None:
+        """PWM applied in the last step, (N, 4), or None when the system does not expose it."""
+        u = getattr(self.system, "last_command", None)
+        if u is None:
+            return None
+        return np.asarray(u, dtype=np.float64).reshape(self._n, N_JOINTS)
+
+    def _check_batch(self, n: int) -> None:
+        if n < 1:
+            raise EfficientTrackError(f"{self.name}: reset needs at least one machine")
+        if self.max_batch is not None and n > self.max_batch:
+            raise EfficientTrackError(f"{self.name}: takes single machines only (no 'batched = True'), got N = {n}")
+
+    def _checked(self, obs: Any, what: str) -> np.ndarray:
+        try:
+            obs = np.asarray(obs, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise EfficientTrackError(f"{self.name}: {what} returned something that is not a numeric array") from exc
+        expected = (self._n, OBS_DIM) if self.batched else (OBS_DIM,)
+        if obs.shape != expected:
+            raise EfficientTrackError(f"{self.name}: {what} returned obs of shape {obs.shape}, expected {expected}")
+        if not np.all(np.isfinite(obs)):
+            raise EfficientTrackError(f"{self.name}: {what} returned a non-finite observation {obs.tolist()}")
+        return obs.reshape(self._n, OBS_DIM)
+
+
+def _resolve(spec: str, builtins: Mapping[str, str], what: str) -> Callable[..., Any]:
+    target = builtins.get(spec, spec)
+    if ":" not in target:
+        names = ", ".join(sorted(builtins)) or "none"
+        raise EfficientTrackError(
+            f"unknown {what} '{spec}': give a built-in name ({names}) or an import path 'module.path:callable'"
+        )
+    module_name, _, attr = target.partition(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise EfficientTrackError(f"{what} '{spec}': cannot import module '{module_name}': {exc}") from exc
+    factory = getattr(module, attr, None)
+    if factory is None or not callable(factory):
+        raise EfficientTrackError(f"{what} '{spec}': module '{module_name}' has no callable '{attr}'")
+    return factory
+
+
+def _build(spec: str, builtins: Mapping[str, str], what: str, options: Mapping[str, Any]) -> BatchedSystem:
+    factory = _resolve(spec, builtins, what)
+    try:
+        system = factory(**options)
+    except TypeError as exc:
+        raise EfficientTrackError(f"{what} '{spec}': cannot be built with options {dict(options)}: {exc}") from exc
+    return BatchedSystem(system, name=f"{what} '{spec}'")
+
+
+def load_system(spec: str, **options: Any) -> BatchedSystem:
+    """Load a reference-level ClosedLoopSystem.
+
+    Args:
+        spec: a built-in name (``xe75``) or ``"module.path:callable"``.
+        **options: keyword options passed to the callable (``--system-opt key=value`` on the CLI).
+
+    Returns:
+        The system, wrapped in a checked batched view.
+    """
+    return _build(spec, BUILTIN_SYSTEMS, "system", options)
+
+
+def load_plant(spec: str, **options: Any) -> BatchedSystem:
+    """Load a PWM-level Plant (same spec rules as :func:`load_system`)."""
+    return _build(spec, BUILTIN_PLANTS, "plant", options)
+
+
+def check_system(system: Any, q0: np.ndarray | None = None, steps: int = 5, name: str = "system") -> None:
+    """Check that ``system`` follows the ClosedLoopSystem protocol; raise EfficientTrackError if not.
+
+    Resets it at ``q0`` (4,) rad (zeros by default) and holds that reference for ``steps`` steps,
+    checking ``dt``, shapes and finiteness on the way. Run it on your own machine wrapper before
+    training on it.
+    """
+    view = system if isinstance(system, BatchedSystem) else BatchedSystem(system, name=name)
+    start = np.zeros((1, N_JOINTS)) if q0 is None else np.asarray(q0, dtype=np.float64).reshape(1, N_JOINTS)
+    view.reset(start)
+    for _ in range(steps):
+        view.step(start)
