@@ -1,27 +1,59 @@
-"""Episode records: what one run of a machine along one reference produced.
+"""Episode records: what one run of a machine along one reference produced, and their file formats.
 
 Time alignment (as in the XE75 logs): at step t the controller reads ``q[t]``, ``qd[t]``,
 sends ``q_ref[t]`` (the target for step t+1) and applies ``u[t]``; the machine reaches
 ``q[t+1]`` one step later. ``q_des[t]`` is the desired position for step t+1, so the tracking
 error of step t is ``wrap(q[t+1] − q_des[t])``.
+
+Formats read by :func:`load_records` (all validated on load):
+
+- ``.npz`` (ours and the XE75 logs): arrays ``q, qd, q_ref, q_des, u, t`` (+ ``meta_json``), no pickle.
+- ``.csv`` (ours): an optional ``# meta: {json}`` line, then the header ``t, q_boom … q_swing,
+  qd_*, q_ref_*, q_des_*, u_*`` (``u_*`` absent when there is no PWM), one row per step.
+- ``.npy`` (the original research repository): a 0-d object array holding a pickled dict
+  ``js → q, jv → qd, target → q_ref, real_target → q_des, action → u, time → t``. Its pickle
+  is read by an unpickler that only builds numpy arrays and refuses every other global.
+- ``.csv`` (the original research repository): header ``target,real_target,js,jv,time,action``,
+  vectors printed by numpy as ``"[a b c d]"``.
 """
 
 from __future__ import annotations
 
+import csv
+import io
 import json
+import pickle
 import warnings
+from collections import Counter
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.lib.format as npy_format
 
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import atomic_write
 
+JOINTS = ("boom", "arm", "bucket", "swing")
 JOINT_FIELDS = ("q", "qd", "q_ref", "q_des", "u")
 MAX_ABS_ANGLE = 2 * np.pi
 """Angles beyond ±2π rad are taken for degrees (or garbage) and refused."""
+ANGLE_FIELDS = ("q", "q_ref", "q_des")
+JITTER_RANGE = (0.1, 2.0)
+"""Time steps outside this range, in median steps, are reported as jitter (the XE75 logs stay within 0.28…1.72)."""
+RECORD_SUFFIXES = (".npz", ".npy", ".csv")
+"""Episode file formats, in order of preference when one folder holds the same episode twice."""
+
+UPSTREAM_KEYS = {"js": "q", "jv": "qd", "target": "q_ref", "real_target": "q_des", "action": "u", "time": "t"}
+"""Keys of the original repository's episode dict → our field names."""
+CSV_COLUMNS = ("t", *(f"{name}_{joint}" for name in JOINT_FIELDS for joint in JOINTS))
+"""Header of our CSV format (the ``u_*`` columns are left out when u is None)."""
+
+
+class RecordWarning(UserWarning):
+    """A record is usable but odd (time not increasing, jittery sampling)."""
 
 
 @dataclass
@@ -56,7 +88,12 @@ class EpisodeRecord:
         return np.concatenate([self.q, self.qd], axis=1)
 
     def validate(self, source: str = "record") -> EpisodeRecord:
-        """Check shapes, finiteness and units; raise EfficientTrackError naming ``source`` and the field.
+        """Check fields, shapes, finiteness and units; raise EfficientTrackError naming ``source`` and the field.
+
+        Time is informational: a non-increasing or jittery ``t`` only gives a :class:`RecordWarning`.
+
+        Args:
+            source: what to call the record in messages (usually its file).
 
         Returns:
             self, with every array as float64.
@@ -67,36 +104,39 @@ class EpisodeRecord:
                 if name == "u":
                     continue
                 raise EfficientTrackError(f"{source}: field '{name}' is missing")
-            arr = np.asarray(value, dtype=np.float64) if np.asarray(value).dtype != object else None
-            if arr is None:
-                raise EfficientTrackError(f"{source}: field '{name}' is not numeric")
+            try:
+                arr = np.asarray(value, dtype=np.float64)
+            except (TypeError, ValueError) as exc:
+                raise EfficientTrackError(f"{source}: field '{name}' is not a numeric array ({exc})") from exc
             setattr(self, name, arr)
-        steps = len(self.q)
+        steps = len(self.q) if self.q.ndim else 0
         if steps < 2:
-            raise EfficientTrackError(f"{source}: needs at least 2 steps, has {steps}")
+            raise EfficientTrackError(f"{source}: field 'q' needs at least 2 steps, has {steps}")
         for name in JOINT_FIELDS:
             arr = getattr(self, name)
             if arr is None:
                 continue
             if arr.shape != (steps, 4):
-                raise EfficientTrackError(f"{source}: field '{name}' has shape {arr.shape}, expected ({steps}, 4)")
+                raise EfficientTrackError(
+                    f"{source}: field '{name}' has shape {arr.shape}, expected ({steps}, 4) (T = {steps} steps from 'q')"
+                )
             bad = ~np.isfinite(arr)
             if bad.any():
-                row = int(np.argwhere(bad)[0][0])
-                raise EfficientTrackError(f"{source}: field '{name}' has NaN/inf values (first at step {row})")
+                step, joint = np.argwhere(bad)[0]
+                raise EfficientTrackError(
+                    f"{source}: field '{name}' has NaN/inf values (first at step {step}, joint {JOINTS[joint]})"
+                )
         if self.t.shape != (steps,):
             raise EfficientTrackError(f"{source}: field 't' has shape {self.t.shape}, expected ({steps},)")
         if not np.all(np.isfinite(self.t)):
             raise EfficientTrackError(f"{source}: field 't' has NaN/inf values")
-        for name in ("q", "q_ref", "q_des"):
+        for name in ANGLE_FIELDS:
             peak = float(np.max(np.abs(getattr(self, name))))
             if peak > MAX_ABS_ANGLE:
                 raise EfficientTrackError(
                     f"{source}: field '{name}' reaches {peak:.1f}, beyond ±2π rad: angles look like degrees (use radians)"
                 )
-        dt = np.diff(self.t)
-        if np.any(dt <= 0):
-            warnings.warn(f"{source}: timestamps are not increasing (time is informational only)", stacklevel=2)
+        _check_time(self.t, source)
         return self
 
     def save(self, path: str | Path) -> Path:
@@ -118,8 +158,11 @@ class EpisodeRecord:
             raise EfficientTrackError(f"{path}: not a readable .npz episode record ({exc})") from exc
         missing = [name for name in ("q", "qd", "q_ref", "q_des", "t") if name not in arrays]
         if missing:
-            raise EfficientTrackError(f"{path}: field(s) {', '.join(missing)} missing")
-        meta = json.loads(str(arrays["meta_json"])) if "meta_json" in arrays else {}
+            raise EfficientTrackError(f"{path}: missing field(s) {', '.join(repr(name) for name in missing)}")
+        try:
+            meta = json.loads(str(arrays["meta_json"])) if "meta_json" in arrays else {}
+        except json.JSONDecodeError as exc:
+            raise EfficientTrackError(f"{path}: field 'meta_json' is not valid JSON ({exc})") from exc
         meta.setdefault("name", path.stem)
         record = cls(
             q=arrays["q"],
@@ -131,3 +174,319 @@ class EpisodeRecord:
             meta=meta,
         )
         return record.validate(str(path))
+
+
+def _check_time(t: np.ndarray, source: str) -> None:
+    """Warn (never fail) when the timestamps ``t`` (T,) s are not increasing or the sampling is jittery."""
+    dt = np.diff(t)
+    if np.any(dt <= 0):
+        warnings.warn(
+            f"{source}: timestamps are not increasing at {int(np.sum(dt <= 0))} step(s) (time is informational only)",
+            RecordWarning,
+            stacklevel=3,
+        )
+        return
+    median = float(np.median(dt))
+    odd = (dt < JITTER_RANGE[0] * median) | (dt > JITTER_RANGE[1] * median)
+    if odd.any():
+        warnings.warn(
+            f"{source}: jittery sampling, {int(odd.sum())} step(s) far from the median dt {median:.4f} s "
+            f"(longest {dt.max():.4f} s, shortest {dt.min():.4f} s)",
+            RecordWarning,
+            stacklevel=3,
+        )
+
+
+# ---------------------------------------------------------------------------------------------- CSV (ours)
+
+
+def save_csv(record: EpisodeRecord, path: str | Path) -> Path:
+    """Write ``record`` as our CSV (one row per step, full float64 precision) atomically.
+
+    Args:
+        record: the episode; its ``meta`` goes to a leading ``# meta: {json}`` line.
+        path: destination ``.csv``.
+
+    Returns:
+        The path written.
+    """
+    names = [name for name in JOINT_FIELDS if getattr(record, name) is not None]
+    columns = ["t", *(f"{name}_{joint}" for name in names for joint in JOINTS)]
+    table = np.column_stack([record.t, *(getattr(record, name) for name in names)])
+
+    def write(f: io.TextIOBase) -> None:
+        f.write(f"# meta: {json.dumps(record.meta)}\n")
+        f.write(",".join(columns) + "\n")
+        np.savetxt(f, table, delimiter=",", fmt="%.17g")
+
+    return atomic_write(path, write, mode="w")
+
+
+def _load_csv_ours(path: Path, lines: list[str]) -> EpisodeRecord:
+    """Parse our CSV from its ``lines`` (comment lines included); see :func:`save_csv`."""
+    meta: dict[str, Any] = {}
+    body = [line for line in lines if not line.startswith("#")]
+    for line in lines:
+        if line.startswith("# meta:"):
+            try:
+                meta = json.loads(line[len("# meta:") :])
+            except json.JSONDecodeError as exc:
+                raise EfficientTrackError(f"{path}: field 'meta' is not valid JSON ({exc})") from exc
+    header = [name.strip() for name in body[0].split(",")]
+    unknown = [name for name in header if name not in CSV_COLUMNS]
+    if unknown:
+        raise EfficientTrackError(f"{path}: unknown column(s) {', '.join(unknown)}; expected {', '.join(CSV_COLUMNS)}")
+    try:
+        table = np.loadtxt(body[1:], delimiter=",", ndmin=2, dtype=np.float64)
+    except ValueError as exc:
+        raise EfficientTrackError(f"{path}: not a numeric table ({exc})") from exc
+    if table.shape[1] != len(header):
+        raise EfficientTrackError(f"{path}: rows have {table.shape[1]} values, the header names {len(header)} columns")
+    column = {name: table[:, i] for i, name in enumerate(header)}
+    fields: dict[str, np.ndarray | None] = {"t": column.get("t")}
+    for name in JOINT_FIELDS:
+        present = [f"{name}_{joint}" in column for joint in JOINTS]
+        if any(present) and not all(present):
+            missing = [f"{name}_{joint}" for joint, ok in zip(JOINTS, present, strict=True) if not ok]
+            raise EfficientTrackError(f"{path}: field '{name}' lacks column(s) {', '.join(missing)}")
+        fields[name] = np.column_stack([column[f"{name}_{joint}"] for joint in JOINTS]) if all(present) else None
+    meta.setdefault("name", path.stem)
+    return EpisodeRecord(meta=meta, **fields).validate(str(path))  # type: ignore[arg-type]
+
+
+# ------------------------------------------------------------------------------ original repository formats
+
+
+_RECONSTRUCT = np.ndarray.__reduce__(np.empty(0))[0]
+"""numpy's array reconstructor (``numpy._core.multiarray._reconstruct``, ``numpy.core`` before numpy 2)."""
+UPSTREAM_PICKLE_GLOBALS: dict[tuple[str, str], Any] = {
+    ("numpy.core.multiarray", "_reconstruct"): _RECONSTRUCT,
+    ("numpy._core.multiarray", "_reconstruct"): _RECONSTRUCT,
+    ("numpy", "ndarray"): np.ndarray,
+    ("numpy", "dtype"): np.dtype,
+}
+"""The only globals an upstream ``.npy`` pickle may name (its time stamps are plain floats: no numpy scalars)."""
+
+
+class _NumpyOnlyUnpickler(pickle.Unpickler):
+    """Unpickler that builds numpy arrays, dtypes and plain containers, and refuses every other global."""
+
+    def __init__(self, file: io.BufferedIOBase, source: Path) -> None:
+        super().__init__(file)
+        self.source = source
+
+    def find_class(self, module: str, name: str) -> Any:
+        """Return an allowed numpy global; refuse anything else with EfficientTrackError."""
+        try:
+            return UPSTREAM_PICKLE_GLOBALS[(module, name)]
+        except KeyError:
+            raise EfficientTrackError(
+                f"{self.source}: refused to unpickle global '{module}.{name}' "
+                "(an upstream episode may only contain numpy arrays; the file is corrupt or malicious)"
+            ) from None
+
+
+def _unpickle_upstream_npy(path: Path) -> Any:
+    """Read the header of the ``.npy`` at ``path`` and unpickle its object payload with the restricted unpickler."""
+    try:
+        with path.open("rb") as f:
+            version = npy_format.read_magic(f)
+            if version == (1, 0):
+                shape, _, dtype = npy_format.read_array_header_1_0(f)
+            elif version in ((2, 0), (3, 0)):
+                shape, _, dtype = npy_format.read_array_header_2_0(f)
+            else:
+                raise EfficientTrackError(f"{path}: unsupported .npy format version {version}")
+            if dtype != np.dtype(object) or shape != ():
+                raise EfficientTrackError(
+                    f"{path}: holds a {dtype} array of shape {shape}, not an upstream episode "
+                    "(a 0-d object array with a dict of js, jv, target, real_target, action, time); a reference trajectory?"
+                )
+            return _NumpyOnlyUnpickler(f, path).load()
+    except EfficientTrackError:
+        raise
+    except (OSError, ValueError, TypeError, AttributeError, IndexError, KeyError, EOFError, pickle.UnpicklingError) as exc:
+        raise EfficientTrackError(f"{path}: not a readable upstream .npy episode ({type(exc).__name__}: {exc})") from exc
+
+
+def _upstream_fields(path: Path, columns: dict[str, Any]) -> EpisodeRecord:
+    """Map the upstream keys of ``columns`` to an EpisodeRecord and validate it."""
+    missing = [key for key in UPSTREAM_KEYS if key not in columns]
+    if missing:
+        raise EfficientTrackError(
+            f"{path}: missing field(s) {', '.join(repr(key) for key in missing)} (upstream keys {', '.join(UPSTREAM_KEYS)})"
+        )
+    fields: dict[str, np.ndarray] = {}
+    for key, name in UPSTREAM_KEYS.items():
+        try:
+            fields[name] = np.asarray(columns[key], dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise EfficientTrackError(f"{path}: field '{key}' ({name}) is not a numeric array ({exc})") from exc
+    return EpisodeRecord(meta={"name": path.stem, "format": "upstream"}, **fields).validate(f"{path}")
+
+
+def load_upstream_npy(path: str | Path) -> EpisodeRecord:
+    """Read an episode ``.npy`` of the original research repository (restricted unpickling, never ``np.load``).
+
+    Args:
+        path: the ``.npy`` file (0-d object array holding a dict of per-step lists).
+
+    Returns:
+        The validated record (q, qd, q_ref, q_des, u: (T, 4); t: (T,) s).
+
+    Raises:
+        EfficientTrackError: unreadable file, a global other than numpy's array reconstruction in the
+            pickle, missing keys or invalid values.
+    """
+    path = Path(path)
+    content = _unpickle_upstream_npy(path)
+    episode = content.item() if isinstance(content, np.ndarray) and content.dtype == object and content.shape == () else None
+    if not isinstance(episode, dict):
+        raise EfficientTrackError(f"{path}: the pickled object is {type(content).__name__}, not an episode dict")
+    return _upstream_fields(path, episode)
+
+
+def _load_upstream_csv(path: Path, lines: list[str]) -> EpisodeRecord:
+    """Parse the original repository's CSV ``lines`` (vectors printed as ``"[a b c d]"``)."""
+    rows = list(csv.reader(lines))
+    header, rows = rows[0], rows[1:]
+    if any(len(row) != len(header) for row in rows):
+        raise EfficientTrackError(f"{path}: rows do not all have the {len(header)} columns of the header")
+    columns: dict[str, Any] = {}
+    for i, key in enumerate(header):
+        text = " ".join(row[i] for row in rows).replace("[", " ").replace("]", " ")
+        try:
+            values = np.array(text.split(), dtype=np.float64)
+        except ValueError as exc:
+            raise EfficientTrackError(f"{path}: field '{key}' holds non-numeric text ({exc})") from exc
+        if key == "time":
+            columns[key] = values
+        elif values.size != 4 * len(rows):
+            raise EfficientTrackError(f"{path}: field '{key}' does not hold 4 values per row")
+        else:
+            columns[key] = values.reshape(len(rows), 4)
+    return _upstream_fields(path, columns)
+
+
+def load_csv(path: str | Path) -> EpisodeRecord:
+    """Read an episode CSV, ours (:func:`save_csv`) or the original repository's, told apart by the header.
+
+    Args:
+        path: the ``.csv`` file.
+
+    Returns:
+        The validated record.
+    """
+    path = Path(path)
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise EfficientTrackError(f"{path}: not a readable CSV file ({exc})") from exc
+    body = [line for line in lines if line.strip() and not line.startswith("#")]
+    if not body:
+        raise EfficientTrackError(f"{path}: empty CSV, no header")
+    header = {name.strip() for name in body[0].split(",")}
+    if header == set(UPSTREAM_KEYS):
+        return _load_upstream_csv(path, body)
+    if "t" in header and "q_boom" in header:
+        return _load_csv_ours(path, [line for line in lines if line.strip()])
+    raise EfficientTrackError(
+        f"{path}: unknown CSV header '{body[0][:80]}'; expected ours (t, q_boom, ...) or the upstream "
+        f"'{','.join(UPSTREAM_KEYS)}'"
+    )
+
+
+# ------------------------------------------------------------------------------------------- many records
+
+
+def load_record(path: str | Path) -> EpisodeRecord:
+    """Read one episode file, its format told by the suffix (``.npz``, ``.npy`` upstream, ``.csv`` either).
+
+    Args:
+        path: the episode file.
+
+    Returns:
+        The validated record; ``meta["name"]`` is the file's stem unless the file says otherwise.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise EfficientTrackError(f"{path}: no such file")
+    if path.suffix == ".npz":
+        return EpisodeRecord.load(path)
+    if path.suffix == ".npy":
+        return load_upstream_npy(path)
+    if path.suffix == ".csv":
+        return load_csv(path)
+    raise EfficientTrackError(f"{path}: unknown episode format '{path.suffix}' (expected {', '.join(RECORD_SUFFIXES)})")
+
+
+def find_record_files(folder: Path) -> list[Path]:
+    """Episode files under ``folder`` (recursive, sorted); one file per (folder, stem), the best format first.
+
+    The same episode in several formats side by side (e.g. upstream ``.npy`` and ``.csv``) is
+    read once, from the first of :data:`RECORD_SUFFIXES` present.
+
+    Args:
+        folder: the folder to search.
+
+    Returns:
+        Sorted paths.
+    """
+    chosen: dict[tuple[Path, str], Path] = {}
+    for path in sorted(p for p in folder.rglob("*") if p.suffix in RECORD_SUFFIXES and p.is_file()):
+        key = (path.parent, path.stem)
+        if key not in chosen or RECORD_SUFFIXES.index(path.suffix) < RECORD_SUFFIXES.index(chosen[key].suffix):
+            chosen[key] = path
+    return sorted(chosen.values())
+
+
+def load_records(paths: str | Path | Iterable[str | Path]) -> list[EpisodeRecord]:
+    """Read every episode in ``paths``: files, or folders searched recursively (see :func:`find_record_files`).
+
+    Args:
+        paths: one path or several; files are read whatever their stem, folders in sorted order.
+
+    Returns:
+        The validated records, in the order of ``paths`` (folders sorted).
+
+    Raises:
+        EfficientTrackError: a path does not exist, a folder holds no episode, or a file is invalid.
+    """
+    if isinstance(paths, str | Path):
+        paths = [paths]
+    records: list[EpisodeRecord] = []
+    for path in map(Path, paths):
+        if path.is_dir():
+            files = find_record_files(path)
+            if not files:
+                raise EfficientTrackError(f"{path}: folder holds no episode files ({', '.join(RECORD_SUFFIXES)})")
+            records.extend(load_record(file) for file in files)
+        elif path.exists():
+            records.append(load_record(path))
+        else:
+            raise EfficientTrackError(f"{path}: no such file or folder")
+    if not records:
+        raise EfficientTrackError("no episode files given")
+    return records
+
+
+def save_records(records: Sequence[EpisodeRecord], folder: str | Path, fmt: str = "npz") -> list[Path]:
+    """Write each record to ``folder/<meta name>.<fmt>`` atomically.
+
+    Args:
+        records: the episodes; unnamed ones are called ``episode_0000``, ``episode_0001``, ...
+        folder: destination folder (created).
+        fmt: ``"npz"`` or ``"csv"`` (our formats).
+
+    Returns:
+        The paths written, in the order of ``records``.
+    """
+    if fmt not in ("npz", "csv"):
+        raise EfficientTrackError(f"--format '{fmt}': expected npz or csv")
+    folder = Path(folder)
+    names = [str(record.meta.get("name") or f"episode_{i:04d}") for i, record in enumerate(records)]
+    duplicates = sorted(name for name, count in Counter(names).items() if count > 1)
+    if duplicates:
+        raise EfficientTrackError(f"{folder}: several records are named {', '.join(duplicates[:5])}; names must be unique")
+    writer = EpisodeRecord.save if fmt == "npz" else save_csv
+    return [writer(record, folder / f"{name}.{fmt}") for record, name in zip(records, names, strict=True)]

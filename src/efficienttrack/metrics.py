@@ -1,0 +1,218 @@
+"""The paper's tracking metrics, each defined once (data README, section "Metrics").
+
+Per episode of T steps, with the tracking error e_t = wrap(q[t+1] − q_des[t]), t = 0 … T−2:
+
+- MAE: mean of |e| over steps and joints.
+- RMSE: mean over joints of sqrt(mean over steps of e²).
+- FMAE: mean over joints of |e| at the last step (t = T−2).
+- 1st-order smoothness: mean over joints of sqrt(mean of wrap(q[t] − q[t−1])²) over q[1 … T−1].
+- 2nd-order smoothness: the same on the second difference q[t] − 2q[t−1] + q[t−2] over q[1 … T−1].
+- ETD-MAE / ETD-FMAE: distance between the arm tips at q[t+1] and q_des[t], mean / last step.
+
+Each figure is computed per episode, then averaged over the episodes of a set. Radians and
+metres inside; the report (:func:`compute_metrics`) is in degrees and centimetres.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+from rich.table import Table
+
+from efficienttrack.angles import wrap
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.kinematics import tip_position
+from efficienttrack.records import EpisodeRecord
+
+CONTROL_RATE_HZ = 20.0
+"""Control steps per second, to turn a step count into interaction time."""
+METRIC_KEYS = (
+    "episodes",
+    "steps",
+    "mae_deg",
+    "rmse_deg",
+    "fmae_deg",
+    "smt1_deg",
+    "smt2_deg",
+    "etd_mae_cm",
+    "etd_fmae_cm",
+    "per_joint_mae_deg",
+)
+"""Keys of the dict returned by :func:`compute_metrics`."""
+MIN_STEPS = 4
+"""Shortest episode with every metric defined (the 2nd-order smoothness needs q[1], q[2], q[3])."""
+
+
+def tracking_error(q: np.ndarray, q_des: np.ndarray) -> np.ndarray:
+    """Tracking error of every step: e_t = wrap(q[t+1] − q_des[t]).
+
+    Args:
+        q: (T, 4) rad, measured positions.
+        q_des: (T, 4) rad, desired position for the next step.
+
+    Returns:
+        (T−1, 4) rad.
+    """
+    return wrap(q[1:] - q_des[:-1])
+
+
+def mae(e: np.ndarray) -> float:
+    """Mean absolute error over steps and joints of ``e`` (S, 4) rad → rad."""
+    return float(np.mean(np.abs(e)))
+
+
+def per_joint_mae(e: np.ndarray) -> np.ndarray:
+    """Mean absolute error per joint of ``e`` (S, 4) rad → (4,) rad."""
+    return np.mean(np.abs(e), axis=0)
+
+
+def rmse(e: np.ndarray) -> float:
+    """Root mean square error per joint over steps, then the mean over joints; ``e`` (S, 4) rad → rad."""
+    return float(np.mean(np.sqrt(np.mean(e**2, axis=0))))
+
+
+def fmae(e: np.ndarray) -> float:
+    """Final mean absolute error: mean over joints of |e| at the last step; ``e`` (S, 4) rad → rad."""
+    return float(np.mean(np.abs(e[-1])))
+
+
+def smoothness(q: np.ndarray, order: int) -> float:
+    """Order-``order`` smoothness of the controlled positions q[1 … T−1].
+
+    The RMS over steps of the ``order``-th (angle-wrapped) difference, averaged over joints.
+
+    Args:
+        q: (T, 4) rad, measured positions; q[0] (before any command) is left out.
+        order: 1 (step size) or 2 (change of step size).
+
+    Returns:
+        rad.
+    """
+    if order not in (1, 2):
+        raise ValueError(f"smoothness order {order}: expected 1 or 2")
+    if len(q) < order + 2:
+        raise EfficientTrackError(f"smoothness of order {order} needs at least {order + 2} steps, got {len(q)}")
+    diff = wrap(np.diff(q[1:], axis=0))
+    if order == 2:
+        diff = np.diff(diff, axis=0)
+    return float(np.mean(np.sqrt(np.mean(diff**2, axis=0))))
+
+
+def tip_distance(q: np.ndarray, q_des: np.ndarray) -> np.ndarray:
+    """End-effector tracking distance of every step: |fk(q[t+1]) − fk(q_des[t])|.
+
+    Args:
+        q: (T, 4) rad, measured positions.
+        q_des: (T, 4) rad, desired position for the next step.
+
+    Returns:
+        (T−1,) m.
+    """
+    return np.linalg.norm(tip_position(q[1:]) - tip_position(q_des[:-1]), axis=-1)
+
+
+def episode_metrics(record: EpisodeRecord) -> dict[str, Any]:
+    """The metrics of one episode, in degrees / centimetres (keys of :data:`METRIC_KEYS`, episodes = 1).
+
+    Args:
+        record: the episode (only ``q`` and ``q_des`` are used).
+
+    Returns:
+        A dict like :func:`compute_metrics`' for a single episode.
+    """
+    e = tracking_error(record.q, record.q_des)
+    etd = tip_distance(record.q, record.q_des)
+    return {
+        "episodes": 1,
+        "steps": len(record),
+        "mae_deg": np.degrees(mae(e)),
+        "rmse_deg": np.degrees(rmse(e)),
+        "fmae_deg": np.degrees(fmae(e)),
+        "smt1_deg": np.degrees(smoothness(record.q, 1)),
+        "smt2_deg": np.degrees(smoothness(record.q, 2)),
+        "etd_mae_cm": 100 * float(np.mean(etd)),
+        "etd_fmae_cm": 100 * float(etd[-1]),
+        "per_joint_mae_deg": np.degrees(per_joint_mae(e)),
+    }
+
+
+def compute_metrics(records: Sequence[EpisodeRecord]) -> dict[str, Any]:
+    """The paper's metrics of a set of episodes: each computed per episode, then averaged.
+
+    Args:
+        records: the episodes (at least one, each with T ≥ 4 steps for the 2nd-order smoothness).
+
+    Returns:
+        ``{"episodes": int, "steps": int (Σ T, the interaction steps), "mae_deg", "rmse_deg",
+        "fmae_deg", "smt1_deg", "smt2_deg": float °, "etd_mae_cm", "etd_fmae_cm": float cm,
+        "per_joint_mae_deg": [4] ° (boom, arm, bucket, swing)}``.
+    """
+    if not records:
+        raise EfficientTrackError("metrics: no episodes given")
+    short = [str(r.meta.get("name", i)) for i, r in enumerate(records) if len(r) < MIN_STEPS]
+    if short:
+        raise EfficientTrackError(f"metrics: episode(s) {', '.join(short[:5])} have fewer than {MIN_STEPS} steps")
+    per_episode = [episode_metrics(record) for record in records]
+    result: dict[str, Any] = {"episodes": len(records), "steps": int(sum(len(r) for r in records))}
+    for key in METRIC_KEYS[2:-1]:
+        result[key] = float(np.mean([m[key] for m in per_episode]))
+    result["per_joint_mae_deg"] = np.mean([m["per_joint_mae_deg"] for m in per_episode], axis=0).tolist()
+    return result
+
+
+def rounded(metrics: Mapping[str, Any], decimals: int = 4) -> dict[str, Any]:
+    """``metrics`` with every float rounded to ``decimals`` (for JSON output)."""
+    return {
+        key: [round(v, decimals) for v in value] if isinstance(value, list) else round(value, decimals)
+        for key, value in metrics.items()
+    }
+
+
+def interaction_hours(steps: int) -> float:
+    """Interaction time I.T. in hours of ``steps`` control steps at 20 Hz."""
+    return steps / CONTROL_RATE_HZ / 3600
+
+
+def metrics_table(rows: Mapping[str, Mapping[str, Any]], title: str) -> Table:
+    """A rich table with one row per method.
+
+    Args:
+        rows: method name → the dict of :func:`compute_metrics`.
+        title: table title.
+
+    Returns:
+        The table: MAE, RMSE, FMAE, 1st/2nd-order smoothness (oSMT) in °, ETD-MAE/FMAE in cm,
+        per-joint MAE in ° (boom, arm, bucket, swing), episodes, interaction steps I.S. and time I.T. in h.
+    """
+    table = Table(title=title, caption="angles in °, ETD in cm; per-joint columns: MAE °; I.T. in hours at 20 Hz")
+    table.add_column("method", overflow="fold", min_width=8)
+    headers = (
+        "MAE",
+        "RMSE",
+        "FMAE",
+        "oSMT1",
+        "oSMT2",
+        "ETD-MAE",
+        "ETD-FMAE",
+        "boom",
+        "arm",
+        "bucket",
+        "swing",
+        "eps",
+        "I.S.",
+        "I.T.",
+    )
+    for header in headers:
+        table.add_column(header, justify="right", no_wrap=True)
+    for name, m in rows.items():
+        table.add_row(
+            name,
+            *(f"{m[key]:.2f}" for key in METRIC_KEYS[2:-1]),
+            *(f"{v:.2f}" for v in m["per_joint_mae_deg"]),
+            str(m["episodes"]),
+            str(m["steps"]),
+            f"{interaction_hours(m['steps']):.2f}",
+        )
+    return table
