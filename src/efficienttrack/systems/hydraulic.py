@@ -1,0 +1,446 @@
+"""The built-in hydraulic excavator simulator (PWM level), vectorized over N machines.
+
+Per joint j (boom, arm, bucket, swing) and step t, with the PWM u[t] clipped to ±1000:
+
+1. **Transport delay**: the valve sees the command of ``delay[j]`` steps ago, ``u_d = u[t − delay]``.
+2. **Dead zone, flow curve, saturation**: the valve opening is
+   ``x = flow(clip((|u_d| − dz) / (pwm_sat − dz), 0, 1))``, a piecewise-linear flow characteristic
+   ``flow`` (0 at 0, 1 at 1, ``flow_curve`` at the evenly spaced knots between), with a dead zone ``dz`` that
+   depends on the direction, shifts linearly with the joint angle (``dead_zone_q``) and is larger
+   for a joint at rest (``dead_zone_rest``, breakaway, fading out up to ``rest_speed``).
+3. **Direction asymmetry, gravity and payload**: the requested speed is
+   ``v_max_pos·(1 + payload_pos·payload)·x`` for u_d > 0 and ``v_max_neg·(1 + payload_neg·payload)·x``
+   for u_d < 0 (boom raising and lowering differ, and a loaded bucket slows the raising).
+4. **Pump sharing**: each joint draws ``flow_weight[j]·x[j]`` of the pump; when the sum exceeds
+   ``pump_flow`` every requested speed is scaled down by ``pump_flow / sum``.
+5. **Actuator lag**: the joint velocity follows the requested velocity with time constant ``tau``
+   when speeding up and ``tau_brake`` when slowing down or reversing.
+6. **Integration and limits**: ``q += dt·q̇``; boom, arm and bucket stop at ``[q_min, q_max]``;
+   the swing wraps at ±π.
+
+Sign convention (as the real XE75): a positive PWM moves boom, arm and bucket towards smaller
+angles and the swing towards larger angles. The observation is ``(q, q̇)`` (8,)/(N, 8), plus
+optional Gaussian sensor noise drawn from a seeded generator.
+
+The physics is the pure function :func:`step` on a :class:`HydraulicState` with a frozen
+:class:`HydraulicParams`; :class:`HydraulicExcavator` is the thin stateful Plant on top.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, fields
+from functools import cached_property
+from importlib import resources
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from efficienttrack.angles import wrap
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.systems.pd import XE75_PD, ClosedLoop
+
+N_JOINTS = 4
+U_MAX = 1000.0
+DIRECTION = np.array([-1.0, -1.0, -1.0, 1.0])
+"""Sign of the joint velocity for a positive PWM (boom, arm, bucket, swing)."""
+
+_JOINT_INDEX = np.arange(N_JOINTS)
+
+Vec4 = tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
+class HydraulicParams:
+    """Parameters of the hydraulic excavator model; per-joint tuples are (boom, arm, bucket, swing)."""
+
+    delay: tuple[int, int, int, int] = (4, 4, 4, 4)
+    """Hydraulic transport delay, whole control steps from the command to the valve."""
+    tau: Vec4 = (0.10, 0.10, 0.10, 0.10)
+    """Time constant of the first-order actuator lag while speeding up, s."""
+    tau_brake: Vec4 = (0.10, 0.10, 0.10, 0.10)
+    """Time constant of the actuator lag while slowing down or reversing (the closing valve brakes), s."""
+    dead_zone_pos: Vec4 = (480.0, 470.0, 500.0, 450.0)
+    """Valve dead zone for positive PWM at angle 0, PWM."""
+    dead_zone_neg: Vec4 = (480.0, 470.0, 480.0, 450.0)
+    """Valve dead zone for negative PWM at angle 0, PWM."""
+    dead_zone_q: Vec4 = (0.0, 0.0, 0.0, 0.0)
+    """Change of both dead zones per rad of joint angle (state-dependent dead zone), PWM/rad."""
+    dead_zone_rest: Vec4 = (0.0, 0.0, 0.0, 0.0)
+    """Extra dead zone of a joint at rest (breakaway), fading out linearly up to ``rest_speed``, PWM."""
+    rest_speed: Vec4 = (0.05, 0.05, 0.05, 0.05)
+    """Joint speed from which the extra rest dead zone is gone, rad/s."""
+    pwm_sat: Vec4 = (1000.0, 1000.0, 1000.0, 1000.0)
+    """PWM magnitude at which the valve is fully open (flow saturation), PWM."""
+    flow_curve: tuple[Vec4, ...] = ((0.2,) * 4, (0.4,) * 4, (0.6,) * 4, (0.8,) * 4)
+    """Valve opening 0..1 at the evenly spaced interior knots of the normalized PWM beyond the dead zone (rows: knots)."""
+    v_max_pos: Vec4 = (0.10, 0.40, 1.80, 0.25)
+    """Joint speed at full positive PWM with no load and no pump sharing, rad/s (saturation)."""
+    v_max_neg: Vec4 = (0.20, 0.30, 0.90, 0.25)
+    """Joint speed at full negative PWM with no load and no pump sharing, rad/s (saturation)."""
+    payload_pos: Vec4 = (-0.30, -0.10, -0.05, 0.0)
+    """Relative change of the positive-PWM speed per unit payload (boom raising is negative)."""
+    payload_neg: Vec4 = (0.10, 0.05, 0.0, 0.0)
+    """Relative change of the negative-PWM speed per unit payload (boom lowering is positive)."""
+    flow_weight: Vec4 = (0.8, 0.8, 0.6, 0.6)
+    """Share of the pump a joint draws at full valve opening."""
+    pump_flow: float = 1.5
+    """Pump capacity in the units of ``flow_weight``; demand beyond it scales all joints down."""
+    q_min: Vec4 = (-0.60, -1.20, -0.60, -math.pi)
+    """Lower joint limits, rad (the swing is not limited: it wraps at ±π)."""
+    q_max: Vec4 = (0.70, 0.60, 2.50, math.pi)
+    """Upper joint limits, rad (the swing is not limited: it wraps at ±π)."""
+    noise_q: Vec4 = (0.0, 0.0, 0.0, 0.0)
+    """Standard deviation of the position sensor noise, rad (used when sensor noise is on)."""
+    noise_qd: Vec4 = (0.0, 0.0, 0.0, 0.0)
+    """Standard deviation of the velocity sensor noise, rad/s (used when sensor noise is on)."""
+    payload: float = 0.0
+    """Bucket load fraction, 0 (empty) … 1 (full)."""
+    dt: float = 0.05
+    """Control period, s."""
+
+    def __post_init__(self) -> None:
+        """Validate every field: per-joint tuples of 4 finite numbers, sensible ranges."""
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.name == "flow_curve":
+                if not value or not all(isinstance(row, tuple) and len(row) == N_JOINTS for row in value):
+                    raise EfficientTrackError(f"hydraulic parameter 'flow_curve': needs rows of 4 numbers, got {value!r}")
+                value = tuple(v for row in value for v in row)
+            if isinstance(value, tuple):
+                if len(value) != N_JOINTS * (len(self.flow_curve) if f.name == "flow_curve" else 1) or not all(
+                    isinstance(v, int | float) and math.isfinite(v) for v in value
+                ):
+                    raise EfficientTrackError(f"hydraulic parameter '{f.name}': needs 4 finite numbers, got {value!r}")
+            elif not isinstance(value, int | float) or not math.isfinite(value):
+                raise EfficientTrackError(f"hydraulic parameter '{f.name}': needs a finite number, got {value!r}")
+        checks = {
+            "delay": all(int(d) == d and 0 <= d <= 20 for d in self.delay),
+            "tau": all(t >= 0 for t in self.tau),
+            "tau_brake": all(t >= 0 for t in self.tau_brake),
+            "dead_zone_pos": all(0 <= d < U_MAX for d in self.dead_zone_pos),
+            "dead_zone_neg": all(0 <= d < U_MAX for d in self.dead_zone_neg),
+            "flow_curve": all(0.0 <= v <= 2.0 for row in self.flow_curve for v in row),
+            "dead_zone_rest": all(d >= 0 for d in self.dead_zone_rest),
+            "rest_speed": all(v > 0 for v in self.rest_speed),
+            "pwm_sat": all(0 < s <= U_MAX for s in self.pwm_sat),
+            "v_max_pos": all(v >= 0 for v in self.v_max_pos),
+            "v_max_neg": all(v >= 0 for v in self.v_max_neg),
+            "flow_weight": all(w >= 0 for w in self.flow_weight),
+            "pump_flow": self.pump_flow > 0,
+            "q_max": all(lo < hi for lo, hi in zip(self.q_min, self.q_max, strict=True)),
+            "noise_q": all(s >= 0 for s in self.noise_q),
+            "noise_qd": all(s >= 0 for s in self.noise_qd),
+            "payload": 0.0 <= self.payload <= 1.0,
+            "dt": self.dt > 0,
+        }
+        bad = [name for name, ok in checks.items() if not ok]
+        if bad:
+            raise EfficientTrackError(f"hydraulic parameters out of range: {', '.join(bad)}")
+
+    @cached_property
+    def arrays(self) -> _Arrays:
+        """The parameters as numpy arrays, shaped for the vectorized step (computed once)."""
+        a = {f.name: np.asarray(getattr(self, f.name), dtype=np.float64) for f in fields(self)}
+        load = self.payload
+        v_pos = DIRECTION * a["v_max_pos"] * np.maximum(1.0 + a["payload_pos"] * load, 0.0)
+        v_neg = -DIRECTION * a["v_max_neg"] * np.maximum(1.0 + a["payload_neg"] * load, 0.0)
+        return _Arrays(
+            delay=np.asarray(self.delay, dtype=np.intp),
+            alpha=1.0 - np.exp(-self.dt / np.maximum(a["tau"], 1e-9)),
+            alpha_brake_minus_accel=np.exp(-self.dt / np.maximum(a["tau"], 1e-9))
+            - np.exp(-self.dt / np.maximum(a["tau_brake"], 1e-9)),
+            dz_pos_minus_neg=a["dead_zone_pos"] - a["dead_zone_neg"],
+            dz_neg=a["dead_zone_neg"],
+            dz_q=a["dead_zone_q"],
+            dz_rest=a["dead_zone_rest"],
+            inv_rest_speed=1.0 / a["rest_speed"],
+            pwm_sat=a["pwm_sat"],
+            flow_table=np.concatenate([np.zeros((1, N_JOINTS)), a["flow_curve"], np.ones((1, N_JOINTS))]),
+            v_pos_minus_neg=v_pos - v_neg,
+            v_neg=v_neg,
+            flow_weight=a["flow_weight"],
+            pump_flow=float(self.pump_flow),
+            q_min=np.where(np.arange(N_JOINTS) == 3, -np.inf, a["q_min"]),
+            q_max=np.where(np.arange(N_JOINTS) == 3, np.inf, a["q_max"]),
+            noise=np.concatenate([a["noise_q"], a["noise_qd"]]),
+            dt=float(self.dt),
+        )
+
+    @property
+    def max_delay(self) -> int:
+        """Longest transport delay over the joints, steps."""
+        return int(max(self.delay))
+
+    def replace(self, **changes: Any) -> HydraulicParams:
+        """A copy with some fields changed (lists become tuples); unknown names raise EfficientTrackError."""
+        names = {f.name for f in fields(self)}
+        unknown = sorted(set(changes) - names)
+        if unknown:
+            raise EfficientTrackError(f"unknown hydraulic parameter(s): {', '.join(unknown)}")
+        values = self.to_dict()
+        values.update(changes)
+        return HydraulicParams.from_dict(values)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-serializable fields (tuples as lists)."""
+        return json.loads(json.dumps(asdict(self)))
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any], source: str = "hydraulic parameters") -> HydraulicParams:
+        """Build from a dict of fields (lists for per-joint values); raise EfficientTrackError on bad input."""
+        if not isinstance(values, dict):
+            raise EfficientTrackError(f"{source}: expected a JSON object of parameters")
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - names)
+        if unknown:
+            raise EfficientTrackError(f"{source}: unknown parameter(s) {', '.join(unknown)}")
+        kwargs: dict[str, Any] = {}
+        for key, value in values.items():
+            if key == "flow_curve" and isinstance(value, list):
+                value = tuple(tuple(row) if isinstance(row, list) else row for row in value)
+            elif isinstance(value, list):
+                value = tuple(int(v) if key == "delay" and float(v).is_integer() else v for v in value)
+            kwargs[key] = value
+        try:
+            return cls(**kwargs)
+        except EfficientTrackError as exc:
+            raise EfficientTrackError(f"{source}: {exc}") from exc
+
+    @classmethod
+    def load(cls, path: str | Path) -> HydraulicParams:
+        """Read a JSON preset file: every field of this class (as written by ``efficienttrack sim calibrate``)."""
+        path = Path(path)
+        try:
+            values = json.loads(path.read_text())
+        except OSError as exc:
+            raise EfficientTrackError(f"{path}: cannot read the simulator preset ({exc.strerror})") from exc
+        except json.JSONDecodeError as exc:
+            raise EfficientTrackError(f"{path}: not valid JSON ({exc})") from exc
+        missing = [f.name for f in fields(cls) if isinstance(values, dict) and f.name not in values]
+        if missing:
+            raise EfficientTrackError(f"{path}: simulator preset lacks parameter(s) {', '.join(missing)}")
+        return cls.from_dict(values, source=str(path))
+
+
+class _Arrays(NamedTuple):
+    """Derived numpy views of :class:`HydraulicParams` used by :func:`step`."""
+
+    delay: np.ndarray
+    alpha: np.ndarray
+    alpha_brake_minus_accel: np.ndarray
+    dz_pos_minus_neg: np.ndarray
+    dz_neg: np.ndarray
+    dz_q: np.ndarray
+    dz_rest: np.ndarray
+    inv_rest_speed: np.ndarray
+    pwm_sat: np.ndarray
+    flow_table: np.ndarray
+    v_pos_minus_neg: np.ndarray
+    v_neg: np.ndarray
+    flow_weight: np.ndarray
+    pump_flow: float
+    q_min: np.ndarray
+    q_max: np.ndarray
+    noise: np.ndarray
+    dt: float
+
+
+class HydraulicState(NamedTuple):
+    """State of N simulated machines.
+
+    Attributes:
+        q: (N, 4) rad, joint positions.
+        qd: (N, 4) rad/s, joint velocities.
+        u_hist: (N, D, 4) PWM, the last D commands, newest first (D = max delay + 1).
+    """
+
+    q: np.ndarray
+    qd: np.ndarray
+    u_hist: np.ndarray
+
+
+def initial_state(
+    q0: np.ndarray, params: HydraulicParams, qd0: np.ndarray | None = None, u_past: np.ndarray | None = None
+) -> HydraulicState:
+    """State of N machines at ``q0`` (N, 4) rad; at rest with empty delay lines unless told otherwise.
+
+    Args:
+        q0: (N, 4) rad, joint positions.
+        params: model parameters (sets the delay-line length).
+        qd0: (N, 4) rad/s, joint velocities; zeros by default.
+        u_past: (K, N, 4) PWM, the last K commands in time order (the last row is the command of the
+            step just before); fills the delay line, older entries stay zero.
+
+    Returns:
+        The state.
+    """
+    q0 = np.array(q0, dtype=np.float64)
+    n = len(q0)
+    qd = np.zeros((n, N_JOINTS)) if qd0 is None else np.array(qd0, dtype=np.float64).reshape(n, N_JOINTS)
+    u_hist = np.zeros((n, params.max_delay + 1, N_JOINTS))
+    if u_past is not None:
+        recent = np.clip(np.asarray(u_past, dtype=np.float64).reshape(-1, n, N_JOINTS), -U_MAX, U_MAX)[::-1]
+        k = min(len(recent), params.max_delay + 1)
+        u_hist[:, :k] = recent[:k].transpose(1, 0, 2)
+    return HydraulicState(q=q0, qd=qd, u_hist=u_hist)
+
+
+def step(state: HydraulicState, u: np.ndarray, params: HydraulicParams) -> HydraulicState:
+    """Advance N machines by one control period.
+
+    Args:
+        state: the current state (N machines).
+        u: (N, 4) PWM command of this step; clipped to ±1000.
+        params: model parameters.
+
+    Returns:
+        The next state; ``q`` (N, 4) rad, ``qd`` (N, 4) rad/s.
+    """
+    p = params.arrays
+    u_now = np.minimum(np.maximum(u, -U_MAX), U_MAX)
+    u_hist = np.concatenate((u_now[:, None, :], state.u_hist[:, :-1]), axis=1)
+    u_d = u_hist[:, p.delay, _JOINT_INDEX]
+    # valve: direction- and state-dependent dead zone, flow curve, saturation
+    pos = u_d > 0.0
+    dz = p.dz_neg + pos * p.dz_pos_minus_neg + p.dz_q * state.q
+    dz += p.dz_rest * np.maximum(1.0 - np.abs(state.qd) * p.inv_rest_speed, 0.0)
+    x = (np.abs(u_d) - dz) / np.maximum(p.pwm_sat - dz, 1.0)
+    x = np.minimum(np.maximum(x, 0.0), 1.0) * (len(p.flow_table) - 1)
+    i = np.minimum(x.astype(np.intp), len(p.flow_table) - 2)
+    lo = p.flow_table[i, _JOINT_INDEX]
+    opening = lo + (x - i) * (p.flow_table[i + 1, _JOINT_INDEX] - lo)
+    # pump sharing
+    demand = (opening * p.flow_weight).sum(axis=1, keepdims=True)
+    share = np.minimum(1.0, p.pump_flow / np.maximum(demand, 1e-12))
+    # direction asymmetry / payload, then first-order lag (faster when braking)
+    v_cmd = (p.v_neg + pos * p.v_pos_minus_neg) * opening * share
+    dv = v_cmd - state.qd
+    qd = state.qd + (p.alpha + (dv * state.qd < 0.0) * p.alpha_brake_minus_accel) * dv
+    q = state.q + p.dt * qd
+    # joint limits (swing unlimited) and swing wrap
+    q_lim = np.minimum(np.maximum(q, p.q_min), p.q_max)
+    qd *= q_lim == q
+    q_lim[:, 3] = wrap(q_lim[:, 3])
+    return HydraulicState(q=q_lim, qd=qd, u_hist=u_hist)
+
+
+def observe(state: HydraulicState, params: HydraulicParams, rng: np.random.Generator | None = None) -> np.ndarray:
+    """Observation (N, 8) = [q rad, q̇ rad/s], with sensor noise when ``rng`` is given."""
+    obs = np.concatenate((state.q, state.qd), axis=1)
+    if rng is not None:
+        obs += rng.standard_normal(obs.shape) * params.arrays.noise
+    return obs
+
+
+class HydraulicExcavator:
+    """The hydraulic excavator simulator as a batched Plant (see the module docstring for the model).
+
+    ====== ============ ===================== ==========================================
+    name   shape        unit / limits         meaning
+    ====== ============ ===================== ==========================================
+    q0     (4,)/(N, 4)  rad                   ``reset``: positions; at rest, empty delay lines
+    u      (4,)/(N, 4)  PWM, clipped ±1000    ``step``: valve commands
+    obs    (8,)/(N, 8)  [q rad, q̇ rad/s]      q within [q_min, q_max] (swing in (−π, π])
+    ====== ============ ===================== ==========================================
+
+    ``dt`` = ``params.dt`` (0.05 s). ``reset`` optionally takes the logged velocity ``qd0`` and the
+    last commands ``u_past`` (K, 4)/(K, N, 4), time order, to start in a logged state. Output rank
+    follows the ``q0`` given to ``reset``. Version 1 (model of this module docstring).
+
+    Args:
+        params: model parameters.
+        sensor_noise: add Gaussian noise of std ``params.noise_q`` / ``noise_qd`` to the observations.
+        seed: seed of the noise generator (re-seeded at construction only).
+    """
+
+    batched = True
+
+    def __init__(self, params: HydraulicParams, sensor_noise: bool = False, seed: int = 0) -> None:
+        self.params = params
+        self.dt = params.dt
+        self.sensor_noise = bool(sensor_noise)
+        self._rng = np.random.default_rng(seed)
+        self.state: HydraulicState | None = None
+        self._single = False
+
+    def reset(self, q0: np.ndarray, qd0: np.ndarray | None = None, u_past: np.ndarray | None = None) -> np.ndarray:
+        """Machines at ``q0`` (4,)/(N, 4) rad; return obs (8,)/(N, 8).
+
+        At rest with empty delay lines by default; ``qd0`` (4,)/(N, 4) rad/s and ``u_past``
+        (K, 4)/(K, N, 4) PWM (the last K commands, time order) start them in a logged state instead.
+        """
+        q0 = np.asarray(q0, dtype=np.float64)
+        if q0.shape[-1:] != (N_JOINTS,) or q0.ndim not in (1, 2):
+            raise EfficientTrackError(f"hydraulic simulator: reset expects q0 of shape (4,) or (N, 4), got {q0.shape}")
+        self._single = q0.ndim == 1
+        n = 1 if self._single else len(q0)
+        if qd0 is not None and np.size(qd0) != n * N_JOINTS:
+            raise EfficientTrackError(f"hydraulic simulator: qd0 must match q0 {q0.shape}, got {np.shape(qd0)}")
+        if u_past is not None and np.size(u_past) % (n * N_JOINTS):
+            raise EfficientTrackError(f"hydraulic simulator: u_past must be (K, {n}, 4), got {np.shape(u_past)}")
+        self.state = initial_state(q0.reshape(n, N_JOINTS), self.params, qd0, u_past)
+        return self._obs()
+
+    def step(self, u: np.ndarray) -> np.ndarray:
+        """Apply PWM ``u`` (4,)/(N, 4) for one period; return obs (8,)/(N, 8)."""
+        if self.state is None:
+            raise EfficientTrackError("hydraulic simulator: step called before reset")
+        u = np.asarray(u, dtype=np.float64)
+        if u.ndim == 1:
+            u = u[None]
+        if u.shape != self.state.q.shape:
+            raise EfficientTrackError(f"hydraulic simulator: step expects PWM of shape {self.state.q.shape}, got {u.shape}")
+        self.state = step(self.state, u, self.params)
+        return self._obs()
+
+    def _obs(self) -> np.ndarray:
+        obs = observe(self.state, self.params, self._rng if self.sensor_noise else None)
+        return obs[0] if self._single else obs
+
+
+def preset_path() -> Path:
+    """Path of the shipped XE75 preset (fitted to the real machine's logs)."""
+    return Path(str(resources.files("efficienttrack.systems") / "presets" / "xe75.json"))
+
+
+def xe75_params(params_file: str | Path | None = None, payload: float | None = None) -> HydraulicParams:
+    """The XE75 parameters: the shipped preset (or ``params_file``), with an optional payload 0..1."""
+    params = HydraulicParams.load(preset_path() if params_file is None else params_file)
+    return params if payload is None else params.replace(payload=float(payload))
+
+
+def xe75_plant(
+    params_file: str | None = None, payload: float | None = None, sensor_noise: bool = False, seed: int = 0
+) -> HydraulicExcavator:
+    """The built-in XE75 plant (``load_plant("xe75")``).
+
+    Args:
+        params_file: JSON preset to use instead of the shipped one (from ``efficienttrack sim calibrate``).
+        payload: bucket load fraction 0..1 (default: the preset's, 0).
+        sensor_noise: add the preset's sensor noise to the observations.
+        seed: seed of the sensor noise.
+
+    Returns:
+        A batched :class:`HydraulicExcavator`.
+    """
+    return HydraulicExcavator(xe75_params(params_file, payload), sensor_noise=sensor_noise, seed=seed)
+
+
+def xe75_closed_loop(
+    params_file: str | None = None, payload: float | None = None, sensor_noise: bool = False, seed: int = 0
+) -> ClosedLoop:
+    """The built-in XE75 system (``load_system("xe75")``): :func:`xe75_plant` under the real PD law.
+
+    Args:
+        params_file: JSON preset to use instead of the shipped one.
+        payload: bucket load fraction 0..1.
+        sensor_noise: add the preset's sensor noise to the observations.
+        seed: seed of the sensor noise.
+
+    Returns:
+        A batched :class:`~efficienttrack.systems.pd.ClosedLoop`.
+    """
+    return ClosedLoop(xe75_plant(params_file, payload, sensor_noise, seed), XE75_PD)

@@ -1,0 +1,221 @@
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from efficienttrack.cli import app
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.records import EpisodeRecord
+from efficienttrack.systems import load_plant, load_system
+from efficienttrack.systems.calibrate import (
+    FitConfig,
+    _simulate_episodes,
+    calibrate,
+    closed_loop_rollout,
+    estimate_sensor_noise,
+    fidelity,
+    load_logs,
+    make_windows,
+    open_loop_mpe,
+    pad,
+    save_params,
+    tracking_mae,
+)
+from efficienttrack.systems.hydraulic import HydraulicExcavator, HydraulicParams
+from efficienttrack.systems.pd import XE75_PD, ClosedLoop
+from efficienttrack.systems.protocol import BatchedSystem
+
+DATA = Path(__file__).parents[2] / "shared" / "data" / "xe75"
+
+TRUE = HydraulicParams(
+    delay=(3, 4, 4, 3),
+    tau=(0.12, 0.06, 0.04, 0.2),
+    dead_zone_pos=(450.0, 380.0, 500.0, 420.0),
+    dead_zone_neg=(600.0, 400.0, 450.0, 470.0),
+    pwm_sat=(950.0, 720.0, 950.0, 680.0),
+    v_max_pos=(0.2, 0.4, 1.2, 0.4),
+    v_max_neg=(0.3, 0.3, 1.0, 0.45),
+    pump_flow=10.0,
+    q_min=(-0.6, -1.2, -0.6, -np.pi),
+    q_max=(0.7, 0.6, 2.4, np.pi),
+)
+
+
+def synthetic_records(params, episodes=6, steps=240, seed=0):
+    """PD runs of the simulator on smooth random references with noisy q_ref (like pd_noise_train)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(steps + 1) * 0.05
+    freq = rng.uniform(0.05, 0.2, (episodes, 4))
+    amp = rng.uniform(0.1, 0.4, (episodes, 4)) * np.array([0.5, 1.0, 1.5, 1.5])
+    ref = amp[None] * np.sin(2 * np.pi * freq[None] * t[:, None, None] + rng.uniform(0, 6, (episodes, 4)))
+    q_des = ref[1:]
+    q_ref = q_des + 0.02 * np.clip(rng.standard_normal(q_des.shape), -1, 1)
+    system = ClosedLoop(HydraulicExcavator(params), XE75_PD)
+    q = np.empty_like(q_des)
+    qd = np.empty_like(q_des)
+    u = np.empty_like(q_des)
+    obs = system.reset(ref[0])
+    for k in range(steps):
+        q[k], qd[k] = obs[:, :4], obs[:, 4:]
+        obs = system.step(q_ref[k])
+        u[k] = system.last_command
+    return [
+        EpisodeRecord(q=q[:, i], qd=qd[:, i], q_ref=q_ref[:, i], q_des=q_des[:, i], u=u[:, i], t=t[:steps]).validate()
+        for i in range(episodes)
+    ]
+
+
+def test_calibrate_recovers_known_parameters():
+    records = synthetic_records(TRUE)
+    start = TRUE.replace(
+        delay=(4, 4, 4, 4),
+        tau=(0.1, 0.1, 0.1, 0.1),
+        dead_zone_pos=(500.0,) * 4,
+        dead_zone_neg=(500.0,) * 4,
+        v_max_pos=(0.3, 0.3, 0.8, 0.3),
+        v_max_neg=(0.3, 0.3, 0.8, 0.3),
+        pump_flow=5.0,
+    )
+    config = FitConfig(delays=(3, 4), open_horizon=10, closed_horizon=30, max_windows=60, max_episodes=4, max_nfev=10)
+    result = calibrate(records, start, config)
+    fit = result.params
+    assert fit.delay == TRUE.delay
+    np.testing.assert_allclose(fit.v_max_pos, TRUE.v_max_pos, rtol=0.15)
+    np.testing.assert_allclose(fit.v_max_neg, TRUE.v_max_neg, rtol=0.15)
+    np.testing.assert_allclose(fit.dead_zone_pos, TRUE.dead_zone_pos, atol=40)
+    np.testing.assert_allclose(fit.dead_zone_neg, TRUE.dead_zone_neg, atol=40)
+    assert np.all(result.open_loop_deg < 0.2) and np.all(result.closed_loop_deg < 0.2)
+
+
+def test_fidelity_of_the_true_simulator_is_perfect():
+    records = synthetic_records(TRUE, episodes=3, steps=120, seed=1)
+    records[1] = EpisodeRecord(
+        **{**records[1].__dict__, **{k: getattr(records[1], k)[:90] for k in ("q", "qd", "q_ref", "q_des", "u", "t")}}
+    )
+    system = BatchedSystem(ClosedLoop(HydraulicExcavator(TRUE), XE75_PD))
+    plant = BatchedSystem(HydraulicExcavator(TRUE))
+    result = fidelity(records, system, plant)
+    np.testing.assert_allclose(result.ratio, 1.0, atol=1e-9)
+    np.testing.assert_allclose(result.mpe20_deg, 0.0, atol=1e-9)
+    # padded episodes are masked: the short one's MAE equals its own unpadded MAE
+    alone = tracking_mae(records[1].q[:, None], pad([records[1]]))[0]
+    np.testing.assert_allclose(tracking_mae(result.q_sim, result.data)[1], alone, atol=1e-12)
+    line = json.dumps(result.to_json())
+    assert set(json.loads(line)) == {"closed_loop", "open_loop"}
+
+
+def test_fast_episode_simulation_equals_the_closed_loop_system():
+    records = synthetic_records(TRUE, episodes=3, steps=80, seed=4)
+    data = pad(records)
+    params = TRUE.replace(pump_flow=1.2, dead_zone_rest=(50.0, 40.0, 30.0, 20.0))
+    fast = _simulate_episodes(params, data, XE75_PD)
+    reference = closed_loop_rollout(BatchedSystem(ClosedLoop(HydraulicExcavator(params), XE75_PD)), data)
+    np.testing.assert_allclose(fast, reference, rtol=0, atol=1e-12)
+
+
+def test_open_loop_error_of_a_plant_without_history_starts_at_rest():
+    class AtRest:
+        """The same simulator seen through the bare Plant protocol (no qd0/u_past on reset)."""
+
+        batched = True
+        dt = 0.05
+
+        def __init__(self):
+            self.inner = HydraulicExcavator(TRUE)
+
+        def reset(self, q0):
+            return self.inner.reset(q0)
+
+        def step(self, u):
+            return self.inner.step(u)
+
+    records = synthetic_records(TRUE, episodes=2, steps=100, seed=2)
+    data = pad(records)
+    w = make_windows(data, 20, stride=10)
+    plant = HydraulicExcavator(TRUE)
+    plant.reset(w.q0)
+    q = np.stack([plant.step(u)[:, :4] for u in w.u])
+    expected = np.abs(q - w.q).mean(axis=(0, 1))
+    np.testing.assert_allclose(open_loop_mpe(BatchedSystem(AtRest()), data), expected, atol=1e-12)
+    assert np.all(expected > 0)
+
+
+def test_cli_fidelity_and_calibrate(tmp_path):
+    logs = tmp_path / "logs"
+    for i, record in enumerate(synthetic_records(TRUE, episodes=2, steps=100, seed=3)):
+        record.save(logs / f"ep{i}.npz")
+    preset = save_params(TRUE, tmp_path / "true.json")
+    runner = CliRunner()
+    out = runner.invoke(
+        app,
+        [
+            "sim",
+            "fidelity",
+            "--logs",
+            str(logs),
+            "--system-opt",
+            f"params_file={preset}",
+            "--json",
+            "--plot",
+            str(tmp_path / "plots"),
+            "--episodes",
+            "1",
+        ],
+    )
+    assert out.exit_code == 0, out.output
+    report = json.loads(out.output.strip().splitlines()[-1])
+    np.testing.assert_allclose(report["closed_loop"]["ratio"], 1.0, atol=1e-3)
+    assert len(list((tmp_path / "plots").glob("*.png"))) == 1
+    out = runner.invoke(
+        app,
+        [
+            "sim",
+            "calibrate",
+            "--logs",
+            str(logs),
+            "--out",
+            str(tmp_path / "fit.json"),
+            "--start",
+            str(preset),
+            "--delays",
+            "3,4",
+            "--max-windows",
+            "40",
+            "--max-nfev",
+            "2",
+        ],
+    )
+    assert out.exit_code == 0, out.output
+    assert HydraulicParams.load(tmp_path / "fit.json").delay[1] == 4
+
+
+@pytest.mark.skipif(not DATA.is_dir(), reason="real XE75 logs not found at ../shared/data/xe75")
+def test_shipped_preset_closed_loop_ratio_on_pd_clean_train():
+    records = load_logs([DATA / "pd_clean_train"])
+    result = fidelity(records, load_system("xe75"), load_plant("xe75"), stride=40)
+    np.testing.assert_allclose(result.real_mae_deg, [1.45, 4.72, 5.05, 10.54], atol=0.01)  # the README's figures
+    assert np.all((result.ratio > 0.85) & (result.ratio < 1.15)), result.ratio
+
+
+def test_sensor_noise_estimate_recovers_white_noise_levels():
+    rng = np.random.default_rng(5)
+    t = np.arange(400) * 0.05
+    smooth = 0.3 * np.sin(0.5 * t)[:, None] * np.ones(4)
+    q = smooth + rng.standard_normal((400, 4)) * np.array([1e-3, 2e-3, 1e-3, 5e-4])
+    qd = np.zeros_like(q)
+    qd[1:] = (q[1:] - q[:-1]) / 0.05 + rng.standard_normal((399, 4)) * 0.02
+    record = EpisodeRecord(q=q, qd=qd, q_ref=q, q_des=q, u=np.zeros_like(q), t=t).validate()
+    noise_q, noise_qd = estimate_sensor_noise(pad([record]))
+    np.testing.assert_allclose(noise_q, [1e-3, 2e-3, 1e-3, 5e-4], rtol=0.15)
+    np.testing.assert_allclose(noise_qd, 0.02, rtol=0.15)
+
+
+def test_fit_config_is_validated():
+    with pytest.raises(EfficientTrackError, match="delays"):
+        FitConfig(delays=())
+    with pytest.raises(EfficientTrackError, match="max_nfev"):
+        FitConfig(max_nfev=0)
+    out = CliRunner().invoke(app, ["sim", "calibrate", "--logs", "/nonexistent", "--out", "x.json", "--delays", "a,b"])
+    assert out.exit_code != 0
