@@ -1,0 +1,215 @@
+"""Windows for multi-step training, and the rolling histories the runtime keeps exactly as training builds them.
+
+Time indexing (paper notation, T = len(record)):
+
+- ``o_t = record.obs[t]``, t = 0 … T−1.
+- ``q^r_{t+1} = record.q_ref[t]`` and ``q*_{t+1} = record.q_des[t]``, t = 0 … T−1; ``q^r_0 := q*_0 := q_0``.
+- History of length h at time t: ``o_H = (o_{t−h+1} … o_t)``, ``q^r_H = (q^r_{t−h+1} … q^r_t)``, padded at the
+  episode start with ``o_0`` / ``q^r_0``.
+- Future desired positions ``q*_F = (q*_{t+1} … q*_{t+F})``, padded past the episode end with the last desired
+  position (``q_des[T−1]``); future references past the end likewise repeat ``q_ref[T−1]``.
+
+:class:`Sequences` stores all episodes once, each padded in front by h−1 copies of its start and behind by
+``future`` copies of its end, as flat tensors; a window is a gather at ``flat index of t + offsets``, so
+sampling a batch is one indexing operation (on the training device).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple, TypeVar
+
+import numpy as np
+import torch
+
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.records import EpisodeRecord
+
+ArrayT = TypeVar("ArrayT", np.ndarray, torch.Tensor)
+
+
+# ------------------------------------------------------------------------------------------ rolling histories
+
+
+class History(NamedTuple):
+    """The histories the model and the policy see at time t, for N machines.
+
+    Attributes:
+        obs: (N, h, 8) [rad, rad/s], ``o_{t−h+1} … o_t`` (oldest first).
+        q_ref: (N, h, 4) rad, ``q^r_{t−h+1} … q^r_t`` (oldest first).
+    """
+
+    obs: np.ndarray
+    q_ref: np.ndarray
+
+
+def push(history: ArrayT, new: ArrayT) -> ArrayT:
+    """Drop the oldest entry of ``history`` (N, h, C) and append ``new`` (N, C); numpy or torch.
+
+    Args:
+        history: (N, h, C), oldest first.
+        new: (N, C), the newest entry.
+
+    Returns:
+        (N, h, C), the same kind of array.
+    """
+    if isinstance(history, torch.Tensor):
+        return torch.cat([history[:, 1:], new[:, None]], dim=1)
+    return np.concatenate([history[:, 1:], np.asarray(new)[:, None]], axis=1)
+
+
+def initial_history(obs0: np.ndarray, h: int) -> History:
+    """Histories at an episode start, padded as training pads them: ``o_H = [o_0]*h``, ``q^r_H = [q_0]*h``.
+
+    Use with :func:`push_observation` (each new ``o_t``, also ``o_0``) then :func:`push_reference` (the
+    reference ``q^r_{t+1}`` sent); pushing ``o_0`` onto this start leaves it unchanged.
+
+    Args:
+        obs0: (N, 8) [rad, rad/s], the measured start observation.
+        h: history length (``horizon`` of the model/policy config).
+
+    Returns:
+        The start histories, obs (N, h, 8) and q_ref (N, h, 4).
+    """
+    obs0 = np.asarray(obs0, dtype=np.float64)
+    if obs0.ndim != 2 or obs0.shape[1] != 8:
+        raise EfficientTrackError(f"initial_history: obs0 must have shape (N, 8), got {obs0.shape}")
+    if h < 1:
+        raise EfficientTrackError(f"initial_history: history length h must be ≥ 1, got {h}")
+    obs = np.repeat(obs0[:, None], h, axis=1)
+    return History(obs=obs, q_ref=obs[:, :, :4].copy())
+
+
+def push_observation(history: History, obs: np.ndarray) -> History:
+    """Append the new observation ``o_t`` (N, 8) [rad, rad/s] to ``history.obs``; q_ref is kept."""
+    return History(obs=push(history.obs, np.asarray(obs, dtype=np.float64)), q_ref=history.q_ref)
+
+
+def push_reference(history: History, q_ref: np.ndarray) -> History:
+    """Append the reference just sent, ``q^r_{t+1}`` (N, 4) rad, to ``history.q_ref``; obs is kept."""
+    return History(obs=history.obs, q_ref=push(history.q_ref, np.asarray(q_ref, dtype=np.float64)))
+
+
+# ------------------------------------------------------------------------------------------- training windows
+
+
+class Window(NamedTuple):
+    """A batch of B training windows starting at times t (float32 tensors on the buffer's device).
+
+    Attributes:
+        obs_hist: (B, h, 8) [rad, rad/s], ``o_{t−h+1} … o_t``.
+        qref_hist: (B, h, 4) rad, ``q^r_{t−h+1} … q^r_t``.
+        qref_future: (B, H, 4) rad, ``q^r_{t+1} … q^r_{t+H}`` (recorded references).
+        obs_future: (B, H, 8) [rad, rad/s], ``o_{t+1} … o_{t+H}`` (recorded observations; the targets).
+        qdes_future: (B, F, 4) rad, ``q*_{t+1} … q*_{t+F}``.
+    """
+
+    obs_hist: torch.Tensor
+    qref_hist: torch.Tensor
+    qref_future: torch.Tensor
+    obs_future: torch.Tensor
+    qdes_future: torch.Tensor
+
+
+class Sequences:
+    """All episodes, padded and concatenated, ready for window gathers.
+
+    Args:
+        records: the episodes (each validated ``EpisodeRecord``).
+        history: h, the history length of the windows.
+        future: how many steps past t a window may look (≥ the rollout horizon; 2h for the policy).
+        device: where the tensors live.
+
+    Attributes:
+        obs: (L, 8) float32 [rad, rad/s], padded observations.
+        q_ref: (L, 4) float32 rad, padded ``q^r``.
+        q_des: (L, 4) float32 rad, padded ``q*``.
+        origin: (E,) int64, flat index of t = 0 of each episode.
+        lengths: (E,) int64, T of each episode.
+    """
+
+    def __init__(
+        self, records: Sequence[EpisodeRecord], history: int, future: int, device: torch.device | str = "cpu"
+    ) -> None:
+        if history < 1 or future < 1:
+            raise EfficientTrackError(f"windows need history ≥ 1 and future ≥ 1, got {history} and {future}")
+        if not records:
+            raise EfficientTrackError("no episode records given to build training windows from")
+        self.history, self.future, self.device = history, future, torch.device(device)
+        front = history - 1
+        obs, q_ref, q_des, origin, lengths, offset = [], [], [], [], [], 0
+        for record in records:
+            o = record.obs
+            q0 = record.q[:1]
+            T = len(o)
+            obs.append(np.concatenate([np.repeat(o[:1], front, 0), o, np.repeat(o[-1:], future, 0)]))
+            # q^r_t / q*_t for t = 0 … T (t = 0 is q_0), then padding: row front + t holds time t
+            q_ref.append(
+                np.concatenate([np.repeat(q0, front + 1, 0), record.q_ref, np.repeat(record.q_ref[-1:], future - 1, 0)])
+            )
+            q_des.append(
+                np.concatenate([np.repeat(q0, front + 1, 0), record.q_des, np.repeat(record.q_des[-1:], future - 1, 0)])
+            )
+            origin.append(offset + front)
+            lengths.append(T)
+            offset += front + T + future
+
+        def tensor(parts: list[np.ndarray]) -> torch.Tensor:
+            return torch.as_tensor(np.concatenate(parts), dtype=torch.float32, device=self.device)
+
+        self.obs, self.q_ref, self.q_des = tensor(obs), tensor(q_ref), tensor(q_des)
+        self.origin = torch.as_tensor(origin, dtype=torch.int64)
+        self.lengths = torch.as_tensor(lengths, dtype=torch.int64)
+        self._hist_offsets = torch.arange(-front, 1, device=self.device)
+        self._future_offsets = torch.arange(1, future + 1, device=self.device)
+
+    @property
+    def steps(self) -> int:
+        """Total recorded steps Σ T."""
+        return int(self.lengths.sum())
+
+    def starts(self, horizon: int) -> torch.Tensor:
+        """Flat indices of every t with a full recorded horizon, t + horizon ≤ T − 1 (horizon 0: every t).
+
+        Args:
+            horizon: steps of recorded future the windows need (model: rollout length; policy: 0).
+
+        Returns:
+            (M,) int64 on the buffer's device, episode by episode in time order.
+
+        Raises:
+            EfficientTrackError: no episode is long enough, or the horizon exceeds ``future``.
+        """
+        if horizon > self.future:
+            raise EfficientTrackError(f"windows of horizon {horizon} need future ≥ {horizon}, the buffer has {self.future}")
+        counts = (self.lengths - horizon).clamp(min=0)
+        if int(counts.sum()) == 0:
+            raise EfficientTrackError(
+                f"no episode is long enough for a {horizon}-step window (longest has {int(self.lengths.max())} steps)"
+            )
+        episode_origin = torch.repeat_interleave(self.origin, counts)
+        first = torch.repeat_interleave(torch.cumsum(counts, 0) - counts, counts)
+        return (episode_origin + torch.arange(int(counts.sum())) - first).to(self.device)
+
+    def window(self, start: torch.Tensor, horizon: int, desired: int = 0) -> Window:
+        """Gather windows at flat indices ``start`` (B,) (from :meth:`starts`).
+
+        Args:
+            start: (B,) int64 flat indices of t.
+            horizon: H, recorded future steps (references and target observations) to include.
+            desired: F, future desired positions to include (≤ ``future``).
+
+        Returns:
+            The batch of windows.
+        """
+        s = start[:, None]
+        hist = s + self._hist_offsets
+        ahead = s + self._future_offsets[:horizon]
+        want = s + self._future_offsets[:desired]
+        return Window(
+            obs_hist=self.obs[hist],
+            qref_hist=self.q_ref[hist],
+            qref_future=self.q_ref[ahead],
+            obs_future=self.obs[ahead],
+            qdes_future=self.q_des[want],
+        )

@@ -1,0 +1,370 @@
+"""The trajectory adjustment policy a_t = π_φ(o_H, q^r_H, q*_F), q^r_{t+1} = q*_{t+1} + a_t, and its trainer.
+
+The policy is trained by multi-step backpropagation through the frozen closed-loop dynamics model: from each
+recorded window, the model is rolled h steps under the policy with the future desired positions, and the loss
+is the paper's discounted tracking error plus the smoothness regularizer
+
+    L(φ) = (1/h) Σ_{i=1..h} γ^i ‖wrap(q̂_{t+i} − q*_{t+i})‖² + k_smooth (1/(h−1)) Σ_{i=2..h} ‖a_{t+i} − a_{t+i−1}‖²
+
+in rad² (the paper's units, for which γ = 0.98 and k_smooth = 1.0 are tuned). Implementation choices:
+
+1. Inputs as for the model (:func:`~efficienttrack.nets.relative_features`, standardized on the training windows),
+   with the h future desired positions as targets.
+2. The output is ``tanh × max_adjust`` per joint, and its last layer starts at zero: the untrained policy is
+   the position controller alone (a = 0).
+3. Windows start at every recorded step; desired positions past an episode's end repeat its last one.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import nn
+
+from efficienttrack.angles import wrap
+from efficienttrack.dataset import Sequences, push
+from efficienttrack.dynamics import NORM_SAMPLES, ClosedLoopModel
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.nets import (
+    MLP,
+    Standardizer,
+    TrainLoop,
+    config_from_dict,
+    load_checkpoint,
+    relative_features,
+    resolve_device,
+    save_checkpoint,
+)
+from efficienttrack.records import EpisodeRecord
+
+XE75_MAX_ADJUST = (0.15, 0.30, 0.40, 0.40)
+"""Per-joint adjustment bound of the real XE75 deployment (boom, arm, bucket, swing), rad."""
+EVAL_CHUNK = 8192
+"""Windows per batch in :func:`predicted_tracking_error`."""
+
+
+@dataclass(frozen=True)
+class PolicyConfig:
+    """Size and training settings of the adjustment policy."""
+
+    hidden: int = 128
+    """Units per hidden layer (paper 512)."""
+    layers: int = 3
+    """Hidden Linear → LayerNorm → ELU blocks (paper 6)."""
+    horizon: int = 20
+    """h: history length, future desired positions seen, and training rollout length (paper 20)."""
+    gamma: float = 0.98
+    """γ: discount of the tracking loss over the rollout (paper 0.98)."""
+    k_smooth: float = 1.0
+    """k_smooth: weight of the action-smoothness regularizer (paper 1.0)."""
+    max_adjust: tuple[float, ...] = XE75_MAX_ADJUST
+    """(4,) rad, bound of |a| per joint (boom, arm, bucket, swing)."""
+    batch_size: int = 256
+    """Windows per optimizer step (paper 2048)."""
+    lr: float = 1e-3
+    """Adam learning rate (paper 1e-5)."""
+    weight_decay: float = 0.0
+    """Decoupled weight decay of φ (the paper uses none for the policy)."""
+    steps: int | None = 1500
+    """Optimizer steps; None to use ``epochs``."""
+    epochs: int | None = None
+    """Passes over the windows (paper 2000), used when ``steps`` is None."""
+    cosine_decay: bool = True
+    """Decay the learning rate to 0 along a cosine over the run (paper: constant)."""
+    grad_clip: float | None = 1.0
+    """Clip the gradient norm to this (None: no clipping)."""
+    save_every: int = 200
+    """Save the training state every this many steps when a checkpoint path is given."""
+
+    def __post_init__(self) -> None:
+        """Validate the fields."""
+        for name in ("hidden", "layers", "batch_size", "save_every"):
+            if getattr(self, name) < 1:
+                raise EfficientTrackError(f"PolicyConfig.{name} must be ≥ 1, got {getattr(self, name)}")
+        if self.horizon < 2:
+            raise EfficientTrackError(
+                f"PolicyConfig.horizon must be ≥ 2 (the smoothness term needs two actions), got {self.horizon}"
+            )
+        if len(self.max_adjust) != 4 or min(self.max_adjust) <= 0:
+            raise EfficientTrackError(f"PolicyConfig.max_adjust must be 4 positive bounds (rad), got {self.max_adjust}")
+        if (self.steps is None) == (self.epochs is None):
+            raise EfficientTrackError("PolicyConfig: set exactly one of steps and epochs")
+        if (self.steps is not None and self.steps < 1) or (self.epochs is not None and self.epochs < 1):
+            raise EfficientTrackError("PolicyConfig: steps/epochs must be ≥ 1")
+        if not 0 < self.gamma <= 1 or self.k_smooth < 0 or self.lr <= 0 or self.weight_decay < 0:
+            raise EfficientTrackError("PolicyConfig: need 0 < gamma ≤ 1, k_smooth ≥ 0, lr > 0, weight_decay ≥ 0")
+        if self.grad_clip is not None and self.grad_clip <= 0:
+            raise EfficientTrackError("PolicyConfig.grad_clip must be > 0 or None")
+
+    @property
+    def in_dim(self) -> int:
+        """Network input features: 16 h."""
+        return 16 * self.horizon
+
+    def total_steps(self, windows: int) -> int:
+        """Optimizer steps of a run on ``windows`` training windows."""
+        if self.steps is not None:
+            return self.steps
+        return int(self.epochs) * math.ceil(windows / self.batch_size)
+
+    @classmethod
+    def from_dict(cls, data: dict, source: str = "policy config") -> PolicyConfig:
+        """Build from a JSON/YAML mapping, validated field by field (``source`` names it in errors)."""
+        return config_from_dict(cls, data, source)
+
+
+POLICY_PRESETS: dict[str, PolicyConfig] = {
+    "paper": PolicyConfig(
+        hidden=512, layers=6, horizon=20, batch_size=2048, lr=1e-5,
+        steps=None, epochs=2000, cosine_decay=False, grad_clip=None, save_every=1000,
+    ),
+    "cpu": PolicyConfig(),
+    "tiny": PolicyConfig(hidden=32, layers=2, horizon=4, batch_size=64, lr=3e-3, steps=200, save_every=100),
+}  # fmt: skip
+"""Named policy configs: the paper's (a GPU job), ``cpu`` (minutes on 2 cores), ``tiny`` (tests, seconds)."""
+
+
+class AdjustmentPolicy(nn.Module):
+    """π_φ: the bounded adjustment added to the next desired position.
+
+    Args:
+        cfg: the policy config (sizes, h = ``cfg.horizon``, ``max_adjust``).
+    """
+
+    def __init__(self, cfg: PolicyConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.features = Standardizer(cfg.in_dim)
+        self.pi_phi = MLP(cfg.in_dim, 4, cfg.hidden, cfg.layers, out_scale=torch.tensor(cfg.max_adjust))
+        last = self.pi_phi.body[-1]
+        nn.init.zeros_(last.weight)
+        nn.init.zeros_(last.bias)
+
+    @torch.no_grad()
+    def fit_scaling(self, obs_hist: torch.Tensor, qref_hist: torch.Tensor, qdes_future: torch.Tensor) -> None:
+        """Set the feature statistics from recorded windows (shapes as in :meth:`forward`)."""
+        h = self.cfg.horizon
+        self.features.fit(relative_features(obs_hist[:, -h:], qref_hist[:, -h:], qdes_future[:, :h]))
+
+    def forward(self, obs_hist: torch.Tensor, qref_hist: torch.Tensor, qdes_future: torch.Tensor) -> torch.Tensor:
+        """a_t = π_φ(o_H, q^r_H, q*_F).
+
+        Args:
+            obs_hist: (B, h', 8) [rad, rad/s], ``o_{t−h'+1} … o_t``, h' ≥ h (the last h are used).
+            qref_hist: (B, h', 4) rad, ``q^r_{t−h'+1} … q^r_t``.
+            qdes_future: (B, F, 4) rad, ``q*_{t+1} … q*_{t+F}``, F ≥ h (the first h are used).
+
+        Returns:
+            (B, 4) rad, the adjustment a_t, |a| < max_adjust per joint.
+        """
+        h = self.cfg.horizon
+        x = relative_features(obs_hist[:, -h:], qref_hist[:, -h:], qdes_future[:, :h])
+        return self.pi_phi(self.features(x))
+
+
+class PolicyRollout(NamedTuple):
+    """The model rolled under the policy (time-major within each window: axis 1 is the step).
+
+    Attributes:
+        q_hat: (B, H, 4) rad, predicted positions ``q̂_{t+1} … q̂_{t+H}``.
+        a: (B, H, 4) rad, adjustments ``a_t … a_{t+H−1}``.
+        q_ref: (B, H, 4) rad, references ``q^r_{t+1} … q^r_{t+H}`` the policy produced.
+    """
+
+    q_hat: torch.Tensor
+    a: torch.Tensor
+    q_ref: torch.Tensor
+
+
+def policy_rollout(
+    g_theta: ClosedLoopModel,
+    pi_phi: AdjustmentPolicy | None,
+    obs_hist: torch.Tensor,
+    qref_hist: torch.Tensor,
+    qdes_future: torch.Tensor,
+    steps: int,
+) -> PolicyRollout:
+    """Roll g_θ ``steps`` steps under π_φ: a_i = π_φ(o_H, q^r_H, q*_F), q^r_{i+1} = q*_{i+1} + a_i, ô_{i+1} = g_θ(…).
+
+    Args:
+        g_theta: the (frozen) closed-loop dynamics model.
+        pi_phi: the policy, or None for a = 0 (the position controller alone).
+        obs_hist: (B, h', 8) [rad, rad/s], recorded ``o_H`` at t, h' ≥ both networks' h.
+        qref_hist: (B, h', 4) rad, recorded ``q^r_H`` at t.
+        qdes_future: (B, F, 4) rad, ``q*_{t+1} … q*_{t+F}`` with F ≥ steps − 1 + policy h.
+        steps: H, rollout length.
+
+    Returns:
+        Predicted positions, adjustments and references.
+    """
+    h = pi_phi.cfg.horizon if pi_phi is not None else 1
+    if qdes_future.shape[1] < steps - 1 + h:
+        raise EfficientTrackError(
+            f"policy_rollout: needs {steps - 1 + h} future desired positions, got {qdes_future.shape[1]}"
+        )
+    q_hat, actions, refs = [], [], []
+    for i in range(steps):
+        q_star_F = qdes_future[:, i : i + h]
+        a_i = pi_phi(obs_hist, qref_hist, q_star_F) if pi_phi is not None else torch.zeros_like(q_star_F[:, 0])
+        q_r = q_star_F[:, 0] + a_i
+        o_hat = g_theta(obs_hist, qref_hist, q_r)
+        obs_hist, qref_hist = push(obs_hist, o_hat), push(qref_hist, q_r)
+        q_hat.append(o_hat[:, :4])
+        actions.append(a_i)
+        refs.append(q_r)
+    return PolicyRollout(torch.stack(q_hat, 1), torch.stack(actions, 1), torch.stack(refs, 1))
+
+
+class PolicyTrainResult(NamedTuple):
+    """Outcome of :func:`train_policy`.
+
+    Attributes:
+        policy: the trained π_φ (on the training device, eval mode).
+        losses: (steps,) float, L_track + k_smooth·L_reg of every optimizer step, rad².
+        seconds: wall time of this call.
+        steps: optimizer steps in total.
+        windows: training windows available.
+    """
+
+    policy: AdjustmentPolicy
+    losses: np.ndarray
+    seconds: float
+    steps: int
+    windows: int
+
+
+def train_policy(
+    cfg: PolicyConfig,
+    model: ClosedLoopModel,
+    records: Sequence[EpisodeRecord],
+    device: str | torch.device = "auto",
+    seed: int = 0,
+    progress: bool = True,
+    checkpoint: str | Path | None = None,
+) -> PolicyTrainResult:
+    """Train π_φ by multi-step backpropagation through the frozen model (Algorithm 1, TrainPolicy).
+
+    Args:
+        cfg: policy config (see :data:`POLICY_PRESETS`).
+        model: the trained g_θ; it is not changed (its parameters get no gradient).
+        records: episodes whose windows (observations, references, desired positions) start the rollouts.
+        device: ``"auto"``, ``"cpu"``, ``"cuda"``.
+        seed: seeds initialization and window sampling.
+        progress: show a progress bar with the loss.
+        checkpoint: training-state file, saved every ``cfg.save_every`` steps and resumed from when present.
+
+    Returns:
+        The policy, per-step losses, time, steps and window count.
+    """
+    started = time.perf_counter()
+    device = resolve_device(device)
+    h = cfg.horizon
+    torch.manual_seed(seed)
+    data = Sequences(records, history=max(h, model.cfg.history_length), future=2 * h, device=device)
+    starts = data.starts(0)
+    g_theta = ClosedLoopModel(model.cfg).to(device)
+    g_theta.load_state_dict(model.state_dict())
+    g_theta.eval().requires_grad_(False)
+    pi_phi = AdjustmentPolicy(cfg).to(device)
+    sample = data.window(starts[torch.randperm(len(starts))[:NORM_SAMPLES].to(device)], horizon=0, desired=h)
+    pi_phi.fit_scaling(sample.obs_hist, sample.qref_hist, sample.qdes_future)
+    gamma_i = cfg.gamma ** torch.arange(1, h + 1, device=device, dtype=torch.float32)
+    optimizer = torch.optim.AdamW(pi_phi.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    loop = TrainLoop("policy", cfg, cfg.total_steps(len(starts)), pi_phi, optimizer, seed, checkpoint, progress)
+
+    for step in loop:
+        window = data.window(starts[loop.sample(len(starts), cfg.batch_size).to(device)], horizon=0, desired=2 * h)
+        q_star = window.qdes_future
+        # rollout: h steps of g_θ under π_φ, q^r_{i+1} = q*_{i+1} + a_i, q*_F sliding along q*_{t+1..t+2h}
+        q_hat, a, _ = policy_rollout(g_theta, pi_phi, window.obs_hist, window.qref_hist, q_star, steps=h)
+        # loss: L_track = (1/h) Σ γ^i ‖q̂_{t+i} − q*_{t+i}‖², L_reg = (1/(h−1)) Σ ‖a_{t+i} − a_{t+i−1}‖²
+        L_track = (gamma_i * wrap(q_hat - q_star[:, :h]).pow(2).sum(-1)).sum(1).mean() / h
+        L_reg = (a[:, 1:] - a[:, :-1]).pow(2).sum(-1).sum(1).mean() / (h - 1)
+        loss = L_track + cfg.k_smooth * L_reg
+        # step
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if cfg.grad_clip is not None:
+            nn.utils.clip_grad_norm_(pi_phi.parameters(), cfg.grad_clip)
+        loop.set_lr(step)
+        optimizer.step()
+        # log
+        loop.record(step, loss.item())
+
+    pi_phi.eval()
+    return PolicyTrainResult(pi_phi, loop.losses(), time.perf_counter() - started, loop.total, len(starts))
+
+
+class TrackingError(NamedTuple):
+    """Model-predicted tracking error of a policy (or of a = 0), degrees.
+
+    Attributes:
+        mae_deg: mean |wrap(q̂ − q*)| over windows, steps and joints, deg.
+        per_joint_deg: (4,) mean per joint, deg.
+        windows: number of rollouts (one per recorded step).
+    """
+
+    mae_deg: float
+    per_joint_deg: list[float]
+    windows: int
+
+
+@torch.inference_mode()
+def predicted_tracking_error(
+    model: ClosedLoopModel,
+    records: Sequence[EpisodeRecord],
+    policy: AdjustmentPolicy | None = None,
+    steps: int = 20,
+    device: str | torch.device | None = None,
+) -> TrackingError:
+    """How well ``policy`` (None: a = 0) tracks the desired positions according to ``model``.
+
+    From every recorded step t, roll the model ``steps`` steps under the policy and average
+    |wrap(q̂_{t+i} − q*_{t+i})|.
+
+    Args:
+        model: g_θ.
+        records: episodes giving the start histories and desired positions.
+        policy: π_φ, or None for the position controller alone.
+        steps: rollout length.
+        device: where to compute (the model's device when None).
+
+    Returns:
+        The mean error overall and per joint, in degrees.
+    """
+    device = next(model.parameters()).device if device is None else resolve_device(device)
+    model = model.eval().to(device)
+    policy = policy.eval().to(device) if policy is not None else None
+    h = policy.cfg.horizon if policy is not None else 1
+    data = Sequences(records, history=max(h, model.cfg.history_length), future=steps - 1 + h, device=device)
+    starts = data.starts(0)
+    total = torch.zeros(4, dtype=torch.float64, device=device)
+    for chunk in starts.split(EVAL_CHUNK):
+        window = data.window(chunk, horizon=0, desired=steps - 1 + h)
+        rolled = policy_rollout(model, policy, window.obs_hist, window.qref_hist, window.qdes_future, steps)
+        total += wrap(rolled.q_hat - window.qdes_future[:, :steps]).abs().sum((0, 1)).double()
+    per_joint = torch.rad2deg(total / (len(starts) * steps)).cpu().numpy()
+    return TrackingError(float(per_joint.mean()), per_joint.tolist(), len(starts))
+
+
+def save_policy(policy: AdjustmentPolicy, path: str | Path) -> Path:
+    """Save π_φ: state_dict at ``path`` (e.g. ``policy.pt``) and its PolicyConfig as JSON next to it."""
+    return save_checkpoint(policy, "adjustment_policy", policy.cfg, path)
+
+
+def load_policy(path: str | Path, device: str | torch.device = "cpu") -> AdjustmentPolicy:
+    """Load a policy saved by :func:`save_policy` (tensors only, ``weights_only=True``), in eval mode on ``device``."""
+    fields, state = load_checkpoint(path, "adjustment_policy")
+    policy = AdjustmentPolicy(PolicyConfig.from_dict(fields, f"{path} config"))
+    try:
+        policy.load_state_dict(state)
+    except RuntimeError as exc:
+        raise EfficientTrackError(f"{path}: weights do not match its config ({str(exc).splitlines()[0]})") from exc
+    return policy.to(resolve_device(device)).eval()
