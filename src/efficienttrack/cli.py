@@ -2,11 +2,18 @@
 
 from __future__ import annotations
 
+import json
 import sys
+import warnings
+from pathlib import Path
+from typing import Annotated
 
 import typer
+from rich.console import Console
 
 from efficienttrack.errors import EfficientTrackError
+from efficienttrack.metrics import compute_metrics, metrics_table, rounded
+from efficienttrack.records import load_records, save_records
 
 app = typer.Typer(
     help="EfficientTrack: high-precision excavator trajectory tracking from learned closed-loop dynamics.",
@@ -41,8 +48,369 @@ def parse_options(pairs: list[str] | None, flag: str = "--system-opt") -> dict[s
     return options
 
 
+@refs_app.command("generate")
+def refs_generate_command(
+    out: Annotated[Path, typer.Option("--out", help="Destination folder for ref_XX.npy (rad, 20 Hz).")],
+    n: Annotated[int, typer.Option("--n", help="Number of references.")] = 40,
+    seed: Annotated[int, typer.Option("--seed", help="Random seed.")] = 0,
+    preset_name: Annotated[str, typer.Option("--preset", help="Cycle generator preset (xe75).")] = "xe75",
+) -> None:
+    """Draw operator-like loading cycles (15–25 s at 20 Hz) and write them as ref_XX.npy."""
+    from efficienttrack.trajectories import generate_references, save_references
+
+    refs = generate_references(n, seed, preset_name)
+    save_references(refs, out)
+    durations = [ref.duration for ref in refs]
+    typer.echo(f"wrote {len(refs)} references to {out} ({min(durations):.1f}–{max(durations):.1f} s)")
+
+
+@refs_app.command("plot")
+def refs_plot_command(
+    source: Annotated[Path, typer.Argument(help="Folder (or file) of references (.npy/.csv, rad).")],
+    out: Annotated[Path | None, typer.Option("--out", help="PNG to write; default SOURCE/references.png.")] = None,
+) -> None:
+    """Draw all references per joint, in degrees against time."""
+    from efficienttrack.plots import plot_references
+    from efficienttrack.trajectories import load_references
+
+    refs = load_references(source)
+    path = plot_references(refs, out or (source if source.is_dir() else source.parent) / "references.png")
+    typer.echo(f"plotted {len(refs)} references to {path}")
+
+
+@app.command("metrics")
+def metrics_command(
+    paths: Annotated[list[Path], typer.Argument(help="Episode files or folders (.npz, our .csv, upstream .npy/.csv).")],
+    json_output: Annotated[bool, typer.Option("--json", help="Print one JSON line instead of the table.")] = False,
+) -> None:
+    """Tracking metrics of a set of episodes: the paper's definitions, per episode, averaged over episodes."""
+    result = compute_metrics(load_records(paths))
+    if json_output:
+        typer.echo(json.dumps(rounded(result)))
+    else:
+        table = metrics_table({", ".join(path.name for path in paths): result}, title="Tracking metrics")
+        Console(width=max(Console().width, 140)).print(table)  # never crop figures on a narrow or non-terminal output
+
+
+@app.command("convert")
+def convert_command(
+    paths: Annotated[list[Path], typer.Argument(help="Episode files or folders (.npz, our .csv, upstream .npy/.csv).")],
+    out: Annotated[Path, typer.Option("--out", help="Destination folder; files are named after the episodes.")],
+    fmt: Annotated[str, typer.Option("--format", help="Output format: npz or csv.")] = "npz",
+) -> None:
+    """Convert episode records between formats (upstream .npy/.csv → .npz, .npz ↔ .csv)."""
+    written = save_records(load_records(paths), out, fmt)
+    typer.echo(f"wrote {len(written)} episode(s) to {out}")
+
+
+SystemOpt = Annotated[
+    str | None, typer.Option("--system", help="Closed-loop system: built-in name (xe75) or module.path:callable.")
+]
+PlantOpt = Annotated[
+    str | None, typer.Option("--plant", help="Plant (PWM level) wrapped with the PD controller: xe75 or module.path:callable.")
+]
+PdOpt = Annotated[str, typer.Option("--pd", help="PD gains for --plant: preset name (xe75) or a JSON file.")]
+SystemOpts = Annotated[list[str] | None, typer.Option("--system-opt", help="key=value option of the system (repeatable).")]
+
+
+def _system_spec(system: str | None, plant: str | None, pd: str, options: list[str] | None):
+    from efficienttrack.pipeline import SystemSpec
+
+    return SystemSpec(system=system, plant=plant, pd=pd, options=tuple(parse_options(options).items()))
+
+
+def _run_config(config: Path | None, preset_name: str, seed: int | None, device: str | None):
+    from efficienttrack.config import load_config, preset, with_overrides
+
+    base = preset(preset_name)
+    return with_overrides(load_config(config, base) if config is not None else base, seed=seed, device=device)
+
+
+@app.command("collect")
+def collect_command(
+    refs: Annotated[Path, typer.Option("--refs", help="Folder of reference trajectories (.npy/.csv, rad).")],
+    out: Annotated[Path, typer.Option("--out", help="Output folder (pass_<k>/ records; an interrupted run resumes).")],
+    system: SystemOpt = None,
+    plant: PlantOpt = None,
+    pd: PdOpt = "xe75",
+    system_opt: SystemOpts = None,
+    passes: Annotated[int, typer.Option("--passes", help="Passes over the references.")] = 10,
+    noise_ratio: Annotated[str, typer.Option("--noise-ratio", help="Noisy:clean passes, e.g. 9:2.")] = "9:2",
+    sigma_max: Annotated[float, typer.Option("--sigma-max", help="Largest noise level σ_max, rad.")] = 0.05,
+    seed: Annotated[int, typer.Option("--seed", help="Noise seed.")] = 0,
+) -> None:
+    """Algorithm 1: track the references with the position controller, with and without noise, and record it."""
+    from efficienttrack.collect import CollectConfig, collect
+    from efficienttrack.pipeline import open_system
+    from efficienttrack.trajectories import load_references
+
+    try:
+        noisy, clean = (float(part) for part in noise_ratio.split(":"))
+    except ValueError as exc:
+        raise EfficientTrackError(f"--noise-ratio '{noise_ratio}': expected two numbers like 9:2") from exc
+    cfg = CollectConfig(sigma_max=sigma_max, noise_ratio=(noisy, clean), passes=passes, seed=seed)
+    spec = _system_spec(system, plant, pd, system_opt)
+    references = load_references(refs)
+    result = collect(open_system(spec), references, cfg, out)
+    typer.echo(
+        f"collected {len(result.records)} episodes, {result.interaction_steps} interaction steps "
+        f"({result.resumed_passes} pass(es) resumed) into {out}"
+    )
+
+
+@app.command("evaluate")
+def evaluate_command(
+    refs: Annotated[Path, typer.Option("--refs", help="Folder of reference trajectories (.npy/.csv, rad).")],
+    out: Annotated[Path, typer.Option("--out", help="Output folder: records/ and metrics.json.")],
+    system: SystemOpt = None,
+    plant: PlantOpt = None,
+    pd: PdOpt = "xe75",
+    system_opt: SystemOpts = None,
+    policy: Annotated[Path | None, typer.Option("--policy", help="Policy checkpoint (policy.pt); PD alone without.")] = None,
+    device: Annotated[str, typer.Option("--device", help="auto, cpu or cuda.")] = "auto",
+) -> None:
+    """Algorithm 2: track the references with the adjustment policy (or the PD controller alone) and report metrics."""
+    from efficienttrack.pipeline import evaluate
+    from efficienttrack.trajectories import load_references
+
+    spec = _system_spec(system, plant, pd, system_opt)
+    evaluate(spec, load_references(refs), out, policy, device, Console(width=max(Console().width, 140)))
+
+
+@app.command("run")
+def run_command(
+    train_refs: Annotated[Path, typer.Option("--train-refs", help="Folder of training references.")],
+    test_refs: Annotated[Path, typer.Option("--test-refs", help="Folder of held-out test references.")],
+    out: Annotated[Path, typer.Option("--out", help="Output folder; rerunning resumes where it stopped.")],
+    system: SystemOpt = None,
+    plant: PlantOpt = None,
+    pd: PdOpt = "xe75",
+    system_opt: SystemOpts = None,
+    preset_name: Annotated[str, typer.Option("--preset", help="Settings preset: paper, cpu or tiny.")] = "cpu",
+    config: Annotated[Path | None, typer.Option("--config", help="YAML/JSON overriding preset fields.")] = None,
+    seed: Annotated[int | None, typer.Option("--seed", help="Seed of collection noise and training.")] = None,
+    device: Annotated[str | None, typer.Option("--device", help="auto, cpu or cuda.")] = None,
+    threads: Annotated[int | None, typer.Option("--threads", help="Torch CPU threads (torch's default when unset).")] = None,
+) -> None:
+    """The whole method: collect, train model and policy, evaluate PD alone vs EfficientTrack on the test references."""
+    import torch
+
+    from efficienttrack.pipeline import run_pipeline
+    from efficienttrack.trajectories import load_references
+
+    if threads is not None:
+        torch.set_num_threads(max(1, threads))
+
+    spec = _system_spec(system, plant, pd, system_opt)
+    cfg = _run_config(config, preset_name, seed, device)
+    train, test = load_references(train_refs), load_references(test_refs)
+    run_pipeline(spec, train, test, out, cfg, Console(width=max(Console().width, 140)))
+
+
+@app.command("demo")
+def demo_command(
+    out: Annotated[Path, typer.Option("--out", help="Output folder; rerunning resumes where it stopped.")] = Path("runs/demo"),
+    threads: Annotated[
+        int, typer.Option("--threads", help="Torch CPU threads; 1 is fastest for the demo's small networks on a busy machine.")
+    ] = 1,
+) -> None:
+    """The whole method on the built-in xe75 simulator with generated references (32 train / 8 test)."""
+    import torch
+
+    from efficienttrack.pipeline import demo
+
+    torch.set_num_threads(max(1, threads))
+
+    demo(out, console=Console(width=max(Console().width, 140)))
+
+
+DataOpt = Annotated[list[Path], typer.Option("--data", help="Episode files or folders (repeatable).")]
+LearnPresetOpt = Annotated[str, typer.Option("--preset", help="Training preset: paper (GPU), cpu or tiny.")]
+StepsOpt = Annotated[int | None, typer.Option("--steps", help="Override the preset's number of optimizer steps.")]
+ThreadsOpt = Annotated[
+    int,
+    typer.Option("--threads", help="torch CPU threads (1: fastest for cpu-preset networks on 2 shared cores; 0: default)."),
+]
+
+
+def _set_threads(threads: int) -> None:
+    import torch
+
+    if threads < 0:
+        raise EfficientTrackError(f"--threads {threads}: expected ≥ 0")
+    if threads:
+        torch.set_num_threads(threads)
+
+
+def _learn_preset(presets: dict, name: str, steps: int | None):
+    import dataclasses
+
+    if name not in presets:
+        raise EfficientTrackError(f"--preset '{name}': expected one of {', '.join(presets)}")
+    return presets[name] if steps is None else dataclasses.replace(presets[name], steps=steps, epochs=None)
+
+
+@app.command("train-model")
+def train_model_command(
+    data: DataOpt,
+    out: Annotated[Path, typer.Option("--out", help="Model checkpoint (model.pt; config written to model.json).")],
+    preset_name: LearnPresetOpt = "cpu",
+    steps: StepsOpt = None,
+    device: Annotated[str, typer.Option("--device", help="auto, cpu or cuda.")] = "auto",
+    seed: Annotated[int, typer.Option("--seed", help="Seed of initialization and window sampling.")] = 0,
+    threads: ThreadsOpt = 1,
+) -> None:
+    """Train the closed-loop dynamics model on records (multi-step BPTT); an interrupted run resumes."""
+    from efficienttrack.dynamics import MODEL_PRESETS, save_model, train_model
+
+    _set_threads(threads)
+    cfg = _learn_preset(MODEL_PRESETS, preset_name, steps)
+    records = load_records(data)
+    result = train_model(cfg, records, device, seed, progress=True, checkpoint=out.with_suffix(".state.pt"))
+    save_model(result.model, out)
+    typer.echo(
+        f"trained model on {result.windows} windows ({sum(map(len, records))} steps), {result.steps} steps in "
+        f"{result.seconds:.0f} s, final loss {result.losses[-1]:.4g}; saved {out}"
+    )
+
+
+@app.command("model-error")
+def model_error_command(
+    model: Annotated[Path, typer.Option("--model", help="Model checkpoint (model.pt).")],
+    data: DataOpt,
+    steps: Annotated[int, typer.Option("--steps", help="Prediction horizon.")] = 20,
+    device: Annotated[str, typer.Option("--device", help="auto, cpu or cuda.")] = "auto",
+    json_output: Annotated[bool, typer.Option("--json", help="Print one JSON line.")] = False,
+    threads: ThreadsOpt = 1,
+) -> None:
+    """Multi-step model prediction error (MPE, the paper's Tr.MPE/Te.MPE) on records, degrees."""
+    from efficienttrack.dynamics import load_model, model_error
+
+    _set_threads(threads)
+    result = model_error(load_model(model, device), load_records(data), steps)
+    if json_output:
+        typer.echo(json.dumps(result._asdict()))
+        return
+    joints = ", ".join(f"{v:.3f}" for v in result.per_joint_deg)
+    typer.echo(f"MPE {result.mpe_deg:.3f}° over {result.windows} windows × {steps} steps; per joint {joints}°")
+
+
+@app.command("train-policy")
+def train_policy_command(
+    model: Annotated[Path, typer.Option("--model", help="Model checkpoint (model.pt) to train through.")],
+    data: DataOpt,
+    out: Annotated[Path, typer.Option("--out", help="Policy checkpoint (policy.pt; config written to policy.json).")],
+    preset_name: LearnPresetOpt = "cpu",
+    steps: StepsOpt = None,
+    device: Annotated[str, typer.Option("--device", help="auto, cpu or cuda.")] = "auto",
+    seed: Annotated[int, typer.Option("--seed", help="Seed of initialization and window sampling.")] = 0,
+    threads: ThreadsOpt = 1,
+) -> None:
+    """Train the adjustment policy through the frozen model (multi-step BPTT); an interrupted run resumes."""
+    from efficienttrack.dynamics import load_model
+    from efficienttrack.policy import POLICY_PRESETS, predicted_tracking_error, save_policy, train_policy
+
+    _set_threads(threads)
+    cfg = _learn_preset(POLICY_PRESETS, preset_name, steps)
+    g_theta, records = load_model(model, device), load_records(data)
+    result = train_policy(cfg, g_theta, records, device, seed, progress=True, checkpoint=out.with_suffix(".state.pt"))
+    save_policy(result.policy, out)
+    before = predicted_tracking_error(g_theta, records, None, cfg.horizon)
+    after = predicted_tracking_error(g_theta, records, result.policy, cfg.horizon)
+    typer.echo(
+        f"trained policy, {result.steps} steps in {result.seconds:.0f} s; model-predicted tracking error "
+        f"{before.mae_deg:.3f}° (a = 0) → {after.mae_deg:.3f}°; saved {out}"
+    )
+
+
+LogsOpt = Annotated[list[Path], typer.Option("--logs", help="Folder of .npz episode logs with the PWM u (repeatable).")]
+
+
+@sim_app.command("calibrate")
+def sim_calibrate_command(
+    logs: LogsOpt,
+    out: Annotated[Path, typer.Option("--out", help="JSON preset to write (load it with --system-opt params_file=...).")],
+    start: Annotated[Path | None, typer.Option("--start", help="Preset to start from (default: the shipped xe75).")] = None,
+    delays: Annotated[str, typer.Option("--delays", help="Candidate transport delays, steps, comma-separated.")] = "2,3,4,5,6",
+    max_windows: Annotated[int, typer.Option("--max-windows", help="Fit windows of each kind at most.")] = 2500,
+    max_nfev: Annotated[int, typer.Option("--max-nfev", help="Residual evaluations per least-squares stage.")] = 40,
+) -> None:
+    """Fit the hydraulic simulator to a machine's PD logs (PWM → motion) and write the preset."""
+    from efficienttrack.systems.calibrate import FitConfig, calibrate, load_logs, save_params
+    from efficienttrack.systems.hydraulic import HydraulicParams
+
+    try:
+        candidates = tuple(int(d) for d in delays.split(","))
+    except ValueError as exc:
+        raise EfficientTrackError(f"--delays '{delays}': expected comma-separated integers") from exc
+    config = FitConfig(delays=candidates, max_windows=max_windows, max_nfev=max_nfev)
+    first = HydraulicParams.load(start) if start is not None else None
+    result = calibrate(load_logs(logs), first, config, progress=typer.echo)
+    save_params(result.params, out)
+    typer.echo(
+        f"open-loop window error (deg) {[round(float(v), 3) for v in result.open_loop_deg]}, closed-loop "
+        f"{[round(float(v), 3) for v in result.closed_loop_deg]}; wrote {out}"
+    )
+
+
+@sim_app.command("fidelity")
+def sim_fidelity_command(
+    logs: LogsOpt,
+    system: SystemOpt = None,
+    plant: PlantOpt = None,
+    system_opt: SystemOpts = None,
+    json_output: Annotated[bool, typer.Option("--json", help="Print one JSON line.")] = False,
+    plot: Annotated[Path | None, typer.Option("--plot", help="Folder for sim-vs-real trace plots.")] = None,
+    episodes: Annotated[int, typer.Option("--episodes", help="Episodes to plot.")] = 3,
+    stride: Annotated[int, typer.Option("--stride", help="Steps between open-loop window starts.")] = 10,
+) -> None:
+    """Compare a simulator with real PD logs: closed-loop tracking MAE ratio and open-loop 20-step error."""
+    from efficienttrack.plots import plot_sim_vs_real
+    from efficienttrack.systems.calibrate import fidelity, load_logs
+    from efficienttrack.systems.pd import XE75_PD, ClosedLoop
+    from efficienttrack.systems.protocol import BUILTIN_PLANTS, BatchedSystem, load_plant, load_system
+
+    options = parse_options(system_opt)
+    if system is not None and plant is not None:
+        raise EfficientTrackError("give --system or --plant, not both")
+    if plant is not None:
+        plant_view = load_plant(plant, **options)
+        system_view = BatchedSystem(ClosedLoop(plant_view.system, XE75_PD), name=f"plant '{plant}' + PD")
+    else:
+        spec = system or "xe75"
+        system_view = load_system(spec, **options)
+        plant_view = load_plant(spec, **options) if spec in BUILTIN_PLANTS else None
+    records = load_logs(logs, need_u=plant_view is not None)
+    result = fidelity(records, system_view, plant_view, stride=stride)
+    if plot is not None:
+        for i in range(min(episodes, len(records))):
+            n = len(records[i])
+            name = records[i].meta.get("name", f"episode{i}")
+            plot_sim_vs_real(records[i].q, result.q_sim[:n, i], records[i].q_des, plot / f"sim_vs_real_{name}.png", name)
+    report = result.to_json()
+    if json_output:
+        typer.echo(json.dumps(report))
+        return
+
+    def fmt(values: list[float] | None, unit: str = "°") -> str:
+        return "n/a (no plant)" if values is None else ", ".join(f"{v:.3f}{unit}" for v in values)
+
+    typer.echo(f"{len(records)} episodes; joints boom, arm, bucket, swing")
+    typer.echo(f"closed-loop PD MAE real: {fmt(report['closed_loop']['real_mae_deg'])}")
+    typer.echo(f"closed-loop PD MAE sim:  {fmt(report['closed_loop']['sim_mae_deg'])}")
+    typer.echo(f"ratio sim/real:          {fmt(report['closed_loop']['ratio'], '')}")
+    typer.echo(f"open-loop 20-step error: {fmt(report['open_loop']['mpe20_deg'])}")
+
+
+def _one_line_warning(
+    message: Warning | str, category: type[Warning], filename: str, lineno: int, line: str | None = None
+) -> str:
+    return f"warning: {message}\n"
+
+
 def main() -> None:
     """Entry point: run the app and turn user-facing errors into one clean line and exit code 2."""
+    warnings.formatwarning = _one_line_warning
     try:
         app()
     except EfficientTrackError as exc:

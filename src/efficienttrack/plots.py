@@ -9,4 +9,157 @@ import matplotlib
 
 matplotlib.use("Agg")
 
+from pathlib import Path
+
+import matplotlib.pyplot as plt
+import numpy as np
+
+from efficienttrack.fileio import atomic_write
+from efficienttrack.metrics import tracking_error
+from efficienttrack.records import EpisodeRecord
+from efficienttrack.trajectories import Reference
+
 JOINT_NAMES = ("boom", "arm", "bucket", "swing")
+
+
+def plot_references(refs: list[Reference], path: str | Path) -> Path:
+    """Draw every reference per joint, in degrees against time, one subplot per joint.
+
+    Args:
+        refs: references, each q (T, 4) rad at 20 Hz.
+        path: PNG to write (parents created).
+
+    Returns:
+        The path written.
+    """
+    fig, axes = plt.subplots(4, 1, figsize=(10, 9), sharex=True, layout="constrained")
+    for ref in refs:
+        for joint, ax in enumerate(axes):
+            ax.plot(ref.t, np.degrees(ref.q[:, joint]), lw=0.8, alpha=0.7)
+    for name, ax in zip(JOINT_NAMES, axes, strict=True):
+        ax.set_ylabel(f"{name} (°)")
+        ax.grid(alpha=0.3)
+    axes[-1].set_xlabel("time (s)")
+    axes[0].set_title(f"{len(refs)} reference{'s' if len(refs) != 1 else ''}")
+    try:
+        return atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100))
+    finally:
+        plt.close(fig)
+
+
+def _save(fig: plt.Figure, path: str | Path) -> Path:
+    try:
+        return atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100))
+    finally:
+        plt.close(fig)
+
+
+def plot_tracking(runs: dict[str, EpisodeRecord], path: str | Path, title: str = "") -> Path:
+    """Desired and achieved joint positions of one reference under several methods, one subplot per joint.
+
+    Args:
+        runs: method name → its record of the same reference (``q`` (T, 4) rad, ``q_des`` (T, 4) rad);
+            the desired curve is taken from the first.
+        path: PNG to write.
+        title: figure title (e.g. the reference name).
+
+    Returns:
+        The path written.
+    """
+    fig, axes = plt.subplots(4, 1, figsize=(10, 9), sharex=True, layout="constrained")
+    first = next(iter(runs.values()))
+    t_next = first.t + (first.t[1] - first.t[0])  # q_des[t] is the target of step t+1
+    for joint, ax in enumerate(axes):
+        ax.plot(t_next, np.degrees(first.q_des[:, joint]), "k--", lw=1.2, label="desired")
+        for name, record in runs.items():
+            ax.plot(record.t, np.degrees(record.q[:, joint]), lw=1.0, label=name)
+        ax.set_ylabel(f"{JOINT_NAMES[joint]} (°)")
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[0].set_title(title)
+    axes[-1].set_xlabel("time (s)")
+    return _save(fig, path)
+
+
+def plot_tracking_error(runs: dict[str, list[EpisodeRecord]], path: str | Path) -> Path:
+    """Absolute tracking error over time per joint, averaged over episodes, for several methods.
+
+    The error of step t is ``|wrap(q[t+1] − q_des[t])|`` (°); episodes of different lengths are
+    averaged over the episodes still running.
+
+    Args:
+        runs: method name → its records (one per test reference).
+        path: PNG to write.
+
+    Returns:
+        The path written.
+    """
+    fig, axes = plt.subplots(4, 1, figsize=(10, 9), sharex=True, layout="constrained")
+    for name, records in runs.items():
+        steps = max(len(r) for r in records) - 1
+        total, count = np.zeros((steps, 4)), np.zeros((steps, 1))
+        for record in records:  # one accumulation per episode
+            e = np.degrees(np.abs(tracking_error(record.q, record.q_des)))
+            total[: len(e)] += e
+            count[: len(e)] += 1
+        mean = total / np.maximum(count, 1)
+        t = np.arange(1, steps + 1) * (records[0].t[1] - records[0].t[0])
+        for joint, ax in enumerate(axes):
+            ax.plot(t, mean[:, joint], lw=1.0, label=f"{name} (time mean {mean[:, joint].mean():.2f}°)")
+    for joint, ax in enumerate(axes):
+        ax.set_ylabel(f"|e| {JOINT_NAMES[joint]} (°)")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper right", fontsize=8)
+    axes[0].set_title("tracking error over time (mean over test references)")
+    axes[-1].set_xlabel("time (s)")
+    return _save(fig, path)
+
+
+def plot_training_curves(curves: dict[str, tuple[list[float], list[float]]], path: str | Path) -> Path:
+    """Training loss of each learned component over training, log scale, one subplot each.
+
+    Args:
+        curves: component name (``model``, ``policy``) → (optimizer step, training loss) of equal lengths.
+        path: PNG to write.
+
+    Returns:
+        The path written.
+    """
+    fig, axes = plt.subplots(1, len(curves), figsize=(5 * len(curves), 3.5), layout="constrained", squeeze=False)
+    for ax, (name, (steps, losses)) in zip(axes[0], curves.items(), strict=True):
+        ax.plot(steps, losses, lw=1.2)
+        ax.set_yscale("log")
+        ax.set_title(f"{name} training loss")
+        ax.set_xlabel("optimizer step")
+        ax.grid(alpha=0.3)
+    return _save(fig, path)
+
+
+def plot_sim_vs_real(
+    q_real: np.ndarray, q_sim: np.ndarray, q_des: np.ndarray, path: str | Path, title: str = "", dt: float = 0.05
+) -> Path:
+    """Joint traces of one episode on the real machine and in simulation, degrees against time, one subplot per joint.
+
+    Args:
+        q_real: (T, 4) rad, logged positions.
+        q_sim: (T, 4) rad, simulated positions (same start, driven with the logged q_ref).
+        q_des: (T, 4) rad, desired position of the next step (drawn shifted by one step).
+        path: PNG to write.
+        title: figure title (e.g. the episode name).
+        dt: control period, s.
+
+    Returns:
+        The path written.
+    """
+    t = np.arange(len(q_real)) * dt
+    fig, axes = plt.subplots(4, 1, figsize=(10, 9), sharex=True, layout="constrained")
+    for joint, (name, ax) in enumerate(zip(JOINT_NAMES, axes, strict=True)):
+        ax.plot(t[1:], np.degrees(q_des[:-1, joint]), "k--", lw=0.8, label="desired")
+        ax.plot(t, np.degrees(q_real[:, joint]), lw=1.2, label="real")
+        ax.plot(t, np.degrees(q_sim[:, joint]), lw=1.2, label="simulated")
+        ax.set_ylabel(f"{name} (°)")
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="best", fontsize=8)
+    axes[0].set_title(title)
+    axes[-1].set_xlabel("time (s)")
+    return _save(fig, path)

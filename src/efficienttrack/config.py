@@ -1,0 +1,179 @@
+"""The settings of a whole run (collection, model, policy, seed, device) and its named presets.
+
+``RunConfig`` composes the component configs: :class:`~efficienttrack.collect.CollectConfig`,
+``ModelConfig`` (``efficienttrack.dynamics``) and ``PolicyConfig`` (``efficienttrack.policy``).
+Presets: ``paper`` (the paper's settings), ``cpu`` (a laptop-sized run), ``tiny`` (seconds; tests).
+Configs are read from YAML or JSON with ``yaml.safe_load`` and checked field by field against
+the dataclass types; unknown or mistyped fields are errors naming the file and the field.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from efficienttrack.collect import CollectConfig
+from efficienttrack.dynamics import MODEL_PRESETS, ModelConfig
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.fileio import atomic_write, write_json
+from efficienttrack.nets import config_from_dict
+from efficienttrack.policy import POLICY_PRESETS, PolicyConfig
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """Everything that decides the outcome of ``efficienttrack run``."""
+
+    collect: CollectConfig = field(default_factory=CollectConfig)
+    """Algorithm 1: noise level, noisy:clean mix, passes."""
+    model: ModelConfig = field(default_factory=ModelConfig)
+    """Closed-loop dynamics model g_θ and its training."""
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    """Adjustment policy π_φ and its training."""
+    seed: int = 0
+    """Seed of model and policy training."""
+    device: str = "auto"
+    """Torch device: ``auto`` (CUDA when available), ``cpu`` or ``cuda``."""
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON/YAML-serializable form (tuples become lists)."""
+        return json.loads(json.dumps(asdict(self)))
+
+    def save(self, path: str | Path) -> Path:
+        """Write the config atomically, as YAML or JSON.
+
+        Args:
+            path: destination; ``.yaml``/``.yml`` gives YAML, anything else JSON.
+
+        Returns:
+            The path written.
+        """
+        path = Path(path)
+        if path.suffix in (".yaml", ".yml"):
+            return atomic_write(path, lambda f: yaml.safe_dump(self.to_dict(), f, sort_keys=False), mode="w")
+        return write_json(path, self.to_dict())
+
+
+PRESETS: dict[str, RunConfig] = {
+    "paper": RunConfig(
+        collect=CollectConfig(sigma_max=0.05, noise_ratio=(9, 2), passes=10),
+        model=MODEL_PRESETS["paper"],
+        policy=POLICY_PRESETS["paper"],
+    ),
+    "cpu": RunConfig(
+        collect=CollectConfig(sigma_max=0.05, noise_ratio=(9, 2), passes=10),
+        model=MODEL_PRESETS["cpu"],
+        policy=POLICY_PRESETS["cpu"],
+    ),
+    "tiny": RunConfig(
+        collect=CollectConfig(sigma_max=0.05, noise_ratio=(9, 2), passes=3),
+        model=MODEL_PRESETS["tiny"],
+        policy=POLICY_PRESETS["tiny"],
+    ),
+}
+
+
+DEMO = PRESETS["cpu"]
+"""Settings of ``efficienttrack demo`` on the built-in ``xe75`` (≈ 7 min on 2 CPU cores): the ``cpu`` preset."""
+
+
+def preset(name: str) -> RunConfig:
+    """The named preset; EfficientTrackError for other names.
+
+    Args:
+        name: ``paper``, ``cpu`` or ``tiny``.
+
+    Returns:
+        The preset's RunConfig.
+    """
+    if name not in PRESETS:
+        raise EfficientTrackError(f"--preset '{name}': unknown, choose one of {', '.join(PRESETS)}")
+    return PRESETS[name]
+
+
+def from_dict(data: Any, source: str = "config") -> RunConfig:
+    """Build a RunConfig from a plain mapping, every component validated field by field.
+
+    Args:
+        data: ``{"collect": {...}, "model": {...}, "policy": {...}, "seed": int, "device": str}``; missing
+            fields keep their defaults.
+        source: how to name the data in errors (the file).
+
+    Returns:
+        The config.
+    """
+    if not isinstance(data, dict):
+        raise EfficientTrackError(f"{source}: expected a mapping of fields, got {type(data).__name__}")
+    known = {f.name for f in dataclasses.fields(RunConfig)}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise EfficientTrackError(f"{source}: unknown field(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+    values: dict[str, Any] = {}
+    for name, cls in (("collect", CollectConfig), ("model", ModelConfig), ("policy", PolicyConfig)):
+        if name in data:
+            values[name] = config_from_dict(cls, data[name], f"{source}: {name}")
+    if "seed" in data:
+        if not isinstance(data["seed"], int) or isinstance(data["seed"], bool):
+            raise EfficientTrackError(f"{source}: field 'seed' must be an integer, got {data['seed']!r}")
+        values["seed"] = data["seed"]
+    if "device" in data:
+        if data["device"] not in ("auto", "cpu", "cuda"):
+            raise EfficientTrackError(f"{source}: field 'device' must be auto, cpu or cuda, got {data['device']!r}")
+        values["device"] = data["device"]
+    return RunConfig(**values)
+
+
+def load_config(path: str | Path, base: RunConfig | None = None) -> RunConfig:
+    """Read a RunConfig from YAML (``yaml.safe_load``) or ``.json``, validated field by field.
+
+    Args:
+        path: the file; component sections (``collect``, ``model``, ``policy``) may list only some fields.
+        base: where fields not given come from (the ``cpu`` preset when None).
+
+    Returns:
+        The config.
+
+    Raises:
+        EfficientTrackError: unreadable file, unknown field, wrong type or invalid value (naming the field).
+    """
+    path = Path(path)
+    try:
+        text = path.read_text()
+        data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)  # YAML 1.1 reads 1e-05 as a string
+    except (OSError, yaml.YAMLError, json.JSONDecodeError) as exc:
+        raise EfficientTrackError(f"{path}: cannot read the config ({exc})") from exc
+    base = base or PRESETS["cpu"]
+    if not isinstance(data, dict):
+        raise EfficientTrackError(f"{path}: expected a mapping of fields")
+    merged = base.to_dict()
+    for name, value in data.items():
+        if isinstance(value, dict) and isinstance(merged.get(name), dict):
+            merged[name] = {**merged[name], **value}
+        else:
+            merged[name] = value
+    return from_dict(merged, str(path))
+
+
+def with_overrides(cfg: RunConfig, seed: int | None = None, device: str | None = None) -> RunConfig:
+    """``cfg`` with the command-line overrides applied.
+
+    Args:
+        cfg: the config.
+        seed: new seed of training and of collection noise, or None to keep.
+        device: new device, or None to keep.
+
+    Returns:
+        The new config.
+    """
+    changes: dict[str, Any] = {}
+    if seed is not None:
+        changes["seed"] = seed
+        changes["collect"] = replace(cfg.collect, seed=seed)
+    if device is not None:
+        changes["device"] = device
+    return replace(cfg, **changes)

@@ -1,0 +1,342 @@
+"""collect → train model → train policy → evaluate PD and EfficientTrack: one resumable run.
+
+Output folder layout (everything written atomically)::
+
+    OUT/run.json                    what the run is: config, system, references (a rerun must match)
+    OUT/config.json                 the RunConfig (also next to every checkpoint and result)
+    OUT/records/train/pass_<k>/     Algorithm 1 records, a pass at a time
+    OUT/model.pt, model.json        g_θ (state dict + config);  OUT/checkpoints/model.ckpt while training
+    OUT/policy.pt, policy.json      π_φ;                        OUT/checkpoints/policy.ckpt while training
+    OUT/records/{pd,efficienttrack}/<reference>.npz
+    OUT/stages/<stage>.json         written last by each finished stage (its facts: seconds, steps, losses)
+    OUT/metrics.json, OUT/plots/*.png
+
+A rerun with the same run.json skips every finished stage; an interrupted stage resumes
+(collection at its first unwritten pass, training from its checkpoint). A rerun with other
+settings into the same folder is refused.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from rich.console import Console
+
+from efficienttrack import dynamics, plots, policy
+from efficienttrack.collect import collect
+from efficienttrack.config import DEMO, RunConfig
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.fileio import write_json
+from efficienttrack.metrics import compute_metrics, metrics_table, rounded
+from efficienttrack.nets import resolve_device
+from efficienttrack.records import EpisodeRecord, load_records, save_records
+from efficienttrack.runtime import track
+from efficienttrack.systems.pd import ClosedLoop, PDGains
+from efficienttrack.systems.protocol import BatchedSystem, load_plant, load_system
+from efficienttrack.trajectories import Reference, generate_references, save_references
+
+PLOTTED_REFERENCES = 3
+"""Test references drawn in the tracking plots."""
+CURVE_POINTS = 1000
+"""Most points kept of a training-loss curve."""
+DEMO_REFERENCES = 40
+"""Loading cycles the demo generates (train + test)."""
+DEMO_TRAIN = 32
+"""The first references of the demo are for training, the rest are held out."""
+DEMO_SEED = 2025
+"""Seed of the demo's reference generator."""
+
+
+@dataclass(frozen=True)
+class SystemSpec:
+    """How to build the closed-loop system: a reference-level system, or a plant under PD control."""
+
+    system: str | None = None
+    """Built-in name or ``module:callable`` of a ClosedLoopSystem (``--system``)."""
+    plant: str | None = None
+    """Built-in name or ``module:callable`` of a Plant wrapped with the PD controller (``--plant``)."""
+    pd: str = "xe75"
+    """PD gains for ``plant``: a preset name or a JSON file (``--pd``)."""
+    options: tuple[tuple[str, Any], ...] = ()
+    """Keyword options of the callable (``--system-opt key=value``)."""
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON form (for run.json and metrics.json)."""
+        return {
+            "system": self.system,
+            "plant": self.plant,
+            "pd": self.pd if self.plant else None,
+            "options": dict(self.options),
+        }
+
+
+def open_system(spec: SystemSpec) -> BatchedSystem:
+    """Build the closed-loop system a spec names.
+
+    Args:
+        spec: exactly one of ``system`` / ``plant`` set (EfficientTrackError otherwise).
+
+    Returns:
+        The checked, batched view of the system (a plant is wrapped with its PD controller).
+    """
+    if (spec.system is None) == (spec.plant is None):
+        raise EfficientTrackError("give exactly one of --system SPEC or --plant SPEC")
+    options = dict(spec.options)
+    if spec.system is not None:
+        return load_system(spec.system, **options)
+    plant = load_plant(spec.plant, **options)
+    return BatchedSystem(ClosedLoop(plant.system, PDGains.load(spec.pd)), name=f"plant '{spec.plant}' under PD '{spec.pd}'")
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """Outcome of :func:`run_pipeline`.
+
+    Attributes:
+        out: the output folder.
+        metrics: the content of ``OUT/metrics.json``.
+        skipped: names of the stages found finished and skipped.
+    """
+
+    out: Path
+    metrics: dict[str, Any]
+    skipped: tuple[str, ...]
+
+
+class _Stages:
+    """Finished-stage markers in ``OUT/stages``: a stage is done when its marker exists."""
+
+    def __init__(self, out: Path) -> None:
+        self.folder = out / "stages"
+        self.skipped: list[str] = []
+
+    def done(self, name: str) -> dict[str, Any] | None:
+        """The facts of finished stage ``name`` (noted as skipped), or None when it has not finished."""
+        path = self.folder / f"{name}.json"
+        if not path.exists():
+            return None
+        self.skipped.append(name)
+        return json.loads(path.read_text())
+
+    def finish(self, name: str, facts: dict[str, Any]) -> dict[str, Any]:
+        """Mark stage ``name`` finished with its ``facts`` (JSON-serializable); returns the facts."""
+        write_json(self.folder / f"{name}.json", facts)
+        return facts
+
+
+def _curve(losses: np.ndarray) -> dict[str, list[float]]:
+    """Loss per optimizer step (S,) → at most ``CURVE_POINTS`` means of consecutive steps: {"step": [...], "loss": [...]}."""
+    steps = np.arange(1, len(losses) + 1)
+    parts = max(1, min(len(losses), CURVE_POINTS))
+    return {
+        "step": [float(x.mean()) for x in np.array_split(steps, parts)],
+        "loss": [float(x.mean()) for x in np.array_split(np.asarray(losses, dtype=np.float64), parts)],
+    }
+
+
+def _check_run(out: Path, identity: dict[str, Any]) -> None:
+    path = out / "run.json"
+    if path.exists():
+        if json.loads(path.read_text()) != identity:
+            raise EfficientTrackError(
+                f"{path}: this folder holds a run with other settings, system or references; use another --out"
+            )
+    else:
+        write_json(path, identity)
+
+
+def _evaluate(
+    stages: _Stages, name: str, out: Path, system: BatchedSystem, pi: torch.nn.Module | None, refs: Sequence[Reference], device
+) -> list[EpisodeRecord]:
+    folder = out / "records" / name
+    if stages.done(f"evaluate_{name}") is not None:
+        by_name = {record.meta["name"]: record for record in load_records(folder)}
+        return [by_name[ref.name] for ref in refs]
+    records = track(system, pi, refs, device=device, description=f"evaluating {name}")
+    save_records(records, folder)
+    stages.finish(f"evaluate_{name}", {"episodes": len(records), "fallbacks": sum(r.meta["fallbacks"] for r in records)})
+    return records
+
+
+def run_pipeline(
+    system: SystemSpec,
+    train_refs: Sequence[Reference],
+    test_refs: Sequence[Reference],
+    out: str | Path,
+    cfg: RunConfig,
+    console: Console | None = None,
+) -> RunResult:
+    """The whole method on one system: Algorithm 1, model and policy training, Algorithm 2 vs PD.
+
+    Args:
+        system: how to build the closed-loop system (any ``module:callable``, no tuning needed).
+        train_refs: references for data collection and training.
+        test_refs: held-out references for evaluation.
+        out: output folder (see the module docstring); a rerun resumes here.
+        cfg: the run's settings.
+        console: where to print progress notes and the table (a fresh rich console when None).
+
+    Returns:
+        The folder, the metrics written to ``OUT/metrics.json`` and the skipped stages.
+
+    Raises:
+        EfficientTrackError: bad system spec, no references, or ``out`` holding another run.
+    """
+    console = console or Console()
+    if not train_refs or not test_refs:
+        raise EfficientTrackError("run: needs at least one training and one test reference")
+    out = Path(out)
+    env = open_system(system)
+    identity = {
+        "config": cfg.to_dict(),
+        "system": system.to_dict(),
+        "train_references": {ref.name: len(ref.q) for ref in train_refs},
+        "test_references": {ref.name: len(ref.q) for ref in test_refs},
+    }
+    _check_run(out, identity)
+    cfg.save(out / "config.json")
+    stages = _Stages(out)
+    device = resolve_device(cfg.device)
+
+    # Algorithm 1: collection (resumes pass by pass)
+    collected = collect(env, train_refs, cfg.collect, out / "records" / "train")
+    facts = stages.done("collect") or stages.finish("collect", {"interaction_steps": collected.interaction_steps})
+    console.print(f"collected {len(collected.records)} episodes, {facts['interaction_steps']} interaction steps")
+
+    # closed-loop dynamics model g_θ
+    model_facts = stages.done("model")
+    if model_facts is None:
+        trained = dynamics.train_model(
+            cfg.model, collected.records, device=device, seed=cfg.seed, checkpoint=out / "checkpoints" / "model.ckpt"
+        )
+        dynamics.save_model(trained.model, out / "model.pt")
+        model_facts = stages.finish("model", {"seconds": trained.seconds, "losses": _curve(trained.losses)})
+    g_theta = dynamics.load_model(out / "model.pt").to(device)
+    console.print(f"model trained ({model_facts['seconds']:.0f} s{', earlier run' if 'model' in stages.skipped else ''})")
+
+    # adjustment policy π_φ
+    policy_facts = stages.done("policy")
+    if policy_facts is None:
+        trained_pi = policy.train_policy(
+            cfg.policy,
+            g_theta,
+            collected.records,
+            device=device,
+            seed=cfg.seed,
+            checkpoint=out / "checkpoints" / "policy.ckpt",
+        )
+        policy.save_policy(trained_pi.policy, out / "policy.pt")
+        policy_facts = stages.finish("policy", {"seconds": trained_pi.seconds, "losses": _curve(trained_pi.losses)})
+    pi_phi = policy.load_policy(out / "policy.pt").to(device)
+    console.print(f"policy trained ({policy_facts['seconds']:.0f} s{', earlier run' if 'policy' in stages.skipped else ''})")
+
+    # Algorithm 2 on the held-out references, and the PD controller alone
+    pd_records = _evaluate(stages, "pd", out, env, None, test_refs, device)
+    et_records = _evaluate(stages, "efficienttrack", out, env, pi_phi, test_refs, device)
+
+    # report
+    metrics = {
+        "pd": rounded(compute_metrics(pd_records)),
+        "efficienttrack": rounded(compute_metrics(et_records)),
+        "interaction_steps": facts["interaction_steps"],
+        "train_seconds": round(model_facts["seconds"] + policy_facts["seconds"], 2),
+        "model": {
+            "tr_mpe_deg": round(float(dynamics.model_error(g_theta, collected.records).mpe_deg), 4),
+            "te_mpe_deg": round(float(dynamics.model_error(g_theta, et_records).mpe_deg), 4),
+        },
+        "fallbacks": sum(r.meta["fallbacks"] for r in et_records),
+        "system": system.to_dict(),
+        "config": cfg.to_dict(),
+    }
+    write_json(out / "metrics.json", metrics)
+    plot_dir = out / "plots"
+    for ref, pd_rec, et_rec in list(zip(test_refs, pd_records, et_records, strict=True))[:PLOTTED_REFERENCES]:
+        plots.plot_tracking({"PD": pd_rec, "EfficientTrack": et_rec}, plot_dir / f"tracking_{ref.name}.png", title=ref.name)
+    plots.plot_tracking_error({"PD": pd_records, "EfficientTrack": et_records}, plot_dir / "tracking_error.png")
+    plots.plot_training_curves(
+        {
+            name: (facts["losses"]["step"], facts["losses"]["loss"])
+            for name, facts in (("model", model_facts), ("policy", policy_facts))
+        },
+        plot_dir / "training_curves.png",
+    )
+    console.print(metrics_table({"PD": metrics["pd"], "EfficientTrack": metrics["efficienttrack"]}, title=f"test ({out})"))
+    return RunResult(out=out, metrics=metrics, skipped=tuple(stages.skipped))
+
+
+def evaluate(
+    system: SystemSpec,
+    refs: Sequence[Reference],
+    out: str | Path,
+    policy_path: str | Path | None = None,
+    device: str = "auto",
+    console: Console | None = None,
+) -> dict[str, Any]:
+    """Algorithm 2 (or the PD controller alone without a policy) on references; records and metrics to ``out``.
+
+    Args:
+        system: how to build the closed-loop system.
+        refs: the references to track.
+        out: folder for ``records/<reference>.npz`` and ``metrics.json``.
+        policy_path: a policy checkpoint (``policy.pt``) or None for the PD controller alone.
+        device: torch device for the policy (``auto``, ``cpu``, ``cuda``).
+        console: where to print the table.
+
+    Returns:
+        The content of ``metrics.json`` ({"method", "metrics", "fallbacks", "system", "policy"}).
+    """
+    console = console or Console()
+    env = open_system(system)
+    pi = None
+    if policy_path is not None:
+        if not Path(policy_path).is_file():
+            raise EfficientTrackError(f"--policy {policy_path}: no such file")
+        pi = policy.load_policy(policy_path).to(resolve_device(device))
+    records = track(env, pi, refs, description="evaluating")
+    save_records(records, Path(out) / "records")
+    method = "PD" if pi is None else "EfficientTrack"
+    result = {
+        "method": method,
+        "metrics": rounded(compute_metrics(records)),
+        "fallbacks": sum(r.meta["fallbacks"] for r in records),
+        "system": system.to_dict(),
+        "policy": None if policy_path is None else str(policy_path),
+    }
+    write_json(Path(out) / "metrics.json", result)
+    console.print(metrics_table({method: result["metrics"]}, title=f"evaluation ({out})"))
+    return result
+
+
+def demo(out: str | Path = "runs/demo", cfg: RunConfig | None = None, console: Console | None = None) -> RunResult:
+    """The whole method on the built-in ``xe75`` simulator with generated references.
+
+    Draws ``DEMO_REFERENCES`` loading cycles (fixed seed), trains on the first ``DEMO_TRAIN`` and
+    tests on the rest; the references are saved under ``OUT/refs/{train,test}``.
+
+    Args:
+        out: output folder (resumable like :func:`run_pipeline`).
+        cfg: the run's settings; ``config.DEMO`` when None.
+        console: where to print.
+
+    Returns:
+        The result of :func:`run_pipeline`.
+    """
+    console = console or Console()
+    refs = generate_references(DEMO_REFERENCES, seed=DEMO_SEED)
+    train, test = refs[:DEMO_TRAIN], refs[DEMO_TRAIN:]
+    save_references(train, Path(out) / "refs" / "train")
+    save_references(test, Path(out) / "refs" / "test")
+    start = time.perf_counter()
+    result = run_pipeline(SystemSpec(system="xe75"), train, test, out, cfg or DEMO, console)
+    ratio = result.metrics["efficienttrack"]["mae_deg"] / result.metrics["pd"]["mae_deg"]
+    console.print(
+        f"EfficientTrack MAE = {ratio:.2f} × PD MAE; wall time {time.perf_counter() - start:.0f} s; outputs in {out}"
+    )
+    return result

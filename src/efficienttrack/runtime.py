@@ -1,0 +1,329 @@
+"""Algorithm 2: the adjustment policy in front of any closed-loop system, with a safety guard.
+
+Two levels:
+
+- :class:`Runtime`, step by step, for a real machine: ``start(obs0)``, then per control period
+  ``step(obs, q_des_future) -> Sent``, then ``stop()`` (or use it as a context manager). It keeps the
+  histories exactly as training builds them (``efficienttrack.dataset``), guards every output
+  and counts every intervention::
+
+      with Runtime(load_policy("policy.pt")) as rt:
+          rt.start(read_obs())                       # (1, 8)
+          for t in range(T):
+              sent = rt.step(read_obs(), q_des[None, t + 1 : t + 1 + rt.horizon])  # q_des padded at the end
+              send_reference(sent.q_ref[0])          # to the machine's position controller
+      print(rt.fallbacks)
+- :func:`track`, whole episodes: runs :class:`Runtime` over references on a (batched) system
+  and returns :class:`~efficienttrack.records.EpisodeRecord` s. ``policy=None`` is the PD
+  controller alone (a = 0) through the same loop.
+
+:func:`rollout` is the one time loop shared with data collection (Algorithm 1): references of
+different lengths are padded with their last desired position and run together when the system
+is batched; each episode keeps only its own steps.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple, Protocol
+
+import numpy as np
+import torch
+from rich.progress import Progress
+
+from efficienttrack import dataset
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.records import EpisodeRecord
+from efficienttrack.systems.protocol import BatchedSystem
+from efficienttrack.trajectories import Reference
+
+GUARD_TOLERANCE = 1e-6
+"""Slack (rad) on the adjustment bound before the guard intervenes (float32 round-off)."""
+
+
+class Sent(NamedTuple):
+    """What the runtime actually sent for one step of N machines.
+
+    Attributes:
+        q_ref: (N, 4) rad, reference sent to the position controller (target of step t+1).
+        adjustment: (N, 4) rad, ``q_ref − q*_{t+1}`` as sent (0 where the guard fell back).
+        fallback: (N,) bool, True where the policy output was non-finite or beyond its bound and
+            the raw desired position was sent instead.
+    """
+
+    q_ref: np.ndarray
+    adjustment: np.ndarray
+    fallback: np.ndarray
+
+
+class Runtime:
+    """Algorithm 2 for N machines at once, one control period at a time.
+
+    Lifecycle: ``start(obs0)`` → ``step(obs, q_des_future)`` every period → ``stop()``; also a
+    context manager (``with Runtime(policy) as rt: rt.start(obs0); ...``). At start the histories
+    are filled with ``o_0`` and ``q^r_0 = q_0`` (the measured start position), exactly as the
+    training windows are padded; each step appends ``o_t`` and ``q^r_t`` (the reference sent in
+    the previous step) before asking the policy for ``a_t``.
+
+    Guard: where the policy returns a non-finite value or ``|a| > max_adjust`` for a machine, the
+    raw desired position ``q*_{t+1}`` is sent for that machine and the step is counted in
+    :attr:`fallbacks`.
+
+    Args:
+        policy: an ``AdjustmentPolicy`` (``efficienttrack.policy``), or None for the PD controller
+            alone (a = 0; horizon 1).
+        device: torch device the policy runs on (its own device when None).
+    """
+
+    def __init__(self, policy: torch.nn.Module | None, device: torch.device | str | None = None) -> None:
+        self.policy = policy
+        if policy is None:
+            self.horizon = 1
+            self.max_adjust = np.zeros(4)
+            self.device = torch.device("cpu")
+        else:
+            self.horizon = int(policy.cfg.horizon)
+            self.max_adjust = np.asarray(policy.cfg.max_adjust, dtype=np.float64)
+            self.device = torch.device(device) if device is not None else next(policy.parameters()).device
+        self.fallbacks = np.zeros(0, dtype=np.int64)
+        """(N,) number of guarded steps per machine since ``start``."""
+        self.steps = 0
+        """Steps taken since ``start``."""
+        self._history: dataset.History | None = None
+
+    def __enter__(self) -> Runtime:
+        """Enter the context (``start`` is still called with the first observation)."""
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        """Leave the context: ``stop``."""
+        self.stop()
+
+    @property
+    def running(self) -> bool:
+        """True between ``start`` and ``stop``."""
+        return self._history is not None
+
+    def start(self, obs0: np.ndarray) -> None:
+        """Begin an episode for N machines: histories filled with ``o_0`` and ``q^r_0 = q_0``, counters zeroed.
+
+        Args:
+            obs0: (N, 8) [rad, rad/s], the measured start observations.
+        """
+        obs0 = np.asarray(obs0, dtype=np.float64)
+        if obs0.ndim != 2 or obs0.shape[1] != 8:
+            raise EfficientTrackError(f"runtime: start expects obs0 of shape (N, 8), got {obs0.shape}")
+        self._history = dataset.initial_history(obs0, self.horizon)
+        self.fallbacks = np.zeros(len(obs0), dtype=np.int64)
+        self.steps = 0
+
+    def step(self, obs: np.ndarray, q_des_future: np.ndarray) -> Sent:
+        """One control period: the reference to send for step t+1.
+
+        Args:
+            obs: (N, 8) [rad, rad/s], the observation ``o_t`` just measured.
+            q_des_future: (N, h, 4) rad, desired positions ``q*_{t+1} … q*_{t+h}`` (padded with the
+                last desired position past the end of the reference). Only ``[:, 0]`` is used
+                when there is no policy.
+
+        Returns:
+            The reference sent, the adjustment and the per-machine fallback flags.
+        """
+        if self._history is None:
+            raise EfficientTrackError("runtime: step called before start (or after stop)")
+        obs = np.asarray(obs, dtype=np.float64)
+        q_des_future = np.asarray(q_des_future, dtype=np.float64)
+        n = len(self.fallbacks)
+        if obs.shape != (n, 8) or q_des_future.ndim != 3 or q_des_future.shape[0] != n or q_des_future.shape[2] != 4:
+            raise EfficientTrackError(
+                f"runtime: step expects obs (N, 8) and q_des_future (N, h, 4) with N = {n}, "
+                f"got {obs.shape} and {q_des_future.shape}"
+            )
+        history = dataset.push_observation(self._history, obs)
+        q_next = q_des_future[:, 0]
+        if self.policy is None:
+            a = np.zeros((n, 4))
+        else:
+            a = self._act(history, q_des_future)
+        bad = ~np.all(np.isfinite(a), axis=1) | np.any(np.abs(a) > self.max_adjust + GUARD_TOLERANCE, axis=1)
+        a = np.where(bad[:, None], 0.0, a)
+        q_ref = q_next + a
+        self._history = dataset.push_reference(history, q_ref)
+        self.fallbacks += bad
+        self.steps += 1
+        return Sent(q_ref=q_ref, adjustment=a, fallback=bad)
+
+    def stop(self) -> None:
+        """End the episode (the counters stay readable)."""
+        self._history = None
+
+    def _act(self, history: dataset.History, q_des_future: np.ndarray) -> np.ndarray:
+        h = self.horizon
+        if q_des_future.shape[1] < h:
+            raise EfficientTrackError(f"runtime: the policy needs {h} future desired positions, got {q_des_future.shape[1]}")
+        with torch.no_grad():
+            a = self.policy(
+                torch.as_tensor(history.obs, dtype=torch.float32, device=self.device),
+                torch.as_tensor(history.q_ref, dtype=torch.float32, device=self.device),
+                torch.as_tensor(q_des_future[:, :h], dtype=torch.float32, device=self.device),
+            )
+        return a.detach().cpu().double().numpy()
+
+
+class Driver(Protocol):
+    """What :func:`rollout` asks for the reference of each step (the policy runtime, or collection noise)."""
+
+    def start(self, obs0: np.ndarray) -> None:
+        """Begin N episodes.
+
+        Args:
+            obs0: (N, 8) [rad, rad/s], the start observations.
+        """
+        ...
+
+    def step(self, obs: np.ndarray, q_des_future: np.ndarray) -> Sent:
+        """The reference for step t+1.
+
+        Args:
+            obs: (N, 8) [rad, rad/s], ``o_t``.
+            q_des_future: (N, h, 4) rad, ``q*_{t+1} … q*_{t+h}``.
+
+        Returns:
+            What was sent.
+        """
+        ...
+
+
+def pad_references(references: Sequence[np.ndarray], extra: int) -> np.ndarray:
+    """Stack references of different lengths time-major, each padded with its last position.
+
+    Args:
+        references: N arrays (L_i, 4) rad, desired positions q*_0 … q*_{L_i − 1}.
+        extra: rows to add beyond the longest reference (room for the future window).
+
+    Returns:
+        (max L_i + extra, N, 4) rad.
+    """
+    length = max(len(q) for q in references) + extra
+    padded = np.empty((length, len(references), 4))
+    for i, q in enumerate(references):  # one copy per reference; the time loop below is the only loop over steps
+        padded[: len(q), i] = q
+        padded[len(q) :, i] = q[-1]
+    return padded
+
+
+def rollout(
+    system: BatchedSystem,
+    references: Sequence[np.ndarray],
+    driver: Driver,
+    horizon: int = 1,
+    progress: Progress | None = None,
+    description: str = "rollout",
+) -> list[EpisodeRecord]:
+    """Run N references together on a batched system (or N = 1 on any system); the only time loop.
+
+    Every machine is reset to its ``q*_0``; at step t the driver turns ``o_t`` and the desired
+    ``q*_{t+1} … q*_{t+h}`` into the reference sent. Episode i has ``T_i = L_i − 1`` steps; shorter
+    references hold their last desired position while the longer ones finish, and their records
+    are cut to their own length.
+
+    Args:
+        system: the closed-loop system, already checked (``load_system``); must accept N machines.
+        references: N arrays (L_i, 4) rad with L_i ≥ 3.
+        driver: :class:`Runtime`-like object making each step's reference.
+        horizon: future desired positions h handed to the driver each step.
+        progress: a rich progress display to report steps on, or None.
+        description: label of the progress task.
+
+    Returns:
+        N records (q, qd, q_ref, q_des, u, t; meta["fallbacks"] = guarded steps within T_i).
+    """
+    lengths = np.array([len(q) for q in references])
+    if np.any(lengths < 3):
+        raise EfficientTrackError("rollout: every reference needs at least 3 positions")
+    steps = int(lengths.max()) - 1
+    q_des = pad_references(references, horizon + 1)  # (L_max + h + 1, N, 4)
+    n = len(references)
+    q, qd, q_ref = np.empty((steps, n, 4)), np.empty((steps, n, 4)), np.empty((steps, n, 4))
+    u = np.empty((steps, n, 4))
+    fallback = np.zeros((steps, n), dtype=bool)
+    has_u = True
+    task = progress.add_task(description, total=steps) if progress is not None else None
+    obs = system.reset(q_des[0])
+    driver.start(obs)
+    for t in range(steps):
+        sent = driver.step(obs, q_des[t + 1 : t + 1 + horizon].transpose(1, 0, 2))
+        q[t], qd[t], q_ref[t], fallback[t] = obs[:, :4], obs[:, 4:], sent.q_ref, sent.fallback
+        obs = system.step(sent.q_ref)
+        command = system.last_command
+        has_u = has_u and command is not None
+        if has_u:
+            u[t] = command
+        if task is not None:
+            progress.advance(task)
+    if task is not None:
+        progress.remove_task(task)
+    t_axis = np.arange(steps) * system.dt
+    records = []
+    for i, length in enumerate(lengths - 1):
+        records.append(
+            EpisodeRecord(
+                q=q[:length, i].copy(),
+                qd=qd[:length, i].copy(),
+                q_ref=q_ref[:length, i].copy(),
+                q_des=q_des[1 : length + 1, i].copy(),
+                u=u[:length, i].copy() if has_u else None,
+                t=t_axis[:length].copy(),
+                meta={"fallbacks": int(fallback[:length, i].sum())},
+            )
+        )
+    return records
+
+
+def batches(system: BatchedSystem, count: int) -> list[slice]:
+    """Groups of episodes run together: all at once on a batched system, else one by one.
+
+    Args:
+        system: the system (its ``max_batch``: None = any N, else the largest N).
+        count: number of episodes.
+
+    Returns:
+        Slices covering ``range(count)`` in order.
+    """
+    size = count if system.max_batch is None else system.max_batch
+    return [slice(start, min(start + size, count)) for start in range(0, count, size)]
+
+
+def track(
+    system: BatchedSystem,
+    policy: torch.nn.Module | None,
+    references: Sequence[Reference],
+    device: torch.device | str | None = None,
+    progress: bool = True,
+    description: str = "tracking",
+) -> list[EpisodeRecord]:
+    """Algorithm 2 over a set of references: one record per reference.
+
+    Args:
+        system: the closed-loop system (``load_system``).
+        policy: the adjustment policy, or None for the PD controller alone.
+        references: the references (``.name``, ``.q`` (L_i, 4) rad of desired positions q*_0 … q*_{L_i − 1}).
+        device: where the policy runs (its own device when None).
+        progress: show a progress bar.
+        description: label of the progress bar.
+
+    Returns:
+        Records with ``q_ref`` = the adjusted reference sent, ``q_des`` = the desired one, and
+        ``meta`` = {name, method, fallbacks}.
+    """
+    records: list[EpisodeRecord] = []
+    method = "pd" if policy is None else "efficienttrack"
+    with Progress(disable=not progress, transient=True) as bar:
+        for part in batches(system, len(references)):
+            runtime = Runtime(policy, device=device)
+            with runtime:
+                part_records = rollout(system, [ref.q for ref in references[part]], runtime, runtime.horizon, bar, description)
+            for record, ref in zip(part_records, references[part], strict=True):
+                record.meta.update(name=ref.name, method=method)
+                records.append(record)
+    return records

@@ -1,0 +1,111 @@
+import shutil
+
+import numpy as np
+import pytest
+
+from efficienttrack.collect import CollectConfig, collect, episode_noise
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.systems.protocol import BatchedSystem, load_system
+from toy_system import make, sine_refs
+
+
+@pytest.fixture
+def refs():
+    return sine_refs([60, 45, 80])
+
+
+def test_noise_clipped_sigma_bounded_and_clean_passes_exact(refs):
+    cfg = CollectConfig(sigma_max=0.05, noise_ratio=(3, 1), passes=4, seed=3)
+    result = collect(BatchedSystem(make()), refs, cfg, progress=False)
+    assert len(result.records) == 12
+    for record in result.records:
+        d = record.q_ref - record.q_des
+        sigma = record.meta["sigma"]
+        if record.meta["noisy"]:
+            assert 0 < sigma <= 0.05
+            assert np.all(np.abs(d) <= sigma + 1e-12)
+            assert np.abs(d).max() == pytest.approx(sigma)  # some steps hit the clip
+        else:
+            assert sigma == 0.0
+            assert np.all(d == 0.0)
+    noisy = [r.meta["noisy"] for r in result.records[::3]]
+    assert noisy == [False, True, True, True]
+
+
+def test_noise_distribution_is_clipped_gaussian():
+    cfg = CollectConfig(sigma_max=0.05, seed=1)
+    sigma, d = episode_noise(cfg, pass_index=2, ref_index=5, steps=20000)
+    assert 0 < sigma <= 0.05
+    assert np.all(np.abs(d) <= sigma)
+    # N(0, 1) clipped to ±1: std 0.7184 and 31.7 % of samples on the bounds
+    assert np.std(d) / sigma == pytest.approx(0.7184, abs=0.01)
+    assert np.mean(np.abs(d) == sigma) == pytest.approx(0.3173, abs=0.01)
+    sigmas = [episode_noise(cfg, 0, i, 1)[0] for i in range(2000)]
+    assert max(sigmas) <= 0.05 and np.mean(sigmas) == pytest.approx(0.025, abs=0.001)
+
+
+@pytest.mark.parametrize(
+    ("ratio", "passes", "noisy"), [((9, 2), 11, 9), ((9, 2), 10, 8), ((1, 1), 4, 2), ((1, 0), 3, 3), ((0, 1), 3, 0)]
+)
+def test_pass_ratio(ratio, passes, noisy):
+    schedule = CollectConfig(noise_ratio=ratio, passes=passes).noisy_passes
+    assert len(schedule) == passes and sum(schedule) == noisy
+
+
+def test_interaction_steps_time_and_commands(refs):
+    result = collect(BatchedSystem(make()), refs, CollectConfig(passes=3), progress=False)
+    assert result.interaction_steps == 3 * (59 + 44 + 79)
+    record = result.records[1]
+    assert len(record) == 44 and np.allclose(record.t, np.arange(44) * 0.05)
+    np.testing.assert_array_equal(record.q_des, refs[1].q[1:])
+    # toy system: u = 1000·k·(q_ref − q), and q[t+1] = q[t] + k·(q_ref[t] − q[t])
+    np.testing.assert_allclose(record.u, 400 * (record.q_ref - record.q), atol=1e-12)
+    np.testing.assert_allclose(record.q[1:], record.q[:-1] + 0.4 * (record.q_ref[:-1] - record.q[:-1]), atol=1e-12)
+
+
+def test_batched_equals_one_at_a_time_for_different_lengths(refs):
+    cfg = CollectConfig(noise_ratio=(2, 1), passes=3, seed=7)
+    batched = collect(BatchedSystem(make(batched=True)), refs, cfg, progress=False)
+    single = collect(BatchedSystem(make(batched=False)), refs, cfg, progress=False)
+    assert [len(r) for r in batched.records] == [len(r) for r in single.records]
+    for a, b in zip(batched.records, single.records, strict=True):
+        for name in ("q", "qd", "q_ref", "q_des", "u", "t"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+        assert a.meta == b.meta
+
+
+def test_batched_equals_one_at_a_time_on_xe75(refs):
+    cfg = CollectConfig(noise_ratio=(0, 1), passes=1)
+    batched = collect(load_system("xe75"), refs, cfg, progress=False).records
+    for ref, a in zip(refs, batched, strict=True):
+        b = collect(load_system("xe75"), [ref], cfg, progress=False).records[0]
+        np.testing.assert_allclose(a.q, b.q, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(a.u, b.u, rtol=0, atol=1e-9)
+
+
+def test_resume_after_interruption(tmp_path, refs):
+    cfg = CollectConfig(noise_ratio=(1, 1), passes=4, seed=5)
+    first = collect(BatchedSystem(make()), refs, cfg, out=tmp_path, progress=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["collect.json", "pass_000", "pass_001", "pass_002", "pass_003"]
+    shutil.rmtree(tmp_path / "pass_002")
+    shutil.rmtree(tmp_path / "pass_003")
+    again = collect(BatchedSystem(make()), refs, cfg, out=tmp_path, progress=False)
+    assert again.resumed_passes == 2 and again.interaction_steps == first.interaction_steps
+    for a, b in zip(first.records, again.records, strict=True):
+        np.testing.assert_array_equal(a.q_ref, b.q_ref)
+        assert a.meta["name"] == b.meta["name"] and a.meta["pass"] == b.meta["pass"]
+    with pytest.raises(EfficientTrackError, match="other settings"):
+        collect(BatchedSystem(make()), refs, CollectConfig(passes=5), out=tmp_path, progress=False)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"sigma_max": -0.1}, "sigma_max"),
+        ({"noise_ratio": (0, 0)}, "noise_ratio"),
+        ({"passes": 0}, "passes"),
+    ],
+)
+def test_bad_config(kwargs, message):
+    with pytest.raises(EfficientTrackError, match=message):
+        CollectConfig(**kwargs)

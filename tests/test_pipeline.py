@@ -1,0 +1,200 @@
+import json
+import shutil
+import sys
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from efficienttrack import cli, dynamics
+from efficienttrack.config import PRESETS, RunConfig, from_dict, load_config
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.pipeline import SystemSpec, run_pipeline
+from efficienttrack.trajectories import save_references
+from toy_system import sine_refs
+
+TOY = SystemSpec(system="toy_system:make")
+METRIC_KEYS = {
+    "episodes",
+    "steps",
+    "mae_deg",
+    "rmse_deg",
+    "fmae_deg",
+    "smt1_deg",
+    "smt2_deg",
+    "etd_mae_cm",
+    "etd_fmae_cm",
+    "per_joint_mae_deg",
+}
+TINY = PRESETS["tiny"]
+TOY_CFG = replace(
+    TINY,
+    device="cpu",
+    collect=replace(TINY.collect, passes=6),
+    model=replace(TINY.model, steps=300),
+    policy=replace(TINY.policy, steps=300),
+)
+"""The tiny preset with a little more data and training: ~5 s on one core."""
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # tiny networks: threading only costs, and the test machine is shared
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def refs():
+    refs = sine_refs([80, 70, 90, 75, 85, 60], seed=4)
+    return refs[:4], refs[4:]
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory, refs):
+    out = tmp_path_factory.mktemp("run")
+    result = run_pipeline(TOY, *refs, out, TOY_CFG)
+    return out, result
+
+
+def cli_main(monkeypatch, capsys, *args):
+    """Run the ``efficienttrack`` entry point in-process; returns (exit code, stdout, stderr)."""
+    monkeypatch.setattr(sys, "argv", ["efficienttrack", *map(str, args)])
+    code = 0
+    try:
+        cli.main()
+    except SystemExit as exc:
+        code = exc.code or 0
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_run_writes_everything_and_beats_pd(finished_run):
+    out, result = finished_run
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics == json.loads(json.dumps(result.metrics))
+    assert set(metrics) >= {"pd", "efficienttrack", "interaction_steps", "train_seconds", "model", "config"}
+    assert set(metrics["pd"]) == METRIC_KEYS and set(metrics["efficienttrack"]) == METRIC_KEYS
+    assert set(metrics["model"]) == {"tr_mpe_deg", "te_mpe_deg"}
+    assert metrics["interaction_steps"] == 6 * (79 + 69 + 89 + 74)
+    assert metrics["config"] == TOY_CFG.to_dict()
+    # the toy lag closes 40 % of the error per step; the learned adjustment (exact answer known) must remove most of it
+    assert metrics["pd"]["mae_deg"] == pytest.approx(1.69, abs=0.01)
+    assert metrics["efficienttrack"]["mae_deg"] < 0.5 * metrics["pd"]["mae_deg"]
+    for path in ("model.pt", "model.json", "policy.pt", "policy.json", "config.json", "run.json"):
+        assert (out / path).is_file(), path
+    assert len(list((out / "records" / "pd").glob("*.npz"))) == 2
+    assert len(list((out / "records" / "efficienttrack").glob("*.npz"))) == 2
+    assert {p.name for p in (out / "plots").iterdir()} == {
+        "tracking_ref_04.png",
+        "tracking_ref_05.png",
+        "tracking_error.png",
+        "training_curves.png",
+    }
+
+
+def test_rerun_skips_finished_stages(finished_run, refs):
+    out, first = finished_run
+    stamp = {p: p.stat().st_mtime_ns for p in (out / "records").rglob("*.npz")}
+    again = run_pipeline(TOY, *refs, out, TOY_CFG)
+    assert set(again.skipped) == {"collect", "model", "policy", "evaluate_pd", "evaluate_efficienttrack"}
+    assert again.metrics["efficienttrack"] == first.metrics["efficienttrack"]
+    assert {p: p.stat().st_mtime_ns for p in (out / "records").rglob("*.npz")} == stamp
+    with pytest.raises(EfficientTrackError, match="other settings"):
+        run_pipeline(TOY, *refs, out, replace(TOY_CFG, seed=1))
+
+
+def test_interrupted_run_resumes(tmp_path, refs, monkeypatch):
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(dynamics, "train_model", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run_pipeline(TOY, *refs, tmp_path, TOY_CFG)
+    assert (tmp_path / "stages" / "collect.json").is_file() and not (tmp_path / "model.pt").exists()
+    stamp = {p: p.stat().st_mtime_ns for p in (tmp_path / "records" / "train").rglob("*.npz")}
+    assert len(stamp) == 6 * 4
+    monkeypatch.undo()
+    result = run_pipeline(TOY, *refs, tmp_path, TOY_CFG)
+    assert result.skipped == ("collect",)
+    assert {p: p.stat().st_mtime_ns for p in stamp} == stamp
+    assert result.metrics["efficienttrack"]["mae_deg"] < result.metrics["pd"]["mae_deg"]
+
+
+def test_cli_run_resumes_evaluate_and_collect(tmp_path, refs, finished_run, monkeypatch, capsys):
+    train, test = refs
+    save_references(train, tmp_path / "train")
+    save_references(test, tmp_path / "test")
+    TOY_CFG.save(tmp_path / "cfg.yaml")
+    shutil.copytree(finished_run[0], tmp_path / "out")
+    code, out, err = cli_main(
+        monkeypatch, capsys, "run", "--system", "toy_system:make", "--train-refs", tmp_path / "train",
+        "--test-refs", tmp_path / "test", "--out", tmp_path / "out", "--preset", "tiny", "--config", tmp_path / "cfg.yaml",
+    )  # fmt: skip
+    assert code == 0, err
+    assert "EfficientTrack" in out and "train model" not in out + err  # everything resumed, nothing retrained
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert set(metrics["efficienttrack"]) == METRIC_KEYS and metrics["config"] == TOY_CFG.to_dict()
+    assert metrics["efficienttrack"]["mae_deg"] < 0.5 * metrics["pd"]["mae_deg"]
+    code, out, err = cli_main(
+        monkeypatch, capsys, "evaluate", "--system", "toy_system:make", "--refs", tmp_path / "test",
+        "--policy", tmp_path / "out" / "policy.pt", "--out", tmp_path / "eval", "--device", "cpu",
+    )  # fmt: skip
+    assert code == 0, err
+    evaluated = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    assert evaluated["metrics"] == metrics["efficienttrack"]
+    assert len(list((tmp_path / "eval" / "records").glob("*.npz"))) == 2
+    code, out, err = cli_main(
+        monkeypatch, capsys, "collect", "--plant", "toy_system:make_plant", "--pd", "xe75", "--refs", tmp_path / "test",
+        "--out", tmp_path / "col", "--passes", "2", "--noise-ratio", "1:1",
+    )  # fmt: skip
+    assert code == 0, err
+    assert "collected 4 episodes, 286 interaction steps" in out
+    assert sorted(p.name for p in (tmp_path / "col").iterdir()) == ["collect.json", "pass_000", "pass_001"]
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (
+            ["--system", "toy_system:make", "--train-refs", "nowhere", "--test-refs", "nowhere"],
+            "nowhere: no such file or folder",
+        ),
+        (["--system", "no_such_module:make", "--train-refs", "{refs}", "--test-refs", "{refs}"], "cannot import module"),
+        (["--system", "xe75", "--plant", "xe75", "--train-refs", "{refs}", "--test-refs", "{refs}"], "exactly one of"),
+        (["--system", "xe75", "--train-refs", "{refs}", "--test-refs", "{refs}", "--preset", "huge"], "unknown, choose one"),
+    ],
+)
+def test_cli_bad_inputs_exit_2(tmp_path, refs, args, message, monkeypatch, capsys):
+    save_references(refs[0], tmp_path / "refs")
+    args = [a.replace("{refs}", str(tmp_path / "refs")) for a in args]
+    code, out, err = cli_main(monkeypatch, capsys, "run", *args, "--out", tmp_path / "out")
+    assert code == 2
+    assert message in err and "Traceback" not in err
+
+
+def test_config_roundtrip_and_validation(tmp_path):
+    for name, cfg in PRESETS.items():
+        path = tmp_path / f"{name}.yaml"
+        cfg.save(path)
+        assert load_config(path) == cfg
+        cfg.save(tmp_path / f"{name}.json")
+        assert load_config(tmp_path / f"{name}.json") == cfg
+    (tmp_path / "partial.yaml").write_text("seed: 3\ncollect:\n  passes: 2\n")
+    partial = load_config(tmp_path / "partial.yaml", PRESETS["tiny"])
+    assert partial.seed == 3 and partial.collect.passes == 2 and partial.model == PRESETS["tiny"].model
+    assert isinstance(from_dict({}), RunConfig)
+    bad = [
+        ({"colect": {}}, "unknown field"),
+        ({"collect": {"passes": "ten"}}, "passes"),
+        ({"model": {"hidden": 1.5}}, "hidden"),
+        ({"seed": True}, "seed"),
+        ({"device": "tpu"}, "device"),
+        ({"collect": {"sigma_max": -1.0}}, "sigma_max"),
+    ]
+    for data, message in bad:
+        with pytest.raises(EfficientTrackError, match=message):
+            from_dict(data, "x.yaml")
+    assert np.isclose(PRESETS["paper"].collect.sigma_max, 0.05) and PRESETS["paper"].collect.passes == 10

@@ -1,0 +1,81 @@
+"""A small external closed-loop system for tests: loadable as ``tests.toy_system:make``.
+
+Each joint follows its reference with a first-order lag, ``q[t+1] = q[t] + k·(q_ref[t] − q[t])``,
+so PD-like tracking of a moving reference lags behind by ``v·(1 − k)/k`` for a reference moving
+``v`` rad per step. The adjustment that removes the lag exactly is
+``a = (1/k − 1)·(q*[t+1] − q[t])``: a policy has something real to learn.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from efficienttrack.trajectories import Reference
+
+
+class LagSystem:
+    """Reference-level first-order lag, optionally batched.
+
+    Args:
+        gain: fraction k of the remaining error closed per step, in (0, 1].
+        batched: accept (N, 4) inputs (True) or single (4,) arrays only (False).
+        dt: control period, s.
+    """
+
+    def __init__(self, gain: float = 0.4, batched: bool = True, dt: float = 0.05) -> None:
+        self.k = float(gain)
+        self.batched = bool(batched)
+        self.dt = float(dt)
+        self.last_command: np.ndarray | None = None
+        self._q: np.ndarray | None = None
+
+    def reset(self, q0):
+        self._q = np.array(q0, dtype=np.float64)
+        self.last_command = None
+        return np.concatenate([self._q, np.zeros_like(self._q)], axis=-1)
+
+    def step(self, q_ref):
+        q_ref = np.asarray(q_ref, dtype=np.float64)
+        assert q_ref.shape == self._q.shape, (q_ref.shape, self._q.shape)
+        dq = self.k * (q_ref - self._q)
+        self.last_command = 1000.0 * dq
+        self._q = self._q + dq
+        return np.concatenate([self._q, dq / self.dt], axis=-1)
+
+
+def make(gain: float = 0.4, batched: bool = True) -> LagSystem:
+    """Build the toy system (the ``module:callable`` entry point)."""
+    return LagSystem(gain=gain, batched=batched)
+
+
+def sine_refs(lengths: list[int], seed: int = 0) -> list[Reference]:
+    """Smooth multi-sine references of the given lengths (20 Hz, amplitudes 0.2–0.5 rad), named ref_00, ref_01, …"""
+    rng = np.random.default_rng(seed)
+    refs = []
+    for i, n in enumerate(lengths):
+        t = np.arange(n) * 0.05
+        amp, freq, phase = rng.uniform(0.2, 0.5, 4), rng.uniform(0.1, 0.4, 4), rng.uniform(0, 6, 4)
+        refs.append(Reference(f"ref_{i:02d}", amp * np.sin(2 * np.pi * freq * t[:, None] + phase)))
+    return refs
+
+
+class IntegratorPlant:
+    """PWM-level toy plant, batched: ``q̇ = 1e-3·direction·u`` rad/s (XE75 sign convention), for ``--plant`` tests."""
+
+    dt = 0.05
+    batched = True
+    direction = np.array([-1.0, -1.0, -1.0, 1.0])
+
+    def reset(self, q0):
+        self._q = np.array(q0, dtype=np.float64)
+        return np.concatenate([self._q, np.zeros_like(self._q)], axis=-1)
+
+    def step(self, u):
+        qd = 1e-3 * self.direction * np.asarray(u, dtype=np.float64)
+        self._q = self._q + qd * self.dt
+        return np.concatenate([self._q, qd], axis=-1)
+
+
+def make_plant() -> IntegratorPlant:
+    """Build the toy plant (the ``module:callable`` entry point for ``--plant``)."""
+    return IntegratorPlant()
