@@ -16,15 +16,6 @@ LAG_GAIN = np.array([0.3, 0.5, 0.4, 0.6])
 """Per-joint fraction of the reference error closed per step in the synthetic system."""
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny networks run fastest (and reproducibly) on one thread, also on a busy 2-core machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def lag_records(n: int = 8, T: int = 100, sigma: float = 0.02, seed: int = 0) -> list[EpisodeRecord]:
     """Episodes of a linear closed-loop system with lag, q[t+1] = q[t] + k (q_ref[t] − q[t]), tracking sinusoids.
 

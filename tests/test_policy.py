@@ -19,14 +19,6 @@ from efficienttrack.policy import (
 from test_dynamics import LAG_GAIN, lag_records, train_tiny_model
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.fixture(scope="module")
 def model():
     return train_tiny_model(lag_records()).model

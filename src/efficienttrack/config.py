@@ -18,10 +18,10 @@ from typing import Any
 import yaml
 
 from efficienttrack.collect import CollectConfig
+from efficienttrack.configfile import config_from_dict
 from efficienttrack.dynamics import MODEL_PRESETS, ModelConfig
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import atomic_write, write_json
-from efficienttrack.nets import config_from_dict
 from efficienttrack.policy import POLICY_PRESETS, PolicyConfig
 
 

@@ -32,19 +32,12 @@ import torch
 from torch import nn
 
 from efficienttrack.angles import wrap
+from efficienttrack.configfile import config_from_dict
 from efficienttrack.dataset import Sequences, push
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.nets import (
-    MLP,
-    Standardizer,
-    TrainLoop,
-    config_from_dict,
-    load_checkpoint,
-    relative_features,
-    resolve_device,
-    save_checkpoint,
-)
+from efficienttrack.nets import MLP, Standardizer, relative_features, resolve_device
 from efficienttrack.records import EpisodeRecord
+from efficienttrack.training import TrainLoop, load_checkpoint, save_checkpoint
 
 NORM_SAMPLES = 65536
 """Windows used to fit the feature and output scaling."""

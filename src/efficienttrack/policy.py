@@ -29,20 +29,13 @@ import torch
 from torch import nn
 
 from efficienttrack.angles import wrap
+from efficienttrack.configfile import config_from_dict
 from efficienttrack.dataset import Sequences, push
 from efficienttrack.dynamics import NORM_SAMPLES, ClosedLoopModel
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.nets import (
-    MLP,
-    Standardizer,
-    TrainLoop,
-    config_from_dict,
-    load_checkpoint,
-    relative_features,
-    resolve_device,
-    save_checkpoint,
-)
+from efficienttrack.nets import MLP, Standardizer, relative_features, resolve_device
 from efficienttrack.records import EpisodeRecord
+from efficienttrack.training import TrainLoop, load_checkpoint, save_checkpoint
 
 XE75_MAX_ADJUST = (0.15, 0.30, 0.40, 0.40)
 """Per-joint adjustment bound of the real XE75 deployment (boom, arm, bucket, swing), rad."""
