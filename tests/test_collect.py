@@ -98,6 +98,38 @@ def test_resume_after_interruption(tmp_path, refs):
         collect(BatchedSystem(make()), refs, CollectConfig(passes=5), out=tmp_path, progress=False)
 
 
+class CrashAfter:
+    """An unbatched machine that fails after ``resets`` episodes, like a real machine's link dropping mid-pass."""
+
+    def __init__(self, resets: int) -> None:
+        self.inner, self.resets = make(batched=False), resets
+        self.dt = self.inner.dt
+
+    def reset(self, q0):
+        if self.resets == 0:
+            raise ConnectionError("link lost")
+        self.resets -= 1
+        return self.inner.reset(q0)
+
+    def step(self, q_ref):
+        return self.inner.step(q_ref)
+
+
+def test_unbatched_machine_flushes_every_episode_and_resumes_mid_pass(tmp_path, refs):
+    cfg = CollectConfig(noise_ratio=(1, 0), passes=1, seed=2)
+    with pytest.raises(ConnectionError):
+        collect(BatchedSystem(CrashAfter(resets=2)), refs, cfg, out=tmp_path, progress=False)
+    partial = tmp_path / ".pass_000.partial"
+    assert sorted(p.stem for p in partial.glob("*.npz")) == ["ref_00", "ref_01"]
+    machine = CrashAfter(resets=1)  # only the third episode is left to run
+    resumed = collect(BatchedSystem(machine), refs, cfg, out=tmp_path, progress=False)
+    assert machine.resets == 0 and not partial.exists() and (tmp_path / "pass_000").is_dir()
+    whole = collect(BatchedSystem(make(batched=False)), refs, cfg, progress=False)
+    for a, b in zip(resumed.records, whole.records, strict=True):
+        np.testing.assert_array_equal(a.q_ref, b.q_ref)
+        assert a.meta == b.meta
+
+
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [

@@ -6,18 +6,18 @@ and ``σ ~ U(0, σ_max)`` drawn once per episode. A pass runs every reference on
 noisy or clean (d = 0), and the noisy:clean mix follows ``noise_ratio`` (the paper's best is
 9:2). Interaction steps (I.S.) are the steps the machine was driven.
 
-Each finished pass is written to ``out/pass_<k>/`` at once (a temporary folder renamed into
-place), so an interrupted collection resumes at the first unfinished pass; the noise of pass k,
-reference i, comes from its own seeded generator, so a resumed or re-batched collection is
-identical to an uninterrupted one.
+Every episode is flushed to ``out/.pass_<k>.partial/`` as soon as it (or its batch) has run, and
+the folder becomes ``out/pass_<k>/`` when the pass is complete: an interrupted collection resumes
+with the first episode not yet recorded. The noise of pass k, reference i, comes from its own
+seeded generator, so a resumed or re-batched collection is identical to an uninterrupted one.
 """
 
 from __future__ import annotations
 
+import functools
 import json
 import os
-import shutil
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import NamedTuple
@@ -135,6 +135,8 @@ def run_pass(
     cfg: CollectConfig,
     pass_index: int,
     progress: Progress | None = None,
+    finished: Mapping[str, EpisodeRecord] | None = None,
+    on_done: Callable[[list[EpisodeRecord]], None] | None = None,
 ) -> list[EpisodeRecord]:
     """One pass of Algorithm 1 over all references (together when the system is batched).
 
@@ -144,35 +146,39 @@ def run_pass(
         cfg: collection settings.
         pass_index: k, which decides noisy/clean (``cfg.noisy_passes[k]``) and seeds the noise.
         progress: rich progress display for the steps, or None.
+        finished: episodes of this pass already recorded, by reference name; they are not run again.
+        on_done: called with the records of every group of episodes as soon as it has run (to flush them).
 
     Returns:
         One record per reference; meta = {name, sigma, pass, noisy}; ``q_ref`` = sent, ``q_des`` = desired.
     """
     noisy = cfg.noisy_passes[pass_index]
-    arrays = [ref.q for ref in references]
-    steps = max(len(q) for q in arrays) - 1
-    noise = np.zeros((steps, len(references), 4))
-    sigmas = np.zeros(len(references))
-    if noisy:
-        for i, q in enumerate(arrays):  # per-episode generators keep batching and resuming reproducible
-            sigmas[i], noise[: len(q) - 1, i] = episode_noise(cfg, pass_index, i, len(q) - 1)
-    records: list[EpisodeRecord] = []
-    for part in batches(system, len(references)):
-        records += rollout(system, arrays[part], NoiseDriver(noise[:, part]), 1, progress, f"pass {pass_index + 1}")
-    for record, ref, sigma in zip(records, references, sigmas, strict=True):
-        record.meta = {"name": ref.name, "sigma": float(sigma), "pass": pass_index, "noisy": noisy}
-    return records
+    finished = finished or {}
+    todo = [i for i, ref in enumerate(references) if ref.name not in finished]
+    new: dict[str, EpisodeRecord] = {}
+    for part in batches(system, len(todo)):
+        indices = todo[part]
+        arrays = [references[i].q for i in indices]
+        noise = np.zeros((max(len(q) for q in arrays) - 1, len(indices), 4))
+        sigmas = np.zeros(len(indices))
+        if noisy:
+            for j, i in enumerate(indices):  # per-episode generators keep batching and resuming reproducible
+                sigmas[j], noise[: len(arrays[j]) - 1, j] = episode_noise(cfg, pass_index, i, len(arrays[j]) - 1)
+        records = rollout(system, arrays, NoiseDriver(noise), 1, progress, f"pass {pass_index + 1}")
+        for record, i, sigma in zip(records, indices, sigmas, strict=True):
+            record.meta = {"name": references[i].name, "sigma": float(sigma), "pass": pass_index, "noisy": noisy}
+            new[references[i].name] = record
+        if on_done is not None:
+            on_done(records)
+    return [finished.get(ref.name) or new[ref.name] for ref in references]
 
 
 def _pass_dir(out: Path, k: int) -> Path:
     return out / f"pass_{k:03d}"
 
 
-def _save_pass(folder: Path, records: Sequence[EpisodeRecord]) -> None:
-    tmp = folder.with_name(f".{folder.name}.tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    save_records(records, tmp)
-    os.replace(tmp, folder)
+def _flush(records: list[EpisodeRecord], folder: Path) -> None:
+    save_records(records, folder)
 
 
 def collect(
@@ -220,10 +226,12 @@ def collect(
                 by_name = {record.meta["name"]: record for record in load_records(_pass_dir(folder, k))}
                 records += [by_name[name] for name in names]
                 resumed += 1
+            elif folder is None:
+                records += run_pass(system, references, cfg, k, bar)
             else:
-                done = run_pass(system, references, cfg, k, bar)
-                if folder is not None:
-                    _save_pass(_pass_dir(folder, k), done)
-                records += done
+                partial = _pass_dir(folder, k).with_name(f".{_pass_dir(folder, k).name}.partial")
+                finished = {r.meta["name"]: r for r in load_records(partial)} if partial.is_dir() else {}
+                records += run_pass(system, references, cfg, k, bar, finished, functools.partial(_flush, folder=partial))
+                os.replace(partial, _pass_dir(folder, k))
             bar.advance(passes)
     return CollectResult(records=records, interaction_steps=sum(len(r) for r in records), resumed_passes=resumed)

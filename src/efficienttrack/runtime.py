@@ -290,7 +290,7 @@ def batches(system: BatchedSystem, count: int) -> list[slice]:
     Returns:
         Slices covering ``range(count)`` in order.
     """
-    size = count if system.max_batch is None else system.max_batch
+    size = max(count, 1) if system.max_batch is None else system.max_batch
     return [slice(start, min(start + size, count)) for start in range(0, count, size)]
 
 
