@@ -28,7 +28,18 @@ app.add_typer(sim_app, name="sim")
 
 
 def parse_options(pairs: list[str] | None, flag: str = "--system-opt") -> dict[str, object]:
-    """Turn repeated ``key=value`` strings into keyword options (numbers and booleans parsed)."""
+    """Turn repeated ``key=value`` strings into keyword options (numbers and booleans parsed).
+
+    Args:
+        pairs: the ``key=value`` strings as given on the command line (``None`` when the option was not used).
+        flag: the option's name, used in error messages.
+
+    Returns:
+        ``{key: value}``, each value an int, float or bool where it parses as one, else the string.
+
+    Raises:
+        EfficientTrackError: a string without ``=`` or with an empty key.
+    """
     options: dict[str, object] = {}
     for pair in pairs or []:
         key, sep, raw = pair.partition("=")

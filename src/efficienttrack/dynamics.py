@@ -106,7 +106,12 @@ class ModelConfig:
 
     @classmethod
     def from_dict(cls, data: dict, source: str = "model config") -> ModelConfig:
-        """Build from a JSON/YAML mapping, validated field by field (``source`` names it in errors)."""
+        """Build from a JSON/YAML mapping, validated field by field (``source`` names it in errors).
+
+        Args:
+            data: field name → value, as read from a JSON/YAML config.
+            source: where ``data`` came from, named in error messages.
+        """
         return config_from_dict(cls, data, source)
 
 
@@ -172,7 +177,15 @@ class ClosedLoopModel(nn.Module):
 
 
 def observation_error(obs_a: torch.Tensor, obs_b: torch.Tensor) -> torch.Tensor:
-    """Difference ``a − b`` of observations (..., 8): positions wrapped to (−π, π], velocities plain."""
+    """Difference ``a − b`` of observations (..., 8): positions wrapped to (−π, π], velocities plain.
+
+    Args:
+        obs_a: (..., 8) [rad, rad/s], observations ``a``.
+        obs_b: (..., 8) [rad, rad/s], observations ``b`` (broadcastable against ``obs_a``).
+
+    Returns:
+        (..., 8) [rad, rad/s], ``a − b``.
+    """
     return torch.cat([wrap(obs_a[..., :4] - obs_b[..., :4]), obs_a[..., 4:] - obs_b[..., 4:]], dim=-1)
 
 
@@ -328,7 +341,12 @@ def save_model(model: ClosedLoopModel, path: str | Path) -> Path:
 
 
 def load_model(path: str | Path, device: str | torch.device = "cpu") -> ClosedLoopModel:
-    """Load a model saved by :func:`save_model` (tensors only, ``weights_only=True``), in eval mode on ``device``."""
+    """Load a model saved by :func:`save_model` (tensors only, ``weights_only=True``), in eval mode on ``device``.
+
+    Args:
+        path: the ``.pt`` file written by :func:`save_model`; its JSON config must lie next to it.
+        device: where to put the model (``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or a torch device).
+    """
     fields, state = load_checkpoint(path, "closed_loop_model")
     model = ClosedLoopModel(ModelConfig.from_dict(fields, f"{path} config"))
     try:

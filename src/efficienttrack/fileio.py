@@ -37,5 +37,13 @@ def atomic_write(path: str | Path, write: Callable[[IO[Any]], object], mode: str
 
 
 def write_json(path: str | Path, data: Any) -> Path:
-    """Write ``data`` as indented JSON atomically."""
+    """Write ``data`` as indented JSON atomically.
+
+    Args:
+        path: destination; parent folders are created.
+        data: a JSON-serializable object.
+
+    Returns:
+        The destination path.
+    """
     return atomic_write(path, lambda f: json.dump(data, f, indent=2, sort_keys=False), mode="w")

@@ -109,7 +109,12 @@ class PolicyConfig:
 
     @classmethod
     def from_dict(cls, data: dict, source: str = "policy config") -> PolicyConfig:
-        """Build from a JSON/YAML mapping, validated field by field (``source`` names it in errors)."""
+        """Build from a JSON/YAML mapping, validated field by field (``source`` names it in errors).
+
+        Args:
+            data: field name → value, as read from a JSON/YAML config.
+            source: where ``data`` came from, named in error messages.
+        """
         return config_from_dict(cls, data, source)
 
 
@@ -142,7 +147,13 @@ class AdjustmentPolicy(nn.Module):
 
     @torch.no_grad()
     def fit_scaling(self, obs_hist: torch.Tensor, qref_hist: torch.Tensor, qdes_future: torch.Tensor) -> None:
-        """Set the feature statistics from recorded windows (shapes as in :meth:`forward`)."""
+        """Set the feature statistics from recorded windows (shapes as in :meth:`forward`).
+
+        Args:
+            obs_hist: (B, h', 8) [rad, rad/s], recorded observation histories, h' ≥ h (the last h are used).
+            qref_hist: (B, h', 4) rad, the matching reference histories.
+            qdes_future: (B, F, 4) rad, the desired positions that follow, F ≥ h (the first h are used).
+        """
         h = self.cfg.horizon
         self.features.fit(relative_features(obs_hist[:, -h:], qref_hist[:, -h:], qdes_future[:, :h]))
 
@@ -353,7 +364,12 @@ def save_policy(policy: AdjustmentPolicy, path: str | Path) -> Path:
 
 
 def load_policy(path: str | Path, device: str | torch.device = "cpu") -> AdjustmentPolicy:
-    """Load a policy saved by :func:`save_policy` (tensors only, ``weights_only=True``), in eval mode on ``device``."""
+    """Load a policy saved by :func:`save_policy` (tensors only, ``weights_only=True``), in eval mode on ``device``.
+
+    Args:
+        path: the ``.pt`` file written by :func:`save_policy`; its JSON config must lie next to it.
+        device: where to put the policy (``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or a torch device).
+    """
     fields, state = load_checkpoint(path, "adjustment_policy")
     policy = AdjustmentPolicy(PolicyConfig.from_dict(fields, f"{path} config"))
     try:

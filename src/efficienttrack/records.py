@@ -149,7 +149,11 @@ class EpisodeRecord:
 
     @classmethod
     def load(cls, path: str | Path) -> EpisodeRecord:
-        """Read and validate a record saved by :meth:`save` or one of the XE75 ``.npz`` logs."""
+        """Read and validate a record saved by :meth:`save` or one of the XE75 ``.npz`` logs.
+
+        Args:
+            path: the ``.npz`` file (read with ``allow_pickle=False``).
+        """
         path = Path(path)
         try:
             with np.load(path, allow_pickle=False) as data:

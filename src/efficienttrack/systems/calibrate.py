@@ -217,7 +217,13 @@ def rollout_windows(params: HydraulicParams, windows: Windows, gains: PDGains | 
 
 
 def window_error(params: HydraulicParams, windows: Windows, gains: PDGains | None = None) -> np.ndarray:
-    """Per-joint mean |wrap(q_sim − q_log)| over the steps and windows, (4,) rad (see :func:`rollout_windows`)."""
+    """Per-joint mean |wrap(q_sim − q_log)| over the steps and windows, (4,) rad (see :func:`rollout_windows`).
+
+    Args:
+        params: simulator parameters.
+        windows: the windows (H steps, W windows).
+        gains: None to replay the logged PWM (open loop); a PD law to track the logged ``q_ref`` (closed loop).
+    """
     return np.abs(wrap(rollout_windows(params, windows, gains) - windows.q)).mean(axis=(0, 1))
 
 
@@ -333,6 +339,10 @@ def estimate_sensor_noise(data: Padded, dt: float = 0.05) -> tuple[np.ndarray, n
     ``noise_q`` from the second difference of q (6σ² for white noise on a smooth motion),
     ``noise_qd`` from the sensor rate against the position difference, ``qd[t+1] − (q[t+1] − q[t]) / dt``;
     both as 1.4826 × median absolute deviation over the real steps (upper bounds: motion leaks in).
+
+    Args:
+        data: padded logs (T steps, N episodes); only the real (unpadded) steps count.
+        dt: sample period of the logs, s.
     """
     mask = data.mask
     d2 = (data.q[2:] - 2 * data.q[1:-1] + data.q[:-2])[mask[2:]]
@@ -505,7 +515,11 @@ class Fidelity(NamedTuple):
     data: Padded
 
     def to_json(self, decimals: int = 4) -> dict[str, Any]:
-        """The one-line JSON report: ``{"closed_loop": {...}, "open_loop": {"mpe20_deg": [4] | null}}``."""
+        """The one-line JSON report: ``{"closed_loop": {...}, "open_loop": {"mpe20_deg": [4] | null}}``.
+
+        Args:
+            decimals: digits after the decimal point each value (deg, or the unitless ratio) is rounded to.
+        """
 
         def r(x: np.ndarray | None) -> list[float] | None:
             return None if x is None else [round(float(v), decimals) for v in x]
@@ -589,7 +603,15 @@ def _significant(value: Any, digits: int = 6) -> Any:
 
 
 def save_params(params: HydraulicParams, path: str | Path) -> Path:
-    """Write a preset as small reviewable JSON, one parameter per line, floats to 6 significant digits, atomically."""
+    """Write a preset as small reviewable JSON, one parameter per line, floats to 6 significant digits, atomically.
+
+    Args:
+        params: the simulator parameters to write (every field, as :meth:`HydraulicParams.to_dict` gives them).
+        path: destination JSON file; parent folders are created.
+
+    Returns:
+        The destination path.
+    """
     values = {key: _significant(value) for key, value in params.to_dict().items()}
     lines = ",\n".join(f"  {json.dumps(key)}: {json.dumps(value)}" for key, value in values.items())
     return atomic_write(path, lambda f: f.write("{\n" + lines + "\n}\n"), mode="w")

@@ -175,7 +175,11 @@ class HydraulicParams:
         return int(max(self.delay))
 
     def replace(self, **changes: Any) -> HydraulicParams:
-        """A copy with some fields changed (lists become tuples); unknown names raise EfficientTrackError."""
+        """A copy with some fields changed (lists become tuples); unknown names raise EfficientTrackError.
+
+        Args:
+            **changes: field name → new value (units as in the field's docstring).
+        """
         names = {f.name for f in fields(self)}
         unknown = sorted(set(changes) - names)
         if unknown:
@@ -190,7 +194,12 @@ class HydraulicParams:
 
     @classmethod
     def from_dict(cls, values: dict[str, Any], source: str = "hydraulic parameters") -> HydraulicParams:
-        """Build from a dict of fields (lists for per-joint values); raise EfficientTrackError on bad input."""
+        """Build from a dict of fields (lists for per-joint values); raise EfficientTrackError on bad input.
+
+        Args:
+            values: field name → value, e.g. as read from a JSON preset; fields left out keep their defaults.
+            source: where ``values`` came from, named in error messages.
+        """
         if not isinstance(values, dict):
             raise EfficientTrackError(f"{source}: expected a JSON object of parameters")
         names = {f.name for f in fields(cls)}
@@ -211,7 +220,11 @@ class HydraulicParams:
 
     @classmethod
     def load(cls, path: str | Path) -> HydraulicParams:
-        """Read a JSON preset file: every field of this class (as written by ``efficienttrack sim calibrate``)."""
+        """Read a JSON preset file: every field of this class (as written by ``efficienttrack sim calibrate``).
+
+        Args:
+            path: the JSON preset file; it must give every field.
+        """
         path = Path(path)
         try:
             values = json.loads(path.read_text())
@@ -328,7 +341,16 @@ def step(state: HydraulicState, u: np.ndarray, params: HydraulicParams) -> Hydra
 
 
 def observe(state: HydraulicState, params: HydraulicParams, rng: np.random.Generator | None = None) -> np.ndarray:
-    """Observation (N, 8) = [q rad, q̇ rad/s], with sensor noise when ``rng`` is given."""
+    """Observation (N, 8) = [q rad, q̇ rad/s], with sensor noise when ``rng`` is given.
+
+    Args:
+        state: the state of N machines (``q`` (N, 4) rad, ``qd`` (N, 4) rad/s).
+        params: model parameters (the noise std ``noise_q`` rad / ``noise_qd`` rad/s).
+        rng: generator of the sensor noise; None for noise-free observations.
+
+    Returns:
+        (N, 8) [rad, rad/s], ``[q, qd]``.
+    """
     obs = np.concatenate((state.q, state.qd), axis=1)
     if rng is not None:
         obs += rng.standard_normal(obs.shape) * params.arrays.noise

@@ -45,7 +45,11 @@ class PDGains:
 
     @classmethod
     def load(cls, spec: str) -> PDGains:
-        """A named preset (``xe75``) or a JSON file with the fields of this class."""
+        """A named preset (``xe75``) or a JSON file with the fields of this class.
+
+        Args:
+            spec: a preset name (a key of :data:`PD_PRESETS`) or the path of a JSON file.
+        """
         if spec in PD_PRESETS:
             return PD_PRESETS[spec]
         path = Path(spec)

@@ -186,7 +186,15 @@ def load_system(spec: str, **options: Any) -> BatchedSystem:
 
 
 def load_plant(spec: str, **options: Any) -> BatchedSystem:
-    """Load a PWM-level Plant (same spec rules as :func:`load_system`)."""
+    """Load a PWM-level Plant (same spec rules as :func:`load_system`).
+
+    Args:
+        spec: a built-in name (``xe75``) or ``"module.path:callable"``.
+        **options: keyword options passed to the callable (``--system-opt key=value`` on the CLI).
+
+    Returns:
+        The plant, wrapped in a checked batched view.
+    """
     return _build(spec, BUILTIN_PLANTS, "plant", options)
 
 
@@ -196,6 +204,12 @@ def check_system(system: Any, q0: np.ndarray | None = None, steps: int = 5, name
     Resets it at ``q0`` (4,) rad (zeros by default) and holds that reference for ``steps`` steps,
     checking ``dt``, shapes and finiteness on the way. Run it on your own machine wrapper before
     training on it.
+
+    Args:
+        system: the system to check (a ClosedLoopSystem, or one already wrapped in a :class:`BatchedSystem`).
+        q0: (4,) rad, the start position and held reference; zeros by default.
+        steps: number of steps to run.
+        name: how to name the system in errors (unused when ``system`` is already a :class:`BatchedSystem`).
     """
     view = system if isinstance(system, BatchedSystem) else BatchedSystem(system, name=name)
     start = np.zeros((1, N_JOINTS)) if q0 is None else np.asarray(q0, dtype=np.float64).reshape(1, N_JOINTS)
