@@ -188,56 +188,6 @@ def evaluate_command(
     evaluate(spec, load_references(refs), out, policy, device, Console(width=max(Console().width, 140)))
 
 
-@app.command("run")
-def run_command(
-    train_refs: Annotated[Path, typer.Option("--train-refs", help="Folder of training references.")],
-    test_refs: Annotated[Path, typer.Option("--test-refs", help="Folder of held-out test references.")],
-    out: Annotated[Path, typer.Option("--out", help="Output folder; rerunning resumes where it stopped.")],
-    system: SystemOpt = None,
-    plant: PlantOpt = None,
-    pd: PdOpt = "xe75",
-    system_opt: SystemOpts = None,
-    preset_name: Annotated[str, typer.Option("--preset", help="Settings preset: paper, cpu or tiny.")] = "cpu",
-    config: Annotated[Path | None, typer.Option("--config", help="YAML/JSON overriding preset fields.")] = None,
-    seed: Annotated[int | None, typer.Option("--seed", help="Seed of collection noise and training.")] = None,
-    device: Annotated[str | None, typer.Option("--device", help="auto, cpu or cuda.")] = None,
-    threads: Annotated[int | None, typer.Option("--threads", help="Torch CPU threads (torch's default when unset).")] = None,
-) -> None:
-    """The whole method: collect, train model and policy, evaluate PD alone vs EfficientTrack on the test references."""
-    import torch
-
-    from efficienttrack.pipeline import run_pipeline
-    from efficienttrack.trajectories import load_references
-
-    if threads is not None:
-        torch.set_num_threads(max(1, threads))
-
-    spec = _system_spec(system, plant, pd, system_opt)
-    cfg = _run_config(config, preset_name, seed, device)
-    train, test = load_references(train_refs), load_references(test_refs)
-    run_pipeline(spec, train, test, out, cfg, Console(width=max(Console().width, 140)))
-
-
-@app.command("demo")
-def demo_command(
-    out: Annotated[Path, typer.Option("--out", help="Output folder; rerunning resumes where it stopped.")] = Path("runs/demo"),
-    threads: Annotated[
-        int, typer.Option("--threads", help="Torch CPU threads; 1 is fastest for the demo's small networks on a busy machine.")
-    ] = 1,
-) -> None:
-    """The whole method on the built-in xe75 simulator with generated references (32 train / 8 test)."""
-    import torch
-
-    from efficienttrack.pipeline import demo
-
-    torch.set_num_threads(max(1, threads))
-
-    demo(out, console=Console(width=max(Console().width, 140)))
-
-
-DataOpt = Annotated[list[Path], typer.Option("--data", help="Episode files or folders (repeatable).")]
-LearnPresetOpt = Annotated[str, typer.Option("--preset", help="Training preset: paper (GPU), cpu or tiny.")]
-StepsOpt = Annotated[int | None, typer.Option("--steps", help="Override the preset's number of optimizer steps.")]
 ThreadsOpt = Annotated[
     int,
     typer.Option("--threads", help="torch CPU threads (1: fastest for cpu-preset networks on 2 shared cores; 0: default)."),
@@ -251,6 +201,49 @@ def _set_threads(threads: int) -> None:
         raise EfficientTrackError(f"--threads {threads}: expected ≥ 0")
     if threads:
         torch.set_num_threads(threads)
+
+
+@app.command("run")
+def run_command(
+    train_refs: Annotated[Path, typer.Option("--train-refs", help="Folder of training references.")],
+    test_refs: Annotated[Path, typer.Option("--test-refs", help="Folder of held-out test references.")],
+    out: Annotated[Path, typer.Option("--out", help="Output folder; rerunning resumes where it stopped.")],
+    system: SystemOpt = None,
+    plant: PlantOpt = None,
+    pd: PdOpt = "xe75",
+    system_opt: SystemOpts = None,
+    preset_name: Annotated[str, typer.Option("--preset", help="Settings preset: paper, cpu or tiny.")] = "cpu",
+    config: Annotated[Path | None, typer.Option("--config", help="YAML/JSON overriding preset fields.")] = None,
+    seed: Annotated[int | None, typer.Option("--seed", help="Seed of collection noise and training.")] = None,
+    device: Annotated[str | None, typer.Option("--device", help="auto, cpu or cuda.")] = None,
+    threads: ThreadsOpt = 1,
+) -> None:
+    """The whole method: collect, train model and policy, evaluate PD alone vs EfficientTrack on the test references."""
+    from efficienttrack.pipeline import run_pipeline
+    from efficienttrack.trajectories import load_references
+
+    _set_threads(threads)
+    spec = _system_spec(system, plant, pd, system_opt)
+    cfg = _run_config(config, preset_name, seed, device)
+    train, test = load_references(train_refs), load_references(test_refs)
+    run_pipeline(spec, train, test, out, cfg, Console(width=max(Console().width, 140)))
+
+
+@app.command("demo")
+def demo_command(
+    out: Annotated[Path, typer.Option("--out", help="Output folder; rerunning resumes where it stopped.")] = Path("runs/demo"),
+    threads: ThreadsOpt = 1,
+) -> None:
+    """The whole method on the built-in xe75 simulator with generated references (32 train / 8 test)."""
+    from efficienttrack.pipeline import demo
+
+    _set_threads(threads)
+    demo(out, console=Console(width=max(Console().width, 140)))
+
+
+DataOpt = Annotated[list[Path], typer.Option("--data", help="Episode files or folders (repeatable).")]
+LearnPresetOpt = Annotated[str, typer.Option("--preset", help="Training preset: paper (GPU), cpu or tiny.")]
+StepsOpt = Annotated[int | None, typer.Option("--steps", help="Override the preset's number of optimizer steps.")]
 
 
 def _learn_preset(presets: dict, name: str, steps: int | None):
