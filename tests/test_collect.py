@@ -130,6 +130,11 @@ def test_unbatched_machine_flushes_every_episode_and_resumes_mid_pass(tmp_path, 
         assert a.meta == b.meta
 
 
+def test_too_few_passes_for_any_noise_warn(refs):
+    with pytest.warns(UserWarning, match="give no noisy pass"):
+        collect(BatchedSystem(make()), refs, CollectConfig(passes=1), progress=False)
+
+
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [

@@ -112,6 +112,11 @@ def test_interrupted_training_resumes_to_the_same_model(tmp_path, monkeypatch):
     other = dataclasses.replace(cfg, lr=1e-4)
     with pytest.raises(EfficientTrackError, match="another run"):
         dynamics.train_model(other, records, device="cpu", progress=False, checkpoint=ckpt)
+    # the finished state is not silently reused for other data or another seed
+    with pytest.raises(EfficientTrackError, match="another run"):
+        dynamics.train_model(cfg, lag_records(n=2, T=40, seed=1), device="cpu", progress=False, checkpoint=ckpt)
+    with pytest.raises(EfficientTrackError, match="another run"):
+        dynamics.train_model(cfg, records, device="cpu", seed=1, progress=False, checkpoint=ckpt)
 
 
 def test_save_load_round_trip(trained, tmp_path):
@@ -126,6 +131,21 @@ def test_save_load_round_trip(trained, tmp_path):
 class Payload:
     def __reduce__(self):
         return (print, ("this ran code",))
+
+
+def test_load_refuses_a_config_written_for_other_weights(trained, tmp_path):
+    save_model(trained.model, tmp_path / "model.pt")
+    save_model(trained.model, tmp_path / "other.pt")
+    config = tmp_path / "model.json"
+    config.write_text(config.read_text().replace('"weights_sha256": "', '"weights_sha256": "0'))
+    with pytest.raises(EfficientTrackError, match="written for other weights"):
+        load_model(tmp_path / "model.pt")
+    load_model(tmp_path / "other.pt")
+
+
+def test_config_rejects_non_finite_values():
+    with pytest.raises(EfficientTrackError, match="lr must be > 0"):
+        ModelConfig(lr=float("nan"))
 
 
 def test_load_refuses_code_and_non_state_dicts(trained, tmp_path):

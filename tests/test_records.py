@@ -16,6 +16,7 @@ from efficienttrack.records import (
     EpisodeRecord,
     RecordWarning,
     load_csv,
+    load_named_records,
     load_record,
     load_records,
     load_upstream_npy,
@@ -94,6 +95,21 @@ def test_save_and_load_records_folder(tmp_path):
         save_records([records[1], records[1]], tmp_path / "dup")
     with pytest.raises(EfficientTrackError, match="--format 'hdf5'"):
         save_records(records, tmp_path / "x", fmt="hdf5")
+
+
+def test_named_records_in_order_and_missing_ones_reported(tmp_path):
+    save_records([make_record(seed=i, name=f"run_{i}") for i in (0, 1)], tmp_path)
+    assert [r.meta["name"] for r in load_named_records(tmp_path, ["run_1", "run_0"])] == ["run_1", "run_0"]
+    with pytest.raises(EfficientTrackError, match="run_2 missing"):
+        load_named_records(tmp_path, ["run_0", "run_2"])
+
+
+@pytest.mark.parametrize("content", [b"", b"PK\x03\x04garbage", b"not a zip at all"])
+def test_corrupt_npz_is_a_clear_error(tmp_path, content):
+    path = tmp_path / "broken.npz"
+    path.write_bytes(content)
+    with pytest.raises(EfficientTrackError, match="broken.npz: not a readable .npz"):
+        load_record(path)
 
 
 def test_unnamed_records_get_numbered_names(tmp_path):

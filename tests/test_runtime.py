@@ -92,6 +92,14 @@ def test_runtime_step_reports_fallback_and_lifecycle():
     assert not runtime.running
 
 
+def test_runtime_refuses_non_finite_inputs_before_sending():
+    runtime = Runtime(BrokenPolicy(), device="auto")
+    runtime.start(np.zeros((1, 8)))
+    with pytest.raises(EfficientTrackError, match="non-finite"):
+        runtime.step(np.zeros((1, 8)), np.full((1, 2, 4), np.nan))
+    assert runtime.steps == 0
+
+
 def test_runtime_equals_offline_policy_on_the_log(refs):
     """Alg. 2 vs offline: the policy applied to the training windows of the recorded log gives the logged adjustments."""
     pi = LinearPolicy(horizon=3)

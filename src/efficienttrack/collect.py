@@ -17,6 +17,7 @@ from __future__ import annotations
 import functools
 import json
 import os
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -27,7 +28,7 @@ from rich.progress import Progress
 
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import write_json
-from efficienttrack.records import EpisodeRecord, load_records, save_records
+from efficienttrack.records import EpisodeRecord, load_named_records, load_records, save_records
 from efficienttrack.runtime import Sent, batches, rollout
 from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.trajectories import Reference
@@ -206,6 +207,12 @@ def collect(
     """
     if not references:
         raise EfficientTrackError("collect: no references given")
+    if cfg.noise_ratio[0] > 0 and not any(cfg.noisy_passes):
+        warnings.warn(
+            f"collect: {cfg.passes} pass(es) at noisy:clean {cfg.noise_ratio[0]:g}:{cfg.noise_ratio[1]:g} give no noisy pass; "
+            "the model will see no noise (use more passes)",
+            stacklevel=2,
+        )
     names = [ref.name for ref in references]
     folder = Path(out) if out is not None else None
     if folder is not None:
@@ -223,8 +230,7 @@ def collect(
         passes = bar.add_task("collecting (passes)", total=cfg.passes)
         for k in range(cfg.passes):
             if folder is not None and _pass_dir(folder, k).is_dir():
-                by_name = {record.meta["name"]: record for record in load_records(_pass_dir(folder, k))}
-                records += [by_name[name] for name in names]
+                records += load_named_records(_pass_dir(folder, k), names)
                 resumed += 1
             elif folder is None:
                 records += run_pass(system, references, cfg, k, bar)

@@ -37,7 +37,7 @@ from efficienttrack.dataset import Sequences, push
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.nets import MLP, Standardizer, relative_features, resolve_device
 from efficienttrack.records import EpisodeRecord
-from efficienttrack.training import TrainLoop, load_checkpoint, save_checkpoint
+from efficienttrack.training import TrainLoop, fingerprint, load_checkpoint, save_checkpoint
 
 NORM_SAMPLES = 65536
 """Windows used to fit the feature and output scaling."""
@@ -83,7 +83,7 @@ class ModelConfig:
             raise EfficientTrackError("ModelConfig: set exactly one of steps and epochs")
         if (self.steps is not None and self.steps < 1) or (self.epochs is not None and self.epochs < 1):
             raise EfficientTrackError("ModelConfig: steps/epochs must be ≥ 1")
-        if self.lr <= 0 or self.weight_decay < 0:
+        if not (math.isfinite(self.lr) and math.isfinite(self.weight_decay)) or self.lr <= 0 or self.weight_decay < 0:
             raise EfficientTrackError("ModelConfig: lr must be > 0, weight_decay ≥ 0")
         if self.grad_clip is not None and self.grad_clip <= 0:
             raise EfficientTrackError("ModelConfig.grad_clip must be > 0 or None")
@@ -263,7 +263,8 @@ def train_model(
     g_theta.fit_scaling(sample.obs_hist, sample.qref_hist, sample.qref_future[:, 0], sample.obs_future[:, 0])
     sigma = g_theta.delta_scale
     optimizer = torch.optim.AdamW(g_theta.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    loop = TrainLoop("model", cfg, cfg.total_steps(len(starts)), g_theta, optimizer, seed, checkpoint, progress)
+    inputs = fingerprint(records, seed)
+    loop = TrainLoop("model", cfg, cfg.total_steps(len(starts)), g_theta, optimizer, seed, checkpoint, progress, inputs)
 
     for step in loop:
         window = data.window(starts[loop.sample(len(starts), cfg.batch_size).to(device)], horizon=h)

@@ -36,7 +36,7 @@ from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import write_json
 from efficienttrack.metrics import compute_metrics, metrics_table, rounded
 from efficienttrack.nets import resolve_device
-from efficienttrack.records import EpisodeRecord, load_records, save_records
+from efficienttrack.records import EpisodeRecord, load_named_records, save_records
 from efficienttrack.runtime import track
 from efficienttrack.systems.pd import ClosedLoop, PDGains
 from efficienttrack.systems.protocol import BatchedSystem, load_plant, load_system
@@ -157,8 +157,7 @@ def _evaluate(
 ) -> list[EpisodeRecord]:
     folder = out / "records" / name
     if stages.done(f"evaluate_{name}") is not None:
-        by_name = {record.meta["name"]: record for record in load_records(folder)}
-        return [by_name[ref.name] for ref in refs]
+        return load_named_records(folder, [ref.name for ref in refs])
     records = track(system, pi, refs, device=device, description=f"evaluating {name}")
     save_records(records, folder)
     stages.finish(f"evaluate_{name}", {"episodes": len(records), "fallbacks": sum(r.meta["fallbacks"] for r in records)})

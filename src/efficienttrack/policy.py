@@ -35,7 +35,7 @@ from efficienttrack.dynamics import NORM_SAMPLES, ClosedLoopModel
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.nets import MLP, Standardizer, relative_features, resolve_device
 from efficienttrack.records import EpisodeRecord
-from efficienttrack.training import TrainLoop, load_checkpoint, save_checkpoint
+from efficienttrack.training import TrainLoop, fingerprint, load_checkpoint, save_checkpoint
 
 XE75_MAX_ADJUST = (0.15, 0.30, 0.40, 0.40)
 """Per-joint adjustment bound of the real XE75 deployment (boom, arm, bucket, swing), rad."""
@@ -85,13 +85,14 @@ class PolicyConfig:
             raise EfficientTrackError(
                 f"PolicyConfig.horizon must be ≥ 2 (the smoothness term needs two actions), got {self.horizon}"
             )
-        if len(self.max_adjust) != 4 or min(self.max_adjust) <= 0:
+        if len(self.max_adjust) != 4 or not all(math.isfinite(b) and b > 0 for b in self.max_adjust):
             raise EfficientTrackError(f"PolicyConfig.max_adjust must be 4 positive bounds (rad), got {self.max_adjust}")
         if (self.steps is None) == (self.epochs is None):
             raise EfficientTrackError("PolicyConfig: set exactly one of steps and epochs")
         if (self.steps is not None and self.steps < 1) or (self.epochs is not None and self.epochs < 1):
             raise EfficientTrackError("PolicyConfig: steps/epochs must be ≥ 1")
-        if not 0 < self.gamma <= 1 or self.k_smooth < 0 or self.lr <= 0 or self.weight_decay < 0:
+        finite = all(math.isfinite(v) for v in (self.gamma, self.k_smooth, self.lr, self.weight_decay))
+        if not finite or not 0 < self.gamma <= 1 or self.k_smooth < 0 or self.lr <= 0 or self.weight_decay < 0:
             raise EfficientTrackError("PolicyConfig: need 0 < gamma ≤ 1, k_smooth ≥ 0, lr > 0, weight_decay ≥ 0")
         if self.grad_clip is not None and self.grad_clip <= 0:
             raise EfficientTrackError("PolicyConfig.grad_clip must be > 0 or None")
@@ -281,7 +282,8 @@ def train_policy(
     pi_phi.fit_scaling(sample.obs_hist, sample.qref_hist, sample.qdes_future)
     gamma_i = cfg.gamma ** torch.arange(1, h + 1, device=device, dtype=torch.float32)
     optimizer = torch.optim.AdamW(pi_phi.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    loop = TrainLoop("policy", cfg, cfg.total_steps(len(starts)), pi_phi, optimizer, seed, checkpoint, progress)
+    inputs = fingerprint(records, seed, frozen=model)
+    loop = TrainLoop("policy", cfg, cfg.total_steps(len(starts)), pi_phi, optimizer, seed, checkpoint, progress, inputs)
 
     for step in loop:
         window = data.window(starts[loop.sample(len(starts), cfg.batch_size).to(device)], horizon=0, desired=2 * h)

@@ -24,6 +24,7 @@ import io
 import json
 import pickle
 import warnings
+import zipfile
 from collections import Counter
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -158,7 +159,7 @@ class EpisodeRecord:
         try:
             with np.load(path, allow_pickle=False) as data:
                 arrays = {name: data[name] for name in data.files}
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
             raise EfficientTrackError(f"{path}: not a readable .npz episode record ({exc})") from exc
         missing = [name for name in ("q", "qd", "q_ref", "q_des", "t") if name not in arrays]
         if missing:
@@ -472,6 +473,28 @@ def load_records(paths: str | Path | Iterable[str | Path]) -> list[EpisodeRecord
     if not records:
         raise EfficientTrackError("no episode files given")
     return records
+
+
+def load_named_records(folder: str | Path, names: Sequence[str]) -> list[EpisodeRecord]:
+    """The episodes of ``folder`` named ``names``, in that order (resuming runs read their outputs back this way).
+
+    Args:
+        folder: a folder of records written by :func:`save_records`.
+        names: the episode names (``meta["name"]``) expected there.
+
+    Returns:
+        One record per name.
+
+    Raises:
+        EfficientTrackError: an expected episode is not in the folder.
+    """
+    by_name = {record.meta["name"]: record for record in load_records(folder)}
+    missing = [name for name in names if name not in by_name]
+    if missing:
+        raise EfficientTrackError(
+            f"{folder}: episode(s) {', '.join(missing[:5])} missing from a finished stage; delete the folder to redo it"
+        )
+    return [by_name[name] for name in names]
 
 
 def save_records(records: Sequence[EpisodeRecord], folder: str | Path, fmt: str = "npz") -> list[Path]:

@@ -33,6 +33,7 @@ from rich.progress import Progress
 
 from efficienttrack import dataset
 from efficienttrack.errors import EfficientTrackError
+from efficienttrack.nets import resolve_device
 from efficienttrack.records import EpisodeRecord
 from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.trajectories import Reference
@@ -84,7 +85,8 @@ class Runtime:
         else:
             self.horizon = int(policy.cfg.horizon)
             self.max_adjust = np.asarray(policy.cfg.max_adjust, dtype=np.float64)
-            self.device = torch.device(device) if device is not None else next(policy.parameters()).device
+            self.device = resolve_device(device) if device is not None else next(policy.parameters()).device
+            policy.to(self.device)
         self.fallbacks = np.zeros(0, dtype=np.int64)
         """(N,) number of guarded steps per machine since ``start``."""
         self.steps = 0
@@ -139,6 +141,8 @@ class Runtime:
                 f"runtime: step expects obs (N, 8) and q_des_future (N, h, 4) with N = {n}, "
                 f"got {obs.shape} and {q_des_future.shape}"
             )
+        if not (np.all(np.isfinite(obs)) and np.all(np.isfinite(q_des_future))):
+            raise EfficientTrackError("runtime: non-finite observation or desired position; nothing was sent")
         history = dataset.push_observation(self._history, obs)
         q_next = q_des_future[:, 0]
         if self.policy is None:

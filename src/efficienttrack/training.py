@@ -7,10 +7,11 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 import pickle
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +22,29 @@ from torch import nn
 
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import atomic_write, write_json
+from efficienttrack.records import EpisodeRecord
+
+
+def fingerprint(records: Sequence[EpisodeRecord], seed: int, frozen: nn.Module | None = None) -> str:
+    """SHA-256 identity of a training run's inputs: the records' arrays, the seed and a frozen network.
+
+    Args:
+        records: the training episodes (``q``, ``qd``, ``q_ref``, ``q_des`` are hashed).
+        seed: the run's seed.
+        frozen: a network the run trains through (the model, for a policy), or None.
+
+    Returns:
+        The hex digest.
+    """
+    digest = hashlib.sha256(str(seed).encode())
+    for record in records:
+        for array in (record.q, record.qd, record.q_ref, record.q_des):
+            digest.update(np.ascontiguousarray(array).tobytes())
+    if frozen is not None:
+        for name, tensor in frozen.state_dict().items():
+            digest.update(name.encode())
+            digest.update(tensor.detach().cpu().numpy().tobytes())
+    return digest.hexdigest()
 
 
 def config_path(path: str | Path) -> Path:
@@ -45,9 +69,14 @@ def save_checkpoint(module: nn.Module, kind: str, config: Any, path: str | Path)
     """
     path = Path(path)
     state = {name: tensor.detach().cpu() for name, tensor in module.state_dict().items()}
-    write_json(config_path(path), {"kind": kind, "config": dataclasses.asdict(config)})
     atomic_write(path, lambda f: torch.save(state, f))
+    meta = {"kind": kind, "config": dataclasses.asdict(config), "weights_sha256": _file_sha256(path)}
+    write_json(config_path(path), meta)
     return path
+
+
+def _file_sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def load_checkpoint(path: str | Path, kind: str) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
@@ -80,6 +109,8 @@ def load_checkpoint(path: str | Path, kind: str) -> tuple[dict[str, Any], dict[s
     state = load_tensors(path)
     if not all(isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state.items()):
         raise EfficientTrackError(f"{path}: not a state_dict (expected a dict of named tensors)")
+    if meta.get("weights_sha256") not in (None, _file_sha256(path)):
+        raise EfficientTrackError(f"{cfg_file}: written for other weights than {path} (an interrupted save?); save both again")
     return meta["config"], state
 
 
@@ -125,6 +156,8 @@ class TrainLoop:
         seed: seeds the window-sampling generator.
         checkpoint: training-state file (resumed when it exists), or None.
         progress: show a rich progress bar.
+        inputs: fingerprint of what the run learns from (:func:`fingerprint`); a saved state made from other
+            inputs is refused instead of being resumed.
     """
 
     def __init__(
@@ -137,8 +170,9 @@ class TrainLoop:
         seed: int,
         checkpoint: str | Path | None,
         progress: bool,
+        inputs: str = "",
     ) -> None:
-        self.kind, self.cfg, self.total = kind, cfg, total
+        self.kind, self.cfg, self.total, self.inputs = kind, cfg, total, inputs
         self.module, self.optimizer = module, optimizer
         self.checkpoint = None if checkpoint is None else Path(checkpoint)
         self.progress = progress
@@ -152,9 +186,10 @@ class TrainLoop:
     def _resume(self) -> None:
         """Load the saved training state, refusing one from another kind or config."""
         state = load_tensors(self.checkpoint)
-        if state.get("kind") != self.kind or state.get("config") != self._config or state.get("total") != self.total:
+        same = (state.get("kind"), state.get("config"), state.get("total"), state.get("inputs"))
+        if same != (self.kind, self._config, self.total, self.inputs):
             raise EfficientTrackError(
-                f"{self.checkpoint}: training state of another run (kind, config or number of steps differ); "
+                f"{self.checkpoint}: training state of another run (kind, config, steps, data, seed or model differ); "
                 "delete it to start afresh, or train with the config it was made with"
             )
         try:
@@ -174,6 +209,7 @@ class TrainLoop:
             "kind": self.kind,
             "config": self._config,
             "total": self.total,
+            "inputs": self.inputs,
             "step": step,
             "module": self.module.state_dict(),
             "optimizer": self.optimizer.state_dict(),
