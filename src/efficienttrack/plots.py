@@ -66,14 +66,30 @@ def plot_tracking(runs: dict[str, EpisodeRecord], path: str | Path, title: str =
     Returns:
         The path written.
     """
-    fig, axes = plt.subplots(4, 1, figsize=(10, 9), sharex=True, layout="constrained")
     first = next(iter(runs.values()))
     t_next = first.t + (first.t[1] - first.t[0])  # q_des[t] is the target of step t+1
-    for joint, ax in enumerate(axes):
-        ax.plot(t_next, np.degrees(first.q_des[:, joint]), "k--", lw=1.2, label="desired")
-        for name, record in runs.items():
-            ax.plot(record.t, np.degrees(record.q[:, joint]), lw=1.0, label=name)
-        ax.set_ylabel(f"{JOINT_NAMES[joint]} (°)")
+    traces = {name: (record.t, record.q) for name, record in runs.items()}
+    return _plot_joint_traces(t_next, first.q_des, traces, path, title)
+
+
+def _plot_joint_traces(
+    t_des: np.ndarray, q_des: np.ndarray, traces: dict[str, tuple[np.ndarray, np.ndarray]], path: str | Path, title: str
+) -> Path:
+    """One subplot per joint, in degrees: desired positions dashed, then each named trace.
+
+    Args:
+        t_des: (T,) s, times of the desired positions.
+        q_des: (T, 4) rad, desired positions.
+        traces: label → (t (T,) s, q (T, 4) rad).
+        path: PNG to write.
+        title: figure title.
+    """
+    fig, axes = plt.subplots(4, 1, figsize=(10, 9), sharex=True, layout="constrained")
+    for joint, (name, ax) in enumerate(zip(JOINT_NAMES, axes, strict=True)):
+        ax.plot(t_des, np.degrees(q_des[:, joint]), "k--", lw=1.0, label="desired")
+        for label, (t, q) in traces.items():
+            ax.plot(t, np.degrees(q[:, joint]), lw=1.1, label=label)
+        ax.set_ylabel(f"{name} (°)")
         ax.grid(alpha=0.3)
     axes[0].legend(loc="upper right", fontsize=8)
     axes[0].set_title(title)
@@ -152,14 +168,4 @@ def plot_sim_vs_real(
         The path written.
     """
     t = np.arange(len(q_real)) * dt
-    fig, axes = plt.subplots(4, 1, figsize=(10, 9), sharex=True, layout="constrained")
-    for joint, (name, ax) in enumerate(zip(JOINT_NAMES, axes, strict=True)):
-        ax.plot(t[1:], np.degrees(q_des[:-1, joint]), "k--", lw=0.8, label="desired")
-        ax.plot(t, np.degrees(q_real[:, joint]), lw=1.2, label="real")
-        ax.plot(t, np.degrees(q_sim[:, joint]), lw=1.2, label="simulated")
-        ax.set_ylabel(f"{name} (°)")
-        ax.grid(alpha=0.3)
-    axes[0].legend(loc="best", fontsize=8)
-    axes[0].set_title(title)
-    axes[-1].set_xlabel("time (s)")
-    return _save(fig, path)
+    return _plot_joint_traces(t[1:], q_des[:-1], {"real": (t, q_real), "simulated": (t, q_sim)}, path, title)
