@@ -17,19 +17,17 @@ from efficienttrack.systems.hydraulic import (
     xe75_plant,
 )
 
-# A simple, fully known model: linear flow, no rest dead zone, no pump limit, fast lag.
+# A simple, fully known model: linear flow, no rest dead zone, no spool lag, fast actuator lag.
 SIMPLE = HydraulicParams(
     delay=(3, 2, 4, 5),
     tau=(0.02, 0.02, 0.02, 0.02),
     dead_zone_pos=(400.0, 400.0, 400.0, 400.0),
     dead_zone_neg=(450.0, 450.0, 450.0, 450.0),
-    pwm_sat=(1000.0, 1000.0, 1000.0, 1000.0),
     v_max_pos=(0.2, 0.4, 1.0, 0.3),
     v_max_neg=(0.3, 0.3, 0.8, 0.3),
     payload_pos=(-0.5, 0.0, 0.0, 0.0),
     payload_neg=(0.2, 0.0, 0.0, 0.0),
-    flow_weight=(1.0, 1.0, 1.0, 1.0),
-    pump_flow=1.5,
+    pump_coupling=((0.0, 0.5, 0.5, 0.5), (0.5, 0.0, 0.5, 0.5), (0.5, 0.5, 0.0, 0.5), (0.5, 0.5, 0.5, 0.0)),
     q_min=(-0.5, -1.0, -0.5, -math.pi),
     q_max=(0.6, 0.5, 2.3, math.pi),
     noise_q=(0.001, 0.001, 0.001, 0.001),
@@ -66,16 +64,17 @@ def test_pwm_inside_dead_zone_does_not_move():
 
 def test_linear_flow_reaches_saturation_speed():
     obs = run(SIMPLE.replace(delay=(0, 0, 0, 0)), np.zeros(4), np.tile([1000.0, -1000.0, 700.0, 1000.0], (40, 1)))
-    # full PWM: v_max with pump sharing (3 joints at full + bucket at 0.5 -> demand 3.5 of 1.5)
-    share = 1.5 / 3.5
-    np.testing.assert_allclose(obs[-1, 4:], [-0.2 * share, 0.3 * share, -0.5 * share, 0.3 * share], rtol=1e-9)
+    # full PWM: v_max slowed by the others' openings (3 joints fully open, the bucket half open)
+    others = np.array([2.5, 2.5, 3.0, 2.5])
+    share = 1.0 / (1.0 + 0.5 * others)
+    np.testing.assert_allclose(obs[-1, 4:], np.array([-0.2, 0.3, -0.5, 0.3]) * share, rtol=1e-9)
 
 
 def test_two_joints_at_full_flow_move_slower_than_one_alone():
     alone = run(SIMPLE, np.zeros(4), np.tile([1000.0, 0.0, 0.0, 0.0], (30, 1)))
     both = run(SIMPLE, np.zeros(4), np.tile([1000.0, 1000.0, 0.0, 0.0], (30, 1)))
-    np.testing.assert_allclose(alone[-1, 4], -0.2, rtol=1e-9)  # within the pump's capacity
-    np.testing.assert_allclose(both[-1, 4], -0.2 * 0.75, rtol=1e-9)  # demand 2.0 of 1.5
+    np.testing.assert_allclose(alone[-1, 4], -0.2, rtol=1e-9)
+    np.testing.assert_allclose(both[-1, 4], -0.2 / 1.5, rtol=1e-9)  # the open arm valve takes pump flow
 
 
 def test_payload_slows_boom_raising_not_lowering():
@@ -125,14 +124,26 @@ def test_joint_limits_hold():
     np.testing.assert_array_equal(obs[-1, :3], SIMPLE.q_min[:3])
 
 
-def test_reset_with_logged_history_continues_the_delay_line():
+def test_spool_lag_filters_a_pwm_spike_but_not_a_held_command():
+    lagged = SIMPLE.replace(delay=(0, 0, 0, 0), tau_spool=(0.1, 0.1, 0.1, 0.1))
+    spike = np.zeros((20, 4))
+    spike[0] = 1000.0
+    peak_lagged = np.abs(run(lagged, np.zeros(4), spike)[:, 4:]).max(axis=0)
+    peak_direct = np.abs(run(SIMPLE.replace(delay=(0, 0, 0, 0)), np.zeros(4), spike)[:, 4:]).max(axis=0)
+    assert np.all(peak_lagged < 0.5 * peak_direct)
+    held = np.tile([1000.0, 0.0, 0.0, 0.0], (30, 1))
+    np.testing.assert_allclose(run(lagged, np.zeros(4), held)[-1, 4], -0.2, rtol=1e-5)
+
+
+def test_reset_with_logged_history_continues_the_delay_line_and_spool():
     rng = np.random.default_rng(2)
+    params = SIMPLE.replace(tau_spool=(0.03, 0.05, 0.1, 0.2))
     u = rng.uniform(-1000, 1000, (30, 2, 4))
-    full = run(SIMPLE, np.zeros((2, 4)), u)
-    state = initial_state(np.zeros((2, 4)), SIMPLE)
+    full = run(params, np.zeros((2, 4)), u)
+    state = initial_state(np.zeros((2, 4)), params)
     for k in range(10):
-        state = step(state, u[k], SIMPLE)
-    plant = HydraulicExcavator(SIMPLE)
+        state = step(state, u[k], params)
+    plant = HydraulicExcavator(params)
     plant.reset(state.q, qd0=state.qd, u_past=u[:10])
     rest = np.array([plant.step(x) for x in u[10:]])
     np.testing.assert_allclose(rest, full[11:], atol=1e-12)

@@ -338,6 +338,9 @@ def sim_calibrate_command(
     delays: Annotated[str, typer.Option("--delays", help="Candidate transport delays, steps, comma-separated.")] = "2,3,4,5,6",
     max_windows: Annotated[int, typer.Option("--max-windows", help="Fit windows of each kind at most.")] = 2500,
     max_nfev: Annotated[int, typer.Option("--max-nfev", help="Residual evaluations per least-squares stage.")] = 40,
+    max_ref_jitter: Annotated[
+        float, typer.Option("--max-ref-jitter", help="Leave out episodes whose q_ref − q_des jitters more, rad.")
+    ] = 0.01,
 ) -> None:
     """Fit the hydraulic simulator to a machine's PD logs (PWM → motion) and write the preset."""
     from efficienttrack.systems.calibrate import FitConfig, calibrate, load_logs, save_params
@@ -347,7 +350,7 @@ def sim_calibrate_command(
         candidates = tuple(int(d) for d in delays.split(","))
     except ValueError as exc:
         raise EfficientTrackError(f"--delays '{delays}': expected comma-separated integers") from exc
-    config = FitConfig(delays=candidates, max_windows=max_windows, max_nfev=max_nfev)
+    config = FitConfig(delays=candidates, max_windows=max_windows, max_nfev=max_nfev, max_ref_jitter=max_ref_jitter)
     first = HydraulicParams.load(start) if start is not None else None
     result = calibrate(load_logs(logs), first, config, progress=typer.echo)
     save_params(result.params, out)

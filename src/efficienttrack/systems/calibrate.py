@@ -44,6 +44,7 @@ from efficienttrack.systems.pd import XE75_PD, PDGains
 from efficienttrack.systems.protocol import BatchedSystem
 
 JOINT_FIELDS = (
+    "tau_spool",
     "tau",
     "tau_brake",
     "dead_zone_pos",
@@ -51,13 +52,16 @@ JOINT_FIELDS = (
     "dead_zone_q",
     "dead_zone_rest",
     "rest_speed",
-    "pwm_sat",
+    "pwm_sat_pos",
+    "pwm_sat_neg",
     "flow_curve",
     "v_max_pos",
     "v_max_neg",
+    "pump_coupling",
 )
-"""Per-joint parameters fitted in the first stage (pump sharing off)."""
+"""The fitted parameters (the pump coupling's columns belong to the joint they slow down)."""
 BOUNDS: dict[str, tuple[float, float]] = {
+    "tau_spool": (0.0, 0.5),
     "tau": (0.005, 1.0),
     "tau_brake": (0.005, 1.0),
     "dead_zone_pos": (0.0, 900.0),
@@ -65,18 +69,14 @@ BOUNDS: dict[str, tuple[float, float]] = {
     "dead_zone_q": (-400.0, 400.0),
     "dead_zone_rest": (0.0, 400.0),
     "rest_speed": (0.005, 0.5),
-    "pwm_sat": (600.0, 1000.0),
+    "pwm_sat_pos": (550.0, 1000.0),
+    "pwm_sat_neg": (550.0, 1000.0),
     "flow_curve": (0.0, 1.5),
     "v_max_pos": (0.005, 5.0),
     "v_max_neg": (0.005, 5.0),
-    "flow_weight": (0.0, 5.0),
-    "pump_flow": (0.2, 10.0),
+    "pump_coupling": (0.0, 3.0),
 }
 """Search bounds of the fitted parameters (units as in :class:`HydraulicParams`)."""
-PUMP_FIELDS = ("flow_weight", "pump_flow")
-"""Pump-sharing parameters, fitted after the per-joint ones."""
-NO_PUMP_LIMIT = 1e9
-"""``pump_flow`` that switches pump sharing off."""
 
 
 class Padded(NamedTuple):
@@ -302,6 +302,8 @@ class FitConfig:
     """Weight of the per-episode tracking-MAE match against the trajectory error in the whole-episode stage."""
     max_nfev: int = 40
     """Residual evaluations per least-squares stage."""
+    max_ref_jitter: float = 0.01
+    """Episodes whose reference perturbation jitters more than this are left out, rad (see :func:`reference_jitter`)."""
 
     def __post_init__(self) -> None:
         """Validate the settings; raise EfficientTrackError naming the bad one."""
@@ -312,6 +314,8 @@ class FitConfig:
                 raise EfficientTrackError(f"fit setting '{name}': needs a positive integer, got {getattr(self, name)!r}")
         if not self.mae_weight >= 0:
             raise EfficientTrackError(f"fit setting 'mae_weight': needs a number ≥ 0, got {self.mae_weight!r}")
+        if not self.max_ref_jitter > 0:
+            raise EfficientTrackError(f"fit setting 'max_ref_jitter': needs a number > 0, got {self.max_ref_jitter!r}")
 
 
 @dataclass(frozen=True)
@@ -352,6 +356,21 @@ def estimate_sensor_noise(data: Padded, dt: float = 0.05) -> tuple[np.ndarray, n
         return 1.4826 * np.median(np.abs(x - np.median(x, axis=0)), axis=0)
 
     return mad(d2) / np.sqrt(6.0), mad(dv)
+
+
+def reference_jitter(record: EpisodeRecord) -> float:
+    """RMS step-to-step change of an episode's reference perturbation ``wrap(q_ref − q_des)``, rad.
+
+    About √2 × the noise level of a noisy-reference pass, zero for a plain PD run. Strongly perturbed
+    passes make the PD law chatter between full PWM in both directions; fitted on those, the model
+    generalizes worse to smooth commands (on the XE75, keeping the passes up to σ = 0.008 rad of
+    ``pd_noise_train`` gave a simulator closer to the real machine under the learned policies).
+
+    Args:
+        record: an episode with ``q_ref`` and ``q_des`` (T, 4) rad.
+    """
+    offset = wrap(record.q_ref - record.q_des)
+    return float(np.sqrt(np.mean(np.diff(offset, axis=0) ** 2))) if len(offset) > 1 else 0.0
 
 
 def _strided_windows(data: Padded, horizon: int, max_windows: int) -> Windows:
@@ -414,13 +433,15 @@ def calibrate(
 ) -> CalibrationResult:
     """Fit the simulator to logs of a machine under its PD law.
 
-    1. For each candidate delay (pump sharing off): the per-joint parameters ``JOINT_FIELDS`` by
-       least squares on open-loop and closed-loop windows; each joint keeps its best delay.
-    2. The pump-sharing parameters on the same windows.
-    3. Whole episodes in closed loop (logged q_ref, PD law): the per-joint parameters, the pump,
-       then the per-joint parameters again, on the trajectory error plus ``mae_weight`` × the
-       per-episode tracking-MAE mismatch.
+    1. For each candidate delay: the parameters ``JOINT_FIELDS`` by least squares on open-loop
+       and closed-loop windows.
+    2. Each joint keeps its best delay and the parameters fitted with it.
+    3. Whole episodes in closed loop (logged q_ref, PD law): ``JOINT_FIELDS`` again, on the
+       trajectory error plus ``mae_weight`` × the per-episode tracking-MAE mismatch.
     4. The sensor-noise levels (:func:`estimate_sensor_noise`; used only with ``sensor_noise=True``).
+
+    Only the episodes whose reference jitter (:func:`reference_jitter`) is at most
+    ``config.max_ref_jitter`` are used.
 
     Args:
         records: logs with the PWM ``u`` (the fit windows are cut from them).
@@ -436,6 +457,14 @@ def calibrate(
     report = progress or (lambda line: None)
     if start is None:
         start = xe75_params()
+    jitter = np.array([reference_jitter(r) for r in records])
+    records = [r for r, j in zip(records, jitter, strict=True) if j <= cfg.max_ref_jitter]
+    if not records:
+        raise EfficientTrackError(
+            f"no episode to fit on: every reference perturbation jitters more than max_ref_jitter = "
+            f"{cfg.max_ref_jitter} rad (the calmest: {jitter.min():.4g} rad)"
+        )
+    report(f"fitting on {len(records)} of {len(jitter)} episodes (reference jitter ≤ {cfg.max_ref_jitter} rad)")
     data = pad(records)
     open_w = _strided_windows(data, cfg.open_horizon, cfg.max_windows)
     closed_w = _strided_windows(data, cfg.closed_horizon, cfg.max_windows)
@@ -446,14 +475,14 @@ def calibrate(
         r_closed = wrap(rollout_windows(params, closed_w, gains) - closed_w.q).reshape(-1, N_JOINTS)
         return np.concatenate([r_open, r_closed])
 
-    # 1: per-joint parameters for each delay, pump sharing off
-    no_pump = start.replace(pump_flow=NO_PUMP_LIMIT)
+    # 1: the parameters for each delay
     fits: dict[int, HydraulicParams] = {}
     delay_cost: dict[int, np.ndarray] = {}
     for d in cfg.delays:
-        fits[d] = _least_squares(window_residual, no_pump.replace(delay=[d] * N_JOINTS), JOINT_FIELDS, cfg.max_nfev)
+        fits[d] = _least_squares(window_residual, start.replace(delay=[d] * N_JOINTS), JOINT_FIELDS, cfg.max_nfev)
         delay_cost[d] = (window_residual(fits[d]) ** 2).mean(axis=0)
         report(f"delay {d}: rms window error (deg) {np.round(np.degrees(np.sqrt(delay_cost[d])), 3).tolist()}")
+    # 2: each joint keeps its best delay (and the parameters fitted with it)
     best = [min(cfg.delays, key=lambda d, j=j: delay_cost[d][j]) for j in range(N_JOINTS)]
     merged: dict[str, Any] = {"delay": best}
     for name in JOINT_FIELDS:
@@ -461,9 +490,8 @@ def calibrate(
         for j, d in enumerate(best):
             value[..., j] = np.asarray(getattr(fits[d], name))[..., j]
         merged[name] = value.tolist()
-    # 2: pump sharing
-    params = _least_squares(window_residual, no_pump.replace(**merged, pump_flow=start.pump_flow), PUMP_FIELDS, cfg.max_nfev)
-    report(f"delays {best}, pump_flow {params.pump_flow:.3f}")
+    params = start.replace(**merged)
+    report(f"delays {best}")
     # 3: whole episodes in closed loop
     keep = np.arange(0, len(records), max(1, -(-len(records) // cfg.max_episodes)))
     episodes = pad([records[i] for i in keep])
@@ -476,11 +504,6 @@ def calibrate(
         r_mae = (tracking_mae(q, episodes) - real_mae) * cfg.mae_weight / np.sqrt(len(keep))
         return np.concatenate([r_traj, r_mae])
 
-    pump = (params.flow_weight, params.pump_flow)
-    params = _least_squares(episode_residual, params.replace(pump_flow=NO_PUMP_LIMIT), JOINT_FIELDS, cfg.max_nfev)
-    params = _least_squares(
-        episode_residual, params.replace(flow_weight=pump[0], pump_flow=pump[1]), PUMP_FIELDS, cfg.max_nfev
-    )
     params = _least_squares(episode_residual, params, JOINT_FIELDS, cfg.max_nfev)
     noise_q, noise_qd = estimate_sensor_noise(data, start.dt)
     params = params.replace(noise_q=noise_q.tolist(), noise_qd=noise_qd.tolist())

@@ -3,19 +3,23 @@
 Per joint j (boom, arm, bucket, swing) and step t, with the PWM u[t] clipped to ±1000:
 
 1. **Transport delay**: the valve sees the command of ``delay[j]`` steps ago, ``u_d = u[t − delay]``.
-2. **Dead zone, flow curve, saturation**: the valve opening is
-   ``x = flow(clip((|u_d| − dz) / (pwm_sat − dz), 0, 1))``, a piecewise-linear flow characteristic
-   ``flow`` (0 at 0, 1 at 1, ``flow_curve`` at the evenly spaced knots between), with a dead zone ``dz`` that
-   depends on the direction, shifts linearly with the joint angle (``dead_zone_q``) and is larger
-   for a joint at rest (``dead_zone_rest``, breakaway, fading out up to ``rest_speed``).
-3. **Direction asymmetry, gravity and payload**: the requested speed is
-   ``v_max_pos·(1 + payload_pos·payload)·x`` for u_d > 0 and ``v_max_neg·(1 + payload_neg·payload)·x``
-   for u_d < 0 (boom raising and lowering differ, and a loaded bucket slows the raising).
-4. **Pump sharing**: each joint draws ``flow_weight[j]·x[j]`` of the pump; when the sum exceeds
-   ``pump_flow`` every requested speed is scaled down by ``pump_flow / sum``.
-5. **Actuator lag**: the joint velocity follows the requested velocity with time constant ``tau``
+2. **Spool lag**: the valve spool follows ``u_d`` with time constant ``tau_spool`` (in PWM units, ``s``), so a
+   one-step PWM spike opens the valve only a little while a held command opens it fully.
+3. **Dead zone, flow curve, saturation**: the valve opening is
+   ``x = flow(clip((|s| − dz) / (sat − dz), 0, 1))``, a piecewise-linear flow characteristic
+   ``flow`` (0 at 0, 1 at 1, ``flow_curve`` at the evenly spaced knots between). The dead zone ``dz`` and the
+   saturation ``sat`` depend on the direction (``pwm_sat_pos``/``pwm_sat_neg``: a cylinder may reach its
+   full speed earlier one way); the dead zone shifts linearly with the joint angle (``dead_zone_q``) and is
+   larger for a joint at rest (``dead_zone_rest``, breakaway, fading out up to ``rest_speed``).
+4. **Direction asymmetry, gravity and payload**: the requested speed is
+   ``v_max_pos·(1 + payload_pos·payload)·x`` for s > 0 and ``v_max_neg·(1 + payload_neg·payload)·x``
+   for s < 0 (boom raising and lowering differ, and a loaded bucket slows the raising).
+5. **Pump sharing**: the joints share the pump, so every open valve lowers the supply to the others
+   (and, through its own pressure drop, to itself): joint j's requested speed is divided by
+   ``1 + Σ_i pump_coupling[i][j]·x[i]``.
+6. **Actuator lag**: the joint velocity follows the requested velocity with time constant ``tau``
    when speeding up and ``tau_brake`` when slowing down or reversing.
-6. **Integration and limits**: ``q += dt·q̇``; boom, arm and bucket stop at ``[q_min, q_max]``;
+7. **Integration and limits**: ``q += dt·q̇``; boom, arm and bucket stop at ``[q_min, q_max]``;
    the swing wraps at ±π.
 
 Sign convention (as the real XE75): a positive PWM moves boom, arm and bucket towards smaller
@@ -58,6 +62,8 @@ class HydraulicParams:
 
     delay: tuple[int, int, int, int] = (4, 4, 4, 4)
     """Hydraulic transport delay, whole control steps from the command to the valve."""
+    tau_spool: Vec4 = (0.0, 0.0, 0.0, 0.0)
+    """Time constant of the valve spool following the delayed command (0: the spool follows at once), s."""
     tau: Vec4 = (0.10, 0.10, 0.10, 0.10)
     """Time constant of the first-order actuator lag while speeding up, s."""
     tau_brake: Vec4 = (0.10, 0.10, 0.10, 0.10)
@@ -72,8 +78,10 @@ class HydraulicParams:
     """Extra dead zone of a joint at rest (breakaway), fading out linearly up to ``rest_speed``, PWM."""
     rest_speed: Vec4 = (0.05, 0.05, 0.05, 0.05)
     """Joint speed from which the extra rest dead zone is gone, rad/s."""
-    pwm_sat: Vec4 = (1000.0, 1000.0, 1000.0, 1000.0)
-    """PWM magnitude at which the valve is fully open (flow saturation), PWM."""
+    pwm_sat_pos: Vec4 = (1000.0, 1000.0, 1000.0, 1000.0)
+    """Positive PWM at which the valve is fully open (flow saturation), PWM."""
+    pwm_sat_neg: Vec4 = (1000.0, 1000.0, 1000.0, 1000.0)
+    """Negative PWM magnitude at which the valve is fully open (flow saturation), PWM."""
     flow_curve: tuple[Vec4, ...] = ((0.2,) * 4, (0.4,) * 4, (0.6,) * 4, (0.8,) * 4)
     """Valve opening 0..1 at the evenly spaced interior knots of the normalized PWM beyond the dead zone (rows: knots)."""
     v_max_pos: Vec4 = (0.10, 0.40, 1.80, 0.25)
@@ -84,10 +92,13 @@ class HydraulicParams:
     """Relative change of the positive-PWM speed per unit payload (boom raising is negative)."""
     payload_neg: Vec4 = (0.10, 0.05, 0.0, 0.0)
     """Relative change of the negative-PWM speed per unit payload (boom lowering is positive)."""
-    flow_weight: Vec4 = (0.8, 0.8, 0.6, 0.6)
-    """Share of the pump a joint draws at full valve opening."""
-    pump_flow: float = 1.5
-    """Pump capacity in the units of ``flow_weight``; demand beyond it scales all joints down."""
+    pump_coupling: tuple[Vec4, Vec4, Vec4, Vec4] = (
+        (0.0, 0.3, 0.3, 0.3),
+        (0.3, 0.0, 0.3, 0.3),
+        (0.3, 0.3, 0.0, 0.3),
+        (0.3, 0.3, 0.3, 0.0),
+    )
+    """Slow-down of joint j (column) per unit valve opening of joint i (row) through the shared pump."""
     q_min: Vec4 = (-0.60, -1.20, -0.60, -math.pi)
     """Lower joint limits, rad (the swing is not limited: it wraps at ±π)."""
     q_max: Vec4 = (0.70, 0.60, 2.50, math.pi)
@@ -105,12 +116,13 @@ class HydraulicParams:
         """Validate every field: per-joint tuples of 4 finite numbers, sensible ranges."""
         for f in fields(self):
             value = getattr(self, f.name)
-            if f.name == "flow_curve":
+            rows = {"flow_curve": len(self.flow_curve) if isinstance(self.flow_curve, tuple) else 0, "pump_coupling": N_JOINTS}
+            if f.name in rows:
                 if not value or not all(isinstance(row, tuple) and len(row) == N_JOINTS for row in value):
-                    raise EfficientTrackError(f"hydraulic parameter 'flow_curve': needs rows of 4 numbers, got {value!r}")
+                    raise EfficientTrackError(f"hydraulic parameter '{f.name}': needs rows of 4 numbers, got {value!r}")
                 value = tuple(v for row in value for v in row)
             if isinstance(value, tuple):
-                if len(value) != N_JOINTS * (len(self.flow_curve) if f.name == "flow_curve" else 1) or not all(
+                if len(value) != N_JOINTS * rows.get(f.name, 1) or not all(
                     isinstance(v, int | float) and math.isfinite(v) for v in value
                 ):
                     raise EfficientTrackError(f"hydraulic parameter '{f.name}': needs 4 finite numbers, got {value!r}")
@@ -118,6 +130,7 @@ class HydraulicParams:
                 raise EfficientTrackError(f"hydraulic parameter '{f.name}': needs a finite number, got {value!r}")
         checks = {
             "delay": all(int(d) == d and 0 <= d <= 20 for d in self.delay),
+            "tau_spool": all(t >= 0 for t in self.tau_spool),
             "tau": all(t >= 0 for t in self.tau),
             "tau_brake": all(t >= 0 for t in self.tau_brake),
             "dead_zone_pos": all(0 <= d < U_MAX for d in self.dead_zone_pos),
@@ -125,11 +138,11 @@ class HydraulicParams:
             "flow_curve": all(0.0 <= v <= 2.0 for row in self.flow_curve for v in row),
             "dead_zone_rest": all(d >= 0 for d in self.dead_zone_rest),
             "rest_speed": all(v > 0 for v in self.rest_speed),
-            "pwm_sat": all(0 < s <= U_MAX for s in self.pwm_sat),
+            "pwm_sat_pos": all(0 < s <= U_MAX for s in self.pwm_sat_pos),
+            "pwm_sat_neg": all(0 < s <= U_MAX for s in self.pwm_sat_neg),
             "v_max_pos": all(v >= 0 for v in self.v_max_pos),
             "v_max_neg": all(v >= 0 for v in self.v_max_neg),
-            "flow_weight": all(w >= 0 for w in self.flow_weight),
-            "pump_flow": self.pump_flow > 0,
+            "pump_coupling": all(c >= 0 for row in self.pump_coupling for c in row),
             "q_max": all(lo < hi for lo, hi in zip(self.q_min, self.q_max, strict=True)),
             "noise_q": all(s >= 0 for s in self.noise_q),
             "noise_qd": all(s >= 0 for s in self.noise_qd),
@@ -149,6 +162,7 @@ class HydraulicParams:
         v_neg = -DIRECTION * a["v_max_neg"] * np.maximum(1.0 + a["payload_neg"] * load, 0.0)
         return _Arrays(
             delay=np.asarray(self.delay, dtype=np.intp),
+            beta=1.0 - np.exp(-self.dt / np.maximum(a["tau_spool"], 1e-9)),
             alpha=1.0 - np.exp(-self.dt / np.maximum(a["tau"], 1e-9)),
             alpha_brake_minus_accel=np.exp(-self.dt / np.maximum(a["tau"], 1e-9))
             - np.exp(-self.dt / np.maximum(a["tau_brake"], 1e-9)),
@@ -157,12 +171,12 @@ class HydraulicParams:
             dz_q=a["dead_zone_q"],
             dz_rest=a["dead_zone_rest"],
             inv_rest_speed=1.0 / a["rest_speed"],
-            pwm_sat=a["pwm_sat"],
+            sat_pos_minus_neg=a["pwm_sat_pos"] - a["pwm_sat_neg"],
+            sat_neg=a["pwm_sat_neg"],
             flow_table=np.concatenate([np.zeros((1, N_JOINTS)), a["flow_curve"], np.ones((1, N_JOINTS))]),
             v_pos_minus_neg=v_pos - v_neg,
             v_neg=v_neg,
-            flow_weight=a["flow_weight"],
-            pump_flow=float(self.pump_flow),
+            pump_coupling=a["pump_coupling"],
             q_min=np.where(np.arange(N_JOINTS) == 3, -np.inf, a["q_min"]),
             q_max=np.where(np.arange(N_JOINTS) == 3, np.inf, a["q_max"]),
             noise=np.concatenate([a["noise_q"], a["noise_qd"]]),
@@ -208,7 +222,7 @@ class HydraulicParams:
             raise EfficientTrackError(f"{source}: unknown parameter(s) {', '.join(unknown)}")
         kwargs: dict[str, Any] = {}
         for key, value in values.items():
-            if key == "flow_curve" and isinstance(value, list):
+            if key in ("flow_curve", "pump_coupling") and isinstance(value, list):
                 value = tuple(tuple(row) if isinstance(row, list) else row for row in value)
             elif isinstance(value, list):
                 value = tuple(int(v) if key == "delay" and float(v).is_integer() else v for v in value)
@@ -242,6 +256,7 @@ class _Arrays(NamedTuple):
     """Derived numpy views of :class:`HydraulicParams` used by :func:`step`."""
 
     delay: np.ndarray
+    beta: np.ndarray
     alpha: np.ndarray
     alpha_brake_minus_accel: np.ndarray
     dz_pos_minus_neg: np.ndarray
@@ -249,12 +264,12 @@ class _Arrays(NamedTuple):
     dz_q: np.ndarray
     dz_rest: np.ndarray
     inv_rest_speed: np.ndarray
-    pwm_sat: np.ndarray
+    sat_pos_minus_neg: np.ndarray
+    sat_neg: np.ndarray
     flow_table: np.ndarray
     v_pos_minus_neg: np.ndarray
     v_neg: np.ndarray
-    flow_weight: np.ndarray
-    pump_flow: float
+    pump_coupling: np.ndarray
     q_min: np.ndarray
     q_max: np.ndarray
     noise: np.ndarray
@@ -268,11 +283,13 @@ class HydraulicState(NamedTuple):
         q: (N, 4) rad, joint positions.
         qd: (N, 4) rad/s, joint velocities.
         u_hist: (N, D, 4) PWM, the last D commands, newest first (D = max delay + 1).
+        spool: (N, 4) PWM, the valve spool position (the delayed command after the spool lag).
     """
 
     q: np.ndarray
     qd: np.ndarray
     u_hist: np.ndarray
+    spool: np.ndarray
 
 
 def initial_state(
@@ -285,7 +302,8 @@ def initial_state(
         params: model parameters (sets the delay-line length).
         qd0: (N, 4) rad/s, joint velocities; zeros by default.
         u_past: (K, N, 4) PWM, the last K commands in time order (the last row is the command of the
-            step just before); fills the delay line, older entries stay zero.
+            step just before); fills the delay line and sets the spool as if they had passed through
+            it (older commands count as zero).
 
     Returns:
         The state.
@@ -294,11 +312,17 @@ def initial_state(
     n = len(q0)
     qd = np.zeros((n, N_JOINTS)) if qd0 is None else np.array(qd0, dtype=np.float64).reshape(n, N_JOINTS)
     u_hist = np.zeros((n, params.max_delay + 1, N_JOINTS))
+    spool = np.zeros((n, N_JOINTS))
     if u_past is not None:
         recent = np.clip(np.asarray(u_past, dtype=np.float64).reshape(-1, n, N_JOINTS), -U_MAX, U_MAX)[::-1]
         k = min(len(recent), params.max_delay + 1)
         u_hist[:, :k] = recent[:k].transpose(1, 0, 2)
-    return HydraulicState(q=q0, qd=qd, u_hist=u_hist)
+        # the spool has filtered the delayed commands: weight beta·(1 − beta)^age of each, newest first
+        p = params.arrays
+        age = np.arange(len(recent))[:, None] - p.delay[None, :]
+        weights = np.where(age >= 0, p.beta * (1.0 - p.beta) ** np.maximum(age, 0), 0.0)
+        spool = np.einsum("knj,kj->nj", recent, weights)
+    return HydraulicState(q=q0, qd=qd, u_hist=u_hist, spool=spool)
 
 
 def step(state: HydraulicState, u: np.ndarray, params: HydraulicParams) -> HydraulicState:
@@ -316,18 +340,19 @@ def step(state: HydraulicState, u: np.ndarray, params: HydraulicParams) -> Hydra
     u_now = np.minimum(np.maximum(u, -U_MAX), U_MAX)
     u_hist = np.concatenate((u_now[:, None, :], state.u_hist[:, :-1]), axis=1)
     u_d = u_hist[:, p.delay, _JOINT_INDEX]
+    spool = state.spool + p.beta * (u_d - state.spool)
     # valve: direction- and state-dependent dead zone, flow curve, saturation
-    pos = u_d > 0.0
+    pos = spool > 0.0
     dz = p.dz_neg + pos * p.dz_pos_minus_neg + p.dz_q * state.q
     dz += p.dz_rest * np.maximum(1.0 - np.abs(state.qd) * p.inv_rest_speed, 0.0)
-    x = (np.abs(u_d) - dz) / np.maximum(p.pwm_sat - dz, 1.0)
+    sat = p.sat_neg + pos * p.sat_pos_minus_neg
+    x = (np.abs(spool) - dz) / np.maximum(sat - dz, 1.0)
     x = np.minimum(np.maximum(x, 0.0), 1.0) * (len(p.flow_table) - 1)
     i = np.minimum(x.astype(np.intp), len(p.flow_table) - 2)
     lo = p.flow_table[i, _JOINT_INDEX]
     opening = lo + (x - i) * (p.flow_table[i + 1, _JOINT_INDEX] - lo)
     # pump sharing
-    demand = (opening * p.flow_weight).sum(axis=1, keepdims=True)
-    share = np.minimum(1.0, p.pump_flow / np.maximum(demand, 1e-12))
+    share = 1.0 / (1.0 + opening @ p.pump_coupling)
     # direction asymmetry / payload, then first-order lag (faster when braking)
     v_cmd = (p.v_neg + pos * p.v_pos_minus_neg) * opening * share
     dv = v_cmd - state.qd
@@ -337,7 +362,7 @@ def step(state: HydraulicState, u: np.ndarray, params: HydraulicParams) -> Hydra
     q_lim = np.minimum(np.maximum(q, p.q_min), p.q_max)
     qd *= q_lim == q
     q_lim[:, 3] = wrap(q_lim[:, 3])
-    return HydraulicState(q=q_lim, qd=qd, u_hist=u_hist)
+    return HydraulicState(q=q_lim, qd=qd, u_hist=u_hist, spool=spool)
 
 
 def observe(state: HydraulicState, params: HydraulicParams, rng: np.random.Generator | None = None) -> np.ndarray:
