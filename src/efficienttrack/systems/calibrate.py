@@ -47,7 +47,6 @@ JOINT_FIELDS = (
     "tau_spool",
     "tau",
     "tau_brake",
-    "accel_max",
     "dead_zone_pos",
     "dead_zone_neg",
     "dead_zone_q",
@@ -58,8 +57,6 @@ JOINT_FIELDS = (
     "flow_curve",
     "v_max_pos",
     "v_max_neg",
-    "speed_q",
-    "speed_q2",
     "pump_coupling",
 )
 """The fitted parameters (the pump coupling's columns belong to the joint they slow down)."""
@@ -67,7 +64,6 @@ BOUNDS: dict[str, tuple[float, float]] = {
     "tau_spool": (0.0, 0.5),
     "tau": (0.005, 1.0),
     "tau_brake": (0.005, 1.0),
-    "accel_max": (0.5, 1000.0),
     "dead_zone_pos": (0.0, 900.0),
     "dead_zone_neg": (0.0, 900.0),
     "dead_zone_q": (-400.0, 400.0),
@@ -78,8 +74,6 @@ BOUNDS: dict[str, tuple[float, float]] = {
     "flow_curve": (0.0, 1.5),
     "v_max_pos": (0.005, 5.0),
     "v_max_neg": (0.005, 5.0),
-    "speed_q": (-3.0, 3.0),
-    "speed_q2": (-2.0, 2.0),
     "pump_coupling": (0.0, 3.0),
 }
 """Search bounds of the fitted parameters (units as in :class:`HydraulicParams`)."""

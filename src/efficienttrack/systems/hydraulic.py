@@ -13,16 +13,12 @@ Per joint j (boom, arm, bucket, swing) and step t, with the PWM u[t] clipped to 
    larger for a joint at rest (``dead_zone_rest``, breakaway, fading out up to ``rest_speed``).
 4. **Direction asymmetry, gravity and payload**: the requested speed is
    ``v_max_pos·(1 + payload_pos·payload)·x`` for s > 0 and ``v_max_neg·(1 + payload_neg·payload)·x``
-   for s < 0 (boom raising and lowering differ, and a loaded bucket slows the raising), times the
-   linkage factor ``exp(speed_q·r + speed_q2·r²)`` of the angle r from the middle of the joint range:
-   a cylinder turns its joint through a linkage whose lever arm changes with the angle (at a held
-   full PWM the XE75's bucket moves about twice as fast near 1.8 rad as near 0.2 rad).
+   for s < 0 (boom raising and lowering differ, and a loaded bucket slows the raising).
 5. **Pump sharing**: the joints share the pump, so every open valve lowers the supply to the others
    (and, through its own pressure drop, to itself): joint j's requested speed is divided by
    ``1 + Σ_i pump_coupling[i][j]·x[i]``.
 6. **Actuator lag**: the joint velocity follows the requested velocity with time constant ``tau``
-   when speeding up and ``tau_brake`` when slowing down or reversing, changing by at most
-   ``accel_max·dt`` per step (the relief pressure limits the torque on a heavy link).
+   when speeding up and ``tau_brake`` when slowing down or reversing.
 7. **Integration and limits**: ``q += dt·q̇``; boom, arm and bucket stop at ``[q_min, q_max]``;
    the swing wraps at ±π.
 
@@ -72,8 +68,6 @@ class HydraulicParams:
     """Time constant of the first-order actuator lag while speeding up, s."""
     tau_brake: Vec4 = (0.10, 0.10, 0.10, 0.10)
     """Time constant of the actuator lag while slowing down or reversing (the closing valve brakes), s."""
-    accel_max: Vec4 = (1000.0, 1000.0, 1000.0, 1000.0)
-    """Largest joint acceleration or deceleration (torque limited by the relief valves), rad/s²."""
     dead_zone_pos: Vec4 = (480.0, 470.0, 500.0, 450.0)
     """Valve dead zone for positive PWM at angle 0, PWM."""
     dead_zone_neg: Vec4 = (480.0, 470.0, 480.0, 450.0)
@@ -94,10 +88,6 @@ class HydraulicParams:
     """Joint speed at full positive PWM with no load and no pump sharing, rad/s (saturation)."""
     v_max_neg: Vec4 = (0.20, 0.30, 0.90, 0.25)
     """Joint speed at full negative PWM with no load and no pump sharing, rad/s (saturation)."""
-    speed_q: Vec4 = (0.0, 0.0, 0.0, 0.0)
-    """Linkage: change of the log joint speed per rad from the middle of the joint range, 1/rad."""
-    speed_q2: Vec4 = (0.0, 0.0, 0.0, 0.0)
-    """Linkage: second-order term of the log joint speed in the angle from the middle of the range, 1/rad²."""
     payload_pos: Vec4 = (-0.30, -0.10, -0.05, 0.0)
     """Relative change of the positive-PWM speed per unit payload (boom raising is negative)."""
     payload_neg: Vec4 = (0.10, 0.05, 0.0, 0.0)
@@ -143,7 +133,6 @@ class HydraulicParams:
             "tau_spool": all(t >= 0 for t in self.tau_spool),
             "tau": all(t >= 0 for t in self.tau),
             "tau_brake": all(t >= 0 for t in self.tau_brake),
-            "accel_max": all(a > 0 for a in self.accel_max),
             "dead_zone_pos": all(0 <= d < U_MAX for d in self.dead_zone_pos),
             "dead_zone_neg": all(0 <= d < U_MAX for d in self.dead_zone_neg),
             "flow_curve": all(0.0 <= v <= 2.0 for row in self.flow_curve for v in row),
@@ -174,13 +163,9 @@ class HydraulicParams:
         return _Arrays(
             delay=np.asarray(self.delay, dtype=np.intp),
             beta=1.0 - np.exp(-self.dt / np.maximum(a["tau_spool"], 1e-9)),
-            q_mid=np.where(np.arange(N_JOINTS) == 3, 0.0, (a["q_min"] + a["q_max"]) / 2),
-            speed_q=a["speed_q"],
-            speed_q2=a["speed_q2"],
             alpha=1.0 - np.exp(-self.dt / np.maximum(a["tau"], 1e-9)),
             alpha_brake_minus_accel=np.exp(-self.dt / np.maximum(a["tau"], 1e-9))
             - np.exp(-self.dt / np.maximum(a["tau_brake"], 1e-9)),
-            dv_max=a["accel_max"] * self.dt,
             dz_pos_minus_neg=a["dead_zone_pos"] - a["dead_zone_neg"],
             dz_neg=a["dead_zone_neg"],
             dz_q=a["dead_zone_q"],
@@ -272,12 +257,8 @@ class _Arrays(NamedTuple):
 
     delay: np.ndarray
     beta: np.ndarray
-    q_mid: np.ndarray
-    speed_q: np.ndarray
-    speed_q2: np.ndarray
     alpha: np.ndarray
     alpha_brake_minus_accel: np.ndarray
-    dv_max: np.ndarray
     dz_pos_minus_neg: np.ndarray
     dz_neg: np.ndarray
     dz_q: np.ndarray
@@ -371,14 +352,11 @@ def step(state: HydraulicState, u: np.ndarray, params: HydraulicParams) -> Hydra
     lo = p.flow_table[i, _JOINT_INDEX]
     opening = lo + (x - i) * (p.flow_table[i + 1, _JOINT_INDEX] - lo)
     # pump sharing
-    share = 1.0 / (1.0 + np.einsum("ni,ij->nj", opening, p.pump_coupling))  # not @: BLAS sums differ with N
+    share = 1.0 / (1.0 + opening @ p.pump_coupling)
     # direction asymmetry / payload, then first-order lag (faster when braking)
-    r = state.q - p.q_mid
-    linkage = np.exp(np.minimum((p.speed_q + p.speed_q2 * r) * r, 5.0))
-    v_cmd = (p.v_neg + pos * p.v_pos_minus_neg) * opening * share * linkage
+    v_cmd = (p.v_neg + pos * p.v_pos_minus_neg) * opening * share
     dv = v_cmd - state.qd
-    change = (p.alpha + (dv * state.qd < 0.0) * p.alpha_brake_minus_accel) * dv
-    qd = state.qd + np.minimum(np.maximum(change, -p.dv_max), p.dv_max)
+    qd = state.qd + (p.alpha + (dv * state.qd < 0.0) * p.alpha_brake_minus_accel) * dv
     q = state.q + p.dt * qd
     # joint limits (swing unlimited) and swing wrap
     q_lim = np.minimum(np.maximum(q, p.q_min), p.q_max)
@@ -417,8 +395,7 @@ class HydraulicExcavator:
 
     ``dt`` = ``params.dt`` (0.05 s). ``reset`` optionally takes the logged velocity ``qd0`` and the
     last commands ``u_past`` (K, 4)/(K, N, 4), time order, to start in a logged state. Output rank
-    follows the ``q0`` given to ``reset``. Version 2 (model of this module docstring: spool lag, pump coupling,
-    per-direction saturation, linkage factor and acceleration limit added to version 1).
+    follows the ``q0`` given to ``reset``. Version 1 (model of this module docstring).
 
     Args:
         params: model parameters.
