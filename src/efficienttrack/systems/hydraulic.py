@@ -352,7 +352,7 @@ def step(state: HydraulicState, u: np.ndarray, params: HydraulicParams) -> Hydra
     lo = p.flow_table[i, _JOINT_INDEX]
     opening = lo + (x - i) * (p.flow_table[i + 1, _JOINT_INDEX] - lo)
     # pump sharing
-    share = 1.0 / (1.0 + opening @ p.pump_coupling)
+    share = 1.0 / (1.0 + np.einsum("ni,ij->nj", opening, p.pump_coupling))  # not @: BLAS sums differ with N
     # direction asymmetry / payload, then first-order lag (faster when braking)
     v_cmd = (p.v_neg + pos * p.v_pos_minus_neg) * opening * share
     dv = v_cmd - state.qd
