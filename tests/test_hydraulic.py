@@ -70,6 +70,13 @@ def test_linear_flow_reaches_saturation_speed():
     np.testing.assert_allclose(obs[-1, 4:], np.array([-0.2, 0.3, -0.5, 0.3]) * share, rtol=1e-9)
 
 
+def test_saturation_is_per_direction():
+    early = SIMPLE.replace(delay=(0, 0, 0, 0), pwm_sat_neg=(700.0,) * 4)
+    lowering = run(early, np.zeros(4), np.tile([-700.0, 0.0, 0.0, 0.0], (30, 1)))[-1, 4]
+    raising = run(early, np.zeros(4), np.tile([700.0, 0.0, 0.0, 0.0], (30, 1)))[-1, 4]
+    np.testing.assert_allclose([lowering, raising], [0.3, -0.2 * 0.5], rtol=1e-9)  # full vs half open
+
+
 def test_two_joints_at_full_flow_move_slower_than_one_alone():
     alone = run(SIMPLE, np.zeros(4), np.tile([1000.0, 0.0, 0.0, 0.0], (30, 1)))
     both = run(SIMPLE, np.zeros(4), np.tile([1000.0, 1000.0, 0.0, 0.0], (30, 1)))

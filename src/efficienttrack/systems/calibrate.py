@@ -6,7 +6,9 @@ window's logged state (position, velocity and the commands still in the delay li
 either with the logged PWM (open loop) or by the PD law along the logged ``q_ref`` (closed loop);
 the residual is ``wrap(q_sim − q_log)`` over every step of every window. Integer delays are chosen
 per joint on a grid. A last stage runs whole episodes in closed loop and also matches each
-episode's PD tracking MAE. The shipped ``xe75`` preset was fitted this way on ``pd_noise_train``.
+episode's PD tracking MAE. Episodes with a strongly perturbed reference are left out
+(:func:`reference_jitter`). The shipped ``xe75`` preset was fitted this way on ``pd_noise_train``
+(its 200 passes with σ ≤ 0.008 rad).
 
 Fidelity (:func:`fidelity`):
 

@@ -114,9 +114,9 @@ class HydraulicParams:
 
     def __post_init__(self) -> None:
         """Validate every field: per-joint tuples of 4 finite numbers, sensible ranges."""
+        rows = {"flow_curve": len(self.flow_curve) if isinstance(self.flow_curve, tuple) else 0, "pump_coupling": N_JOINTS}
         for f in fields(self):
             value = getattr(self, f.name)
-            rows = {"flow_curve": len(self.flow_curve) if isinstance(self.flow_curve, tuple) else 0, "pump_coupling": N_JOINTS}
             if f.name in rows:
                 if not value or not all(isinstance(row, tuple) and len(row) == N_JOINTS for row in value):
                     raise EfficientTrackError(f"hydraulic parameter '{f.name}': needs rows of 4 numbers, got {value!r}")
@@ -395,7 +395,8 @@ class HydraulicExcavator:
 
     ``dt`` = ``params.dt`` (0.05 s). ``reset`` optionally takes the logged velocity ``qd0`` and the
     last commands ``u_past`` (K, 4)/(K, N, 4), time order, to start in a logged state. Output rank
-    follows the ``q0`` given to ``reset``. Version 1 (model of this module docstring).
+    follows the ``q0`` given to ``reset``. Version 2 (the model of this module docstring; version 1 had no
+    spool lag, one saturation per joint and a pump limit instead of the pump coupling).
 
     Args:
         params: model parameters.
