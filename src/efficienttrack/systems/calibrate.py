@@ -276,13 +276,8 @@ def _unpack(x: np.ndarray, params: HydraulicParams, names: Sequence[str]) -> Hyd
 
 
 def _joint_of_columns(params: HydraulicParams, names: Sequence[str]) -> np.ndarray:
-    """The joint each packed parameter belongs to (−1 for scalars that act on every joint)."""
-    cols = [
-        np.broadcast_to(np.arange(N_JOINTS), np.shape(getattr(params, n))).ravel()
-        if np.ndim(getattr(params, n))
-        else np.array([-1])
-        for n in names
-    ]
+    """The joint each packed parameter belongs to: the last axis of every fitted field is the joint."""
+    cols = [np.broadcast_to(np.arange(N_JOINTS), np.shape(getattr(params, n))).ravel() for n in names]
     return np.concatenate(cols)
 
 
@@ -385,27 +380,24 @@ def _least_squares(
 ) -> HydraulicParams:
     """Fit the fields ``names`` within :data:`BOUNDS`; ``residual`` returns (R, 4) (one column per joint).
 
-    When every fitted field is per joint, the finite-difference Jacobian takes a joint's residuals
-    to depend on its own parameters only (exact with pump sharing off, an approximation with it
-    on) and perturbs all joints at once.
+    Every fitted field is per joint (its last axis). The finite-difference Jacobian takes a joint's
+    residuals to depend on that joint's parameters only and perturbs all joints at once. That is
+    exact without pump coupling and an approximation with it: the pump couples the joints' motions.
     """
     x0 = _pack(params, names)
     lower = np.concatenate([np.full(np.size(getattr(params, n)), BOUNDS[n][0]) for n in names])
     upper = np.concatenate([np.full(np.size(getattr(params, n)), BOUNDS[n][1]) for n in names])
     x0 = np.clip(x0, lower + 1e-9 * (upper - lower), upper - 1e-9 * (upper - lower))
     rows = residual(params).size
-    col_joint = _joint_of_columns(params, names)
-    sparsity = None
-    if np.all(col_joint >= 0):
-        row_joint = np.tile(np.arange(N_JOINTS), rows // N_JOINTS)
-        r_idx, c_idx = np.nonzero(row_joint[:, None] == col_joint[None, :])
-        sparsity = scipy.sparse.csr_matrix((np.ones(len(r_idx)), (r_idx, c_idx)), shape=(rows, len(x0)))
+    row_joint = np.tile(np.arange(N_JOINTS), rows // N_JOINTS)
+    r_idx, c_idx = np.nonzero(row_joint[:, None] == _joint_of_columns(params, names)[None, :])
+    sparsity = scipy.sparse.csr_matrix((np.ones(len(r_idx)), (r_idx, c_idx)), shape=(rows, len(x0)))
     result = least_squares(
         lambda x: residual(_unpack(x, params, names)).ravel(),
         x0,
         bounds=(lower, upper),
         jac_sparsity=sparsity,
-        tr_solver="lsmr" if sparsity is not None else "exact",
+        tr_solver="lsmr",
         x_scale="jac",
         diff_step=1e-3,
         max_nfev=max_nfev,
