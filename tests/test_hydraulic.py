@@ -84,6 +84,22 @@ def test_two_joints_at_full_flow_move_slower_than_one_alone():
     np.testing.assert_allclose(both[-1, 4], -0.2 / 1.5, rtol=1e-9)  # the open arm valve takes pump flow
 
 
+def test_linkage_makes_speed_depend_on_the_angle():
+    linked = SIMPLE.replace(delay=(0, 0, 0, 0), speed_q=(0.0, 0.0, 0.5, 0.0), speed_q2=(0.0, 0.0, 0.2, 0.0))
+    middle = (SIMPLE.q_min[2] + SIMPLE.q_max[2]) / 2
+    r = np.array([-0.5, 0.0, 0.5])
+    speeds = [-run(linked, np.array([0.0, 0.0, middle + x, 0.0]), [[0.0, 0.0, 1000.0, 0.0]])[-1, 6] for x in r]
+    first_step = 1.0 - np.exp(-0.05 / 0.02)  # of the actuator lag towards v_max_pos = 1 rad/s
+    np.testing.assert_allclose(speeds, np.exp(0.5 * r + 0.2 * r**2) * first_step, rtol=1e-9)
+
+
+def test_acceleration_is_capped():
+    capped = SIMPLE.replace(delay=(0, 0, 0, 0), accel_max=(1.0, 1.0, 1.0, 1.0))
+    obs = run(capped, np.zeros(4), np.tile([0.0, 0.0, 1000.0, 0.0], (8, 1)))
+    np.testing.assert_allclose(np.diff(obs[:, 6]), -0.05, rtol=1e-9)  # 1 rad/s² · 0.05 s per step, not the lag's 0.92 rad/s
+    assert np.abs(run(SIMPLE.replace(delay=(0, 0, 0, 0)), np.zeros(4), [[0.0, 0.0, 1000.0, 0.0]])[-1, 6]) > 0.9
+
+
 def test_payload_slows_boom_raising_not_lowering():
     raise_u = np.tile([1000.0, 0.0, 0.0, 0.0], (30, 1))
     empty = run(SIMPLE, np.zeros(4), raise_u)[-1, 4]

@@ -13,12 +13,16 @@ Per joint j (boom, arm, bucket, swing) and step t, with the PWM u[t] clipped to 
    larger for a joint at rest (``dead_zone_rest``, breakaway, fading out up to ``rest_speed``).
 4. **Direction asymmetry, gravity and payload**: the requested speed is
    ``v_max_pos·(1 + payload_pos·payload)·x`` for s > 0 and ``v_max_neg·(1 + payload_neg·payload)·x``
-   for s < 0 (boom raising and lowering differ, and a loaded bucket slows the raising).
+   for s < 0 (boom raising and lowering differ, and a loaded bucket slows the raising), times the
+   linkage factor ``exp(speed_q·r + speed_q2·r²)`` of the angle r from the middle of the joint range:
+   a cylinder turns its joint through a linkage whose lever arm changes with the angle (at a held
+   full PWM the XE75's bucket moves about twice as fast near 1.8 rad as near 0.2 rad).
 5. **Pump sharing**: the joints share the pump, so every open valve lowers the supply to the others
    (and, through its own pressure drop, to itself): joint j's requested speed is divided by
    ``1 + Σ_i pump_coupling[i][j]·x[i]``.
 6. **Actuator lag**: the joint velocity follows the requested velocity with time constant ``tau``
-   when speeding up and ``tau_brake`` when slowing down or reversing.
+   when speeding up and ``tau_brake`` when slowing down or reversing, changing by at most
+   ``accel_max·dt`` per step (the relief pressure limits the torque on a heavy link).
 7. **Integration and limits**: ``q += dt·q̇``; boom, arm and bucket stop at ``[q_min, q_max]``;
    the swing wraps at ±π.
 
@@ -68,6 +72,8 @@ class HydraulicParams:
     """Time constant of the first-order actuator lag while speeding up, s."""
     tau_brake: Vec4 = (0.10, 0.10, 0.10, 0.10)
     """Time constant of the actuator lag while slowing down or reversing (the closing valve brakes), s."""
+    accel_max: Vec4 = (1000.0, 1000.0, 1000.0, 1000.0)
+    """Largest joint acceleration or deceleration (torque limited by the relief valves), rad/s²."""
     dead_zone_pos: Vec4 = (480.0, 470.0, 500.0, 450.0)
     """Valve dead zone for positive PWM at angle 0, PWM."""
     dead_zone_neg: Vec4 = (480.0, 470.0, 480.0, 450.0)
@@ -88,6 +94,10 @@ class HydraulicParams:
     """Joint speed at full positive PWM with no load and no pump sharing, rad/s (saturation)."""
     v_max_neg: Vec4 = (0.20, 0.30, 0.90, 0.25)
     """Joint speed at full negative PWM with no load and no pump sharing, rad/s (saturation)."""
+    speed_q: Vec4 = (0.0, 0.0, 0.0, 0.0)
+    """Linkage: change of the log joint speed per rad from the middle of the joint range, 1/rad."""
+    speed_q2: Vec4 = (0.0, 0.0, 0.0, 0.0)
+    """Linkage: second-order term of the log joint speed in the angle from the middle of the range, 1/rad²."""
     payload_pos: Vec4 = (-0.30, -0.10, -0.05, 0.0)
     """Relative change of the positive-PWM speed per unit payload (boom raising is negative)."""
     payload_neg: Vec4 = (0.10, 0.05, 0.0, 0.0)
@@ -133,6 +143,7 @@ class HydraulicParams:
             "tau_spool": all(t >= 0 for t in self.tau_spool),
             "tau": all(t >= 0 for t in self.tau),
             "tau_brake": all(t >= 0 for t in self.tau_brake),
+            "accel_max": all(a > 0 for a in self.accel_max),
             "dead_zone_pos": all(0 <= d < U_MAX for d in self.dead_zone_pos),
             "dead_zone_neg": all(0 <= d < U_MAX for d in self.dead_zone_neg),
             "flow_curve": all(0.0 <= v <= 2.0 for row in self.flow_curve for v in row),
@@ -163,9 +174,13 @@ class HydraulicParams:
         return _Arrays(
             delay=np.asarray(self.delay, dtype=np.intp),
             beta=1.0 - np.exp(-self.dt / np.maximum(a["tau_spool"], 1e-9)),
+            q_mid=np.where(np.arange(N_JOINTS) == 3, 0.0, (a["q_min"] + a["q_max"]) / 2),
+            speed_q=a["speed_q"],
+            speed_q2=a["speed_q2"],
             alpha=1.0 - np.exp(-self.dt / np.maximum(a["tau"], 1e-9)),
             alpha_brake_minus_accel=np.exp(-self.dt / np.maximum(a["tau"], 1e-9))
             - np.exp(-self.dt / np.maximum(a["tau_brake"], 1e-9)),
+            dv_max=a["accel_max"] * self.dt,
             dz_pos_minus_neg=a["dead_zone_pos"] - a["dead_zone_neg"],
             dz_neg=a["dead_zone_neg"],
             dz_q=a["dead_zone_q"],
@@ -257,8 +272,12 @@ class _Arrays(NamedTuple):
 
     delay: np.ndarray
     beta: np.ndarray
+    q_mid: np.ndarray
+    speed_q: np.ndarray
+    speed_q2: np.ndarray
     alpha: np.ndarray
     alpha_brake_minus_accel: np.ndarray
+    dv_max: np.ndarray
     dz_pos_minus_neg: np.ndarray
     dz_neg: np.ndarray
     dz_q: np.ndarray
@@ -325,6 +344,34 @@ def initial_state(
     return HydraulicState(q=q0, qd=qd, u_hist=u_hist, spool=spool)
 
 
+def requested_velocity(spool: np.ndarray, q: np.ndarray, qd: np.ndarray, params: HydraulicParams) -> np.ndarray:
+    """The joint velocity the valves ask for (steps 3–5 of the model: the speed the joint settles at), (N, 4) rad/s.
+
+    Args:
+        spool: (N, 4) PWM, the valve spool positions.
+        q: (N, 4) rad, joint positions (state-dependent dead zone, linkage).
+        qd: (N, 4) rad/s, joint velocities (the extra dead zone at rest).
+        params: model parameters.
+    """
+    p = params.arrays
+    # valve: direction- and state-dependent dead zone, flow curve, saturation
+    pos = spool > 0.0
+    dz = p.dz_neg + pos * p.dz_pos_minus_neg + p.dz_q * q
+    dz += p.dz_rest * np.maximum(1.0 - np.abs(qd) * p.inv_rest_speed, 0.0)
+    sat = p.sat_neg + pos * p.sat_pos_minus_neg
+    x = (np.abs(spool) - dz) / np.maximum(sat - dz, 1.0)
+    x = np.minimum(np.maximum(x, 0.0), 1.0) * (len(p.flow_table) - 1)
+    i = np.minimum(x.astype(np.intp), len(p.flow_table) - 2)
+    lo = p.flow_table[i, _JOINT_INDEX]
+    opening = lo + (x - i) * (p.flow_table[i + 1, _JOINT_INDEX] - lo)
+    # pump sharing
+    share = 1.0 / (1.0 + np.einsum("ni,ij->nj", opening, p.pump_coupling))  # not @: BLAS sums differ with N
+    # direction asymmetry / payload, linkage
+    r = q - p.q_mid
+    linkage = np.exp(np.minimum((p.speed_q + p.speed_q2 * r) * r, 5.0))
+    return (p.v_neg + pos * p.v_pos_minus_neg) * opening * share * linkage
+
+
 def step(state: HydraulicState, u: np.ndarray, params: HydraulicParams) -> HydraulicState:
     """Advance N machines by one control period.
 
@@ -341,22 +388,11 @@ def step(state: HydraulicState, u: np.ndarray, params: HydraulicParams) -> Hydra
     u_hist = np.concatenate((u_now[:, None, :], state.u_hist[:, :-1]), axis=1)
     u_d = u_hist[:, p.delay, _JOINT_INDEX]
     spool = state.spool + p.beta * (u_d - state.spool)
-    # valve: direction- and state-dependent dead zone, flow curve, saturation
-    pos = spool > 0.0
-    dz = p.dz_neg + pos * p.dz_pos_minus_neg + p.dz_q * state.q
-    dz += p.dz_rest * np.maximum(1.0 - np.abs(state.qd) * p.inv_rest_speed, 0.0)
-    sat = p.sat_neg + pos * p.sat_pos_minus_neg
-    x = (np.abs(spool) - dz) / np.maximum(sat - dz, 1.0)
-    x = np.minimum(np.maximum(x, 0.0), 1.0) * (len(p.flow_table) - 1)
-    i = np.minimum(x.astype(np.intp), len(p.flow_table) - 2)
-    lo = p.flow_table[i, _JOINT_INDEX]
-    opening = lo + (x - i) * (p.flow_table[i + 1, _JOINT_INDEX] - lo)
-    # pump sharing
-    share = 1.0 / (1.0 + np.einsum("ni,ij->nj", opening, p.pump_coupling))  # not @: BLAS sums differ with N
-    # direction asymmetry / payload, then first-order lag (faster when braking)
-    v_cmd = (p.v_neg + pos * p.v_pos_minus_neg) * opening * share
+    v_cmd = requested_velocity(spool, state.q, state.qd, params)
+    # first-order lag (faster when braking), acceleration limit
     dv = v_cmd - state.qd
-    qd = state.qd + (p.alpha + (dv * state.qd < 0.0) * p.alpha_brake_minus_accel) * dv
+    change = (p.alpha + (dv * state.qd < 0.0) * p.alpha_brake_minus_accel) * dv
+    qd = state.qd + np.minimum(np.maximum(change, -p.dv_max), p.dv_max)
     q = state.q + p.dt * qd
     # joint limits (swing unlimited) and swing wrap
     q_lim = np.minimum(np.maximum(q, p.q_min), p.q_max)
@@ -395,8 +431,9 @@ class HydraulicExcavator:
 
     ``dt`` = ``params.dt`` (0.05 s). ``reset`` optionally takes the logged velocity ``qd0`` and the
     last commands ``u_past`` (K, 4)/(K, N, 4), time order, to start in a logged state. Output rank
-    follows the ``q0`` given to ``reset``. Version 2 (the model of this module docstring; version 1 had no
-    spool lag, one saturation per joint and a pump limit instead of the pump coupling).
+    follows the ``q0`` given to ``reset``. Version 3 (the model of this module docstring; version 2 had no
+    linkage factor and no acceleration limit, version 1 also no spool lag, one saturation per joint and a pump
+    limit instead of the pump coupling).
 
     Args:
         params: model parameters.
