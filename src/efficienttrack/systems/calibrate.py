@@ -1,10 +1,12 @@
 """Fit the hydraulic simulator to a machine's logs (PWM → motion) and measure its fidelity.
 
-Calibration (:func:`calibrate`) minimizes multi-step position errors with
-``scipy.optimize.least_squares``: windows are cut from the logs, the simulator is started in each
-window's logged state (position, velocity and the commands still in the delay line) and driven
-either with the logged PWM (open loop) or by the PD law along the logged ``q_ref`` (closed loop);
-the residual is ``wrap(q_sim − q_log)`` over every step of every window. Integer delays are chosen
+Calibration (:func:`calibrate`) first fits the valve-to-speed map to the logged steps at which a
+command has been held until the joint settled (:func:`steady_samples`; a static fit, cheap and well
+posed), then minimizes multi-step position errors with ``scipy.optimize.least_squares``: windows are
+cut from the logs, the simulator is started in each window's logged state (position, velocity and the
+commands still in the delay line) and driven either with the logged PWM (open loop) or by the PD law
+along the logged ``q_ref`` (closed loop); the residual is ``wrap(q_sim − q_log)`` over every step of
+every window. Integer delays are chosen
 per joint on a grid. A last stage runs whole episodes in closed loop and also matches each
 episode's PD tracking MAE. Episodes with a strongly perturbed reference are left out
 (:func:`reference_jitter`). The shipped ``xe75`` preset was fitted this way on ``pd_noise_train``
@@ -41,7 +43,15 @@ from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import atomic_write
 from efficienttrack.metrics import tracking_error
 from efficienttrack.records import EpisodeRecord
-from efficienttrack.systems.hydraulic import N_JOINTS, HydraulicParams, HydraulicState, initial_state, step, xe75_params
+from efficienttrack.systems.hydraulic import (
+    N_JOINTS,
+    HydraulicParams,
+    HydraulicState,
+    initial_state,
+    requested_velocity,
+    step,
+    xe75_params,
+)
 from efficienttrack.systems.pd import XE75_PD, PDGains
 from efficienttrack.systems.protocol import BatchedSystem
 
@@ -49,6 +59,7 @@ JOINT_FIELDS = (
     "tau_spool",
     "tau",
     "tau_brake",
+    "accel_max",
     "dead_zone_pos",
     "dead_zone_neg",
     "dead_zone_q",
@@ -59,6 +70,8 @@ JOINT_FIELDS = (
     "flow_curve",
     "v_max_pos",
     "v_max_neg",
+    "speed_q",
+    "speed_q2",
     "pump_coupling",
 )
 """The fitted parameters (the pump coupling's columns belong to the joint they slow down)."""
@@ -66,6 +79,7 @@ BOUNDS: dict[str, tuple[float, float]] = {
     "tau_spool": (0.0, 0.5),
     "tau": (0.005, 1.0),
     "tau_brake": (0.005, 1.0),
+    "accel_max": (0.5, 1000.0),
     "dead_zone_pos": (0.0, 900.0),
     "dead_zone_neg": (0.0, 900.0),
     "dead_zone_q": (-400.0, 400.0),
@@ -76,6 +90,8 @@ BOUNDS: dict[str, tuple[float, float]] = {
     "flow_curve": (0.0, 1.5),
     "v_max_pos": (0.005, 5.0),
     "v_max_neg": (0.005, 5.0),
+    "speed_q": (-3.0, 3.0),
+    "speed_q2": (-2.0, 2.0),
     "pump_coupling": (0.0, 3.0),
 }
 """Search bounds of the fitted parameters (units as in :class:`HydraulicParams`)."""
@@ -298,7 +314,9 @@ class FitConfig:
     mae_weight: float = 3.0
     """Weight of the per-episode tracking-MAE match against the trajectory error in the whole-episode stage."""
     max_nfev: int = 40
-    """Residual evaluations per least-squares stage."""
+    """Residual evaluations per least-squares stage on simulated windows or episodes."""
+    steady_nfev: int = 200
+    """Residual evaluations of the static fit on the steady samples (cheap: no simulation)."""
     max_ref_jitter: float = 0.01
     """Episodes whose reference perturbation jitters more than this are left out, rad (see :func:`reference_jitter`)."""
 
@@ -306,7 +324,7 @@ class FitConfig:
         """Validate the settings; raise EfficientTrackError naming the bad one."""
         if not self.delays or not all(isinstance(d, int) and 0 <= d <= 20 for d in self.delays):
             raise EfficientTrackError(f"fit setting 'delays': needs whole steps 0 … 20, got {self.delays!r}")
-        for name in ("open_horizon", "closed_horizon", "max_windows", "max_episodes", "max_nfev"):
+        for name in ("open_horizon", "closed_horizon", "max_windows", "max_episodes", "max_nfev", "steady_nfev"):
             if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
                 raise EfficientTrackError(f"fit setting '{name}': needs a positive integer, got {getattr(self, name)!r}")
         if not self.mae_weight >= 0:
@@ -370,6 +388,106 @@ def reference_jitter(record: EpisodeRecord) -> float:
     return float(np.sqrt(np.mean(np.diff(offset, axis=0) ** 2))) if len(offset) > 1 else 0.0
 
 
+STEADY_FIELDS = (
+    "pwm_sat_pos",
+    "pwm_sat_neg",
+    "flow_curve",
+    "v_max_pos",
+    "v_max_neg",
+    "speed_q",
+    "speed_q2",
+    "pump_coupling",
+)
+"""The parameters of the valve-to-speed map, fitted first on the steady samples (:class:`Steady`).
+
+The dead zones are left to the dynamic stages: on the settled samples of a creeping joint they trade off
+against the extra dead zone at rest (on the XE75 the static fit put the swing's dead zone at 17 PWM).
+"""
+
+
+class Steady(NamedTuple):
+    """Logged steps at which every valve command has been held long enough for the joint to settle.
+
+    Attributes:
+        u: (S, 4) PWM, the command reaching each valve (``u[t − delay]``).
+        q: (S, 4) rad, positions at t.
+        qd: (S, 4) rad/s, velocities at t.
+        qd_next: (S, 4) rad/s, velocities at t + 1.
+        mask: (S, 4) True where joint j is settled at that step.
+    """
+
+    u: np.ndarray
+    q: np.ndarray
+    qd: np.ndarray
+    qd_next: np.ndarray
+    mask: np.ndarray
+
+
+def steady_samples(data: Padded, delay: Sequence[int], hold: int = 5, tol: float = 40.0, min_count: int = 200) -> Steady:
+    """The steps where a joint's delayed command stayed within ``tol`` PWM for ``hold`` steps and its speed settled.
+
+    Args:
+        data: padded logs (T steps, N episodes).
+        delay: (4,) transport delay of each joint, steps.
+        hold: steps the delayed command must have been held.
+        tol: largest spread of the held command, PWM.
+        min_count: a joint with fewer settled steps keeps none: a static fit on a handful of steps would
+            bend the whole speed map to them (logs of a noisy-reference PD run hold hardly any command).
+    """
+    delay = np.asarray(delay)
+    first = int(delay.max()) + hold
+    t = np.arange(first, len(data.q) - 1)
+    rows = t[None, :, None] - delay[None, None, :] - np.arange(hold)[:, None, None]  # (hold, len(t), 4)
+    lagged = data.u[rows, :, np.arange(N_JOINTS)].transpose(0, 1, 3, 2)  # (hold, len(t), N, 4)
+    held = (lagged.max(axis=0) - lagged.min(axis=0)) <= tol
+    settled = np.abs(data.qd[t + 1] - data.qd[t - 1]) <= 0.1 * np.abs(data.qd[t]) + 0.02
+    mask = held & settled & data.mask[t + 1][..., None]
+    mask &= mask.sum(axis=(0, 1)) >= min_count
+    keep = mask.any(axis=-1)  # the steps at which at least one joint is settled
+    return Steady(lagged[0][keep], data.q[t][keep], data.qd[t][keep], data.qd[t + 1][keep], mask[keep])
+
+
+def _linkage_guess(params: HydraulicParams, steady: Steady) -> HydraulicParams:
+    """Start values of the linkage factor from a log-quadratic regression of logged over modelled steady speed.
+
+    A local fit started without a linkage keeps none (the speed error is flat in it near zero), so the
+    factor ``exp(c + speed_q·r + speed_q2·r²)`` is first fitted in closed form to the ratio of the logged
+    speed to the model's without a linkage, on the steady samples where both move the same way; ``exp(c)``
+    goes into the speeds at full PWM.
+    """
+    plain = params.replace(speed_q=[0.0] * N_JOINTS, speed_q2=[0.0] * N_JOINTS)
+    v_model = requested_velocity(steady.u, steady.q, steady.qd, plain)
+    r = steady.q - plain.arrays.q_mid
+    ok = steady.mask & (np.abs(steady.qd_next) > 0.05) & (np.abs(v_model) > 0.05) & (steady.qd_next * v_model > 0)
+    coef = np.zeros((3, N_JOINTS))
+    for j in np.flatnonzero(ok.sum(axis=0) >= 30):  # a regression per joint (4 at most)
+        sel = ok[:, j]
+        design = np.stack([np.ones(sel.sum()), r[sel, j], r[sel, j] ** 2], axis=1)
+        coef[:, j] = np.linalg.lstsq(design, np.log(steady.qd_next[sel, j] / v_model[sel, j]), rcond=None)[0]
+    lo, hi = BOUNDS["speed_q"], BOUNDS["speed_q2"]
+    return plain.replace(
+        speed_q=np.clip(coef[1], *lo).tolist(),
+        speed_q2=np.clip(coef[2], *hi).tolist(),
+        v_max_pos=(np.asarray(plain.v_max_pos) * np.exp(coef[0])).tolist(),
+        v_max_neg=(np.asarray(plain.v_max_neg) * np.exp(coef[0])).tolist(),
+    )
+
+
+def logged_accel(data: Padded, dt: float = 0.05, quantile: float = 0.999) -> np.ndarray:
+    """The largest joint accelerations in the logs, (4,) rad/s²: a quantile of ``|qd[t+1] − qd[t−1]| / 2dt``.
+
+    The calibration starts the acceleration limit here: started above every logged acceleration the
+    limit never acts, and a local fit cannot find it.
+
+    Args:
+        data: padded logs; only the real steps count.
+        dt: sample period, s.
+        quantile: the quantile taken (the very largest values are sensor noise).
+    """
+    accel = np.abs(data.qd[2:] - data.qd[:-2]) / (2 * dt)
+    return np.quantile(accel[data.mask[2:]], quantile, axis=0)
+
+
 def _strided_windows(data: Padded, horizon: int, max_windows: int) -> Windows:
     usable = int(np.maximum(data.lengths - horizon - 1, 0).sum())
     return make_windows(data, horizon, stride=max(1, -(-usable // max_windows)))
@@ -427,8 +545,9 @@ def calibrate(
 ) -> CalibrationResult:
     """Fit the simulator to logs of a machine under its PD law.
 
-    1. For each candidate delay: the parameters ``JOINT_FIELDS`` by least squares on open-loop
-       and closed-loop windows.
+    1. For each candidate delay: the valve-to-speed map ``STEADY_FIELDS`` on the steady samples
+       (the linkage started by :func:`_linkage_guess`, the acceleration limit at :func:`logged_accel`),
+       then ``JOINT_FIELDS`` by least squares on open-loop and closed-loop windows.
     2. Each joint keeps its best delay and the parameters fitted with it.
     3. Whole episodes in closed loop (logged q_ref, PD law): ``JOINT_FIELDS`` again, on the
        trajectory error plus ``mae_weight`` × the per-episode tracking-MAE mismatch.
@@ -460,6 +579,7 @@ def calibrate(
         )
     report(f"fitting on {len(records)} of {len(jitter)} episodes (reference jitter ≤ {cfg.max_ref_jitter} rad)")
     data = pad(records)
+    start = start.replace(accel_max=np.minimum(start.accel_max, logged_accel(data, start.dt)).tolist())
     open_w = _strided_windows(data, cfg.open_horizon, cfg.max_windows)
     closed_w = _strided_windows(data, cfg.closed_horizon, cfg.max_windows)
     weight_open = np.sqrt(closed_w.q.size / open_w.q.size)
@@ -473,7 +593,17 @@ def calibrate(
     fits: dict[int, HydraulicParams] = {}
     delay_cost: dict[int, np.ndarray] = {}
     for d in cfg.delays:
-        fits[d] = _least_squares(window_residual, start.replace(delay=[d] * N_JOINTS), JOINT_FIELDS, cfg.max_nfev)
+        steady = steady_samples(data, [d] * N_JOINTS)
+        scale = 1.0 / np.sqrt(steady.mask.sum(axis=0) + 1.0)
+
+        def steady_residual(params: HydraulicParams, s: Steady = steady, w: np.ndarray = scale) -> np.ndarray:
+            return (requested_velocity(s.u, s.q, s.qd, params) - s.qd_next) * s.mask * w
+
+        guess = _linkage_guess(start.replace(delay=[d] * N_JOINTS), steady)
+        fit = _least_squares(steady_residual, guess, STEADY_FIELDS, cfg.steady_nfev)
+        rms = np.sqrt((steady_residual(fit) ** 2).sum(axis=0))
+        report(f"delay {d}: steady rms speed error (rad/s) {np.round(rms, 4).tolist()}")
+        fits[d] = _least_squares(window_residual, fit, JOINT_FIELDS, cfg.max_nfev)
         delay_cost[d] = (window_residual(fits[d]) ** 2).mean(axis=0)
         report(f"delay {d}: rms window error (deg) {np.round(np.degrees(np.sqrt(delay_cost[d])), 3).tolist()}")
     # 2: each joint keeps its best delay (and the parameters fitted with it)
