@@ -181,15 +181,16 @@ class HydraulicParams:
             alpha_brake_minus_accel=np.exp(-self.dt / np.maximum(a["tau"], 1e-9))
             - np.exp(-self.dt / np.maximum(a["tau_brake"], 1e-9)),
             dv_max=a["accel_max"] * self.dt,
-            dz_pos_minus_neg=a["dead_zone_pos"] - a["dead_zone_neg"],
+            dv_min=-a["accel_max"] * self.dt,
+            dz_pos=a["dead_zone_pos"],
             dz_neg=a["dead_zone_neg"],
             dz_q=a["dead_zone_q"],
             dz_rest=a["dead_zone_rest"],
             inv_rest_speed=1.0 / a["rest_speed"],
-            sat_pos_minus_neg=a["pwm_sat_pos"] - a["pwm_sat_neg"],
+            sat_pos=a["pwm_sat_pos"],
             sat_neg=a["pwm_sat_neg"],
             flow_table=np.concatenate([np.zeros((1, N_JOINTS)), a["flow_curve"], np.ones((1, N_JOINTS))]),
-            v_pos_minus_neg=v_pos - v_neg,
+            v_pos=v_pos,
             v_neg=v_neg,
             pump_coupling=a["pump_coupling"],
             q_min=np.where(np.arange(N_JOINTS) == 3, -np.inf, a["q_min"]),
@@ -278,15 +279,16 @@ class _Arrays(NamedTuple):
     alpha: np.ndarray
     alpha_brake_minus_accel: np.ndarray
     dv_max: np.ndarray
-    dz_pos_minus_neg: np.ndarray
+    dv_min: np.ndarray
+    dz_pos: np.ndarray
     dz_neg: np.ndarray
     dz_q: np.ndarray
     dz_rest: np.ndarray
     inv_rest_speed: np.ndarray
-    sat_pos_minus_neg: np.ndarray
+    sat_pos: np.ndarray
     sat_neg: np.ndarray
     flow_table: np.ndarray
-    v_pos_minus_neg: np.ndarray
+    v_pos: np.ndarray
     v_neg: np.ndarray
     pump_coupling: np.ndarray
     q_min: np.ndarray
@@ -356,9 +358,9 @@ def requested_velocity(spool: np.ndarray, q: np.ndarray, qd: np.ndarray, params:
     p = params.arrays
     # valve: direction- and state-dependent dead zone, flow curve, saturation
     pos = spool > 0.0
-    dz = p.dz_neg + pos * p.dz_pos_minus_neg + p.dz_q * q
+    dz = np.where(pos, p.dz_pos, p.dz_neg) + p.dz_q * q
     dz += p.dz_rest * np.maximum(1.0 - np.abs(qd) * p.inv_rest_speed, 0.0)
-    sat = p.sat_neg + pos * p.sat_pos_minus_neg
+    sat = np.where(pos, p.sat_pos, p.sat_neg)
     x = (np.abs(spool) - dz) / np.maximum(sat - dz, 1.0)
     x = np.minimum(np.maximum(x, 0.0), 1.0) * (len(p.flow_table) - 1)
     i = np.minimum(x.astype(np.intp), len(p.flow_table) - 2)
@@ -368,8 +370,8 @@ def requested_velocity(spool: np.ndarray, q: np.ndarray, qd: np.ndarray, params:
     share = 1.0 / (1.0 + np.einsum("ni,ij->nj", opening, p.pump_coupling))  # not @: BLAS sums differ with N
     # direction asymmetry / payload, linkage
     r = q - p.q_mid
-    linkage = np.exp(np.minimum((p.speed_q + p.speed_q2 * r) * r, 5.0))
-    return (p.v_neg + pos * p.v_pos_minus_neg) * opening * share * linkage
+    linkage = np.exp((p.speed_q + p.speed_q2 * r) * r)
+    return np.where(pos, p.v_pos, p.v_neg) * opening * share * linkage
 
 
 def step(state: HydraulicState, u: np.ndarray, params: HydraulicParams) -> HydraulicState:
@@ -392,7 +394,7 @@ def step(state: HydraulicState, u: np.ndarray, params: HydraulicParams) -> Hydra
     # first-order lag (faster when braking), acceleration limit
     dv = v_cmd - state.qd
     change = (p.alpha + (dv * state.qd < 0.0) * p.alpha_brake_minus_accel) * dv
-    qd = state.qd + np.minimum(np.maximum(change, -p.dv_max), p.dv_max)
+    qd = state.qd + np.minimum(np.maximum(change, p.dv_min), p.dv_max)
     q = state.q + p.dt * qd
     # joint limits (swing unlimited) and swing wrap
     q_lim = np.minimum(np.maximum(q, p.q_min), p.q_max)
