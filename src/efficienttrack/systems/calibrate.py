@@ -55,6 +55,21 @@ from efficienttrack.systems.hydraulic import (
 from efficienttrack.systems.pd import XE75_PD, PDGains
 from efficienttrack.systems.protocol import BatchedSystem
 
+STEADY_FIELDS = (
+    "pwm_sat_pos",
+    "pwm_sat_neg",
+    "flow_curve",
+    "v_max_pos",
+    "v_max_neg",
+    "speed_q",
+    "speed_q2",
+    "pump_coupling",
+)
+"""The parameters of the valve-to-speed map, fitted first on the steady samples (:class:`Steady`).
+
+The dead zones are left to the dynamic stages: on the settled samples of a creeping joint they trade off
+against the extra dead zone at rest (on the XE75 the static fit put the swing's dead zone at 17 PWM).
+"""
 JOINT_FIELDS = (
     "tau_spool",
     "tau",
@@ -65,15 +80,7 @@ JOINT_FIELDS = (
     "dead_zone_q",
     "dead_zone_rest",
     "rest_speed",
-    "pwm_sat_pos",
-    "pwm_sat_neg",
-    "flow_curve",
-    "v_max_pos",
-    "v_max_neg",
-    "speed_q",
-    "speed_q2",
-    "pump_coupling",
-)
+) + STEADY_FIELDS
 """The fitted parameters (the pump coupling's columns belong to the joint they slow down)."""
 BOUNDS: dict[str, tuple[float, float]] = {
     "tau_spool": (0.0, 0.5),
@@ -386,23 +393,6 @@ def reference_jitter(record: EpisodeRecord) -> float:
     """
     offset = wrap(record.q_ref - record.q_des)
     return float(np.sqrt(np.mean(np.diff(offset, axis=0) ** 2))) if len(offset) > 1 else 0.0
-
-
-STEADY_FIELDS = (
-    "pwm_sat_pos",
-    "pwm_sat_neg",
-    "flow_curve",
-    "v_max_pos",
-    "v_max_neg",
-    "speed_q",
-    "speed_q2",
-    "pump_coupling",
-)
-"""The parameters of the valve-to-speed map, fitted first on the steady samples (:class:`Steady`).
-
-The dead zones are left to the dynamic stages: on the settled samples of a creeping joint they trade off
-against the extra dead zone at rest (on the XE75 the static fit put the swing's dead zone at 17 PWM).
-"""
 
 
 class Steady(NamedTuple):
