@@ -440,8 +440,8 @@ def steady_samples(data: Padded, delay: Sequence[int], hold: int = 5, tol: float
 def _linkage_guess(params: HydraulicParams, steady: Steady) -> HydraulicParams:
     """Start values of the linkage factor from a log-quadratic regression of logged over modelled steady speed.
 
-    A local fit started without a linkage keeps none (the speed error is flat in it near zero), so the
-    factor ``exp(c + speed_q·r + speed_q2·r²)`` is first fitted in closed form to the ratio of the logged
+    Started without a linkage, the local fit on the XE75 logs left it at zero (it stops after a few steps),
+    so the factor ``exp(c + speed_q·r + speed_q2·r²)`` is first fitted in closed form to the ratio of the logged
     speed to the model's without a linkage, on the steady samples where both move the same way; ``exp(c)``
     goes into the speeds at full PWM.
     """
