@@ -169,6 +169,10 @@ def collect_command(
     )
 
 
+DeviceOpt = Annotated[str, typer.Option("--device", help="auto, cpu or cuda.")]
+TrainSeedOpt = Annotated[int, typer.Option("--seed", help="Seed of initialization and window sampling.")]
+
+
 @app.command("evaluate")
 def evaluate_command(
     refs: Annotated[Path, typer.Option("--refs", help="Folder of reference trajectories (.npy/.csv, rad).")],
@@ -178,7 +182,7 @@ def evaluate_command(
     pd: PdOpt = "xe75",
     system_opt: SystemOpts = None,
     policy: Annotated[Path | None, typer.Option("--policy", help="Policy checkpoint (policy.pt); PD alone without.")] = None,
-    device: Annotated[str, typer.Option("--device", help="auto, cpu or cuda.")] = "auto",
+    device: DeviceOpt = "auto",
 ) -> None:
     """Algorithm 2: track the references with the adjustment policy (or the PD controller alone) and report metrics."""
     from efficienttrack.pipeline import evaluate
@@ -260,8 +264,8 @@ def train_model_command(
     out: Annotated[Path, typer.Option("--out", help="Model checkpoint (model.pt; config written to model.json).")],
     preset_name: LearnPresetOpt = "cpu",
     steps: StepsOpt = None,
-    device: Annotated[str, typer.Option("--device", help="auto, cpu or cuda.")] = "auto",
-    seed: Annotated[int, typer.Option("--seed", help="Seed of initialization and window sampling.")] = 0,
+    device: DeviceOpt = "auto",
+    seed: TrainSeedOpt = 0,
     threads: ThreadsOpt = 1,
 ) -> None:
     """Train the closed-loop dynamics model on records (multi-step BPTT); an interrupted run resumes."""
@@ -283,7 +287,7 @@ def model_error_command(
     model: Annotated[Path, typer.Option("--model", help="Model checkpoint (model.pt).")],
     data: DataOpt,
     steps: Annotated[int, typer.Option("--steps", help="Prediction horizon.")] = 20,
-    device: Annotated[str, typer.Option("--device", help="auto, cpu or cuda.")] = "auto",
+    device: DeviceOpt = "auto",
     json_output: Annotated[bool, typer.Option("--json", help="Print one JSON line.")] = False,
     threads: ThreadsOpt = 1,
 ) -> None:
@@ -306,8 +310,8 @@ def train_policy_command(
     out: Annotated[Path, typer.Option("--out", help="Policy checkpoint (policy.pt; config written to policy.json).")],
     preset_name: LearnPresetOpt = "cpu",
     steps: StepsOpt = None,
-    device: Annotated[str, typer.Option("--device", help="auto, cpu or cuda.")] = "auto",
-    seed: Annotated[int, typer.Option("--seed", help="Seed of initialization and window sampling.")] = 0,
+    device: DeviceOpt = "auto",
+    seed: TrainSeedOpt = 0,
     threads: ThreadsOpt = 1,
 ) -> None:
     """Train the adjustment policy through the frozen model (multi-step BPTT); an interrupted run resumes."""
