@@ -13,6 +13,7 @@ from efficienttrack.systems.calibrate import (
     FitConfig,
     Padded,
     Steady,
+    _bin_weights,
     _linkage_guess,
     _simulate_episodes,
     calibrate,
@@ -117,6 +118,35 @@ def test_steady_samples_keep_held_commands_with_a_settled_speed():
     np.testing.assert_array_equal(steady.u[:, 0], 600.0)
     few = steady_samples(data, delay=[2, 2, 2, 2], hold=5, min_count=len(rows))
     np.testing.assert_array_equal(few.mask.any(axis=0), [True, False, False, False])  # only joint 0 is settled throughout
+
+
+def test_steady_samples_count_commands_beyond_saturation_as_held():
+    steps = 30
+    u = np.zeros((steps, 1, 4))
+    u[:, 0, 0] = np.where(np.arange(steps) % 2, 900.0, 1000.0)  # a PD law at full speed wavering beyond saturation
+    u[:, 0, 1] = np.where(np.arange(steps) % 2, -700.0, -1000.0)  # wavering across the saturation
+    z = np.zeros((steps, 1, 4))
+    data = Padded(q=z, qd=z, u=u, q_ref=z, q_des=z, lengths=np.array([steps]))
+    plain = steady_samples(data, delay=[2, 2, 2, 2], hold=5, min_count=1)
+    assert not plain.mask[:, :2].any()
+    clipped = steady_samples(data, delay=[2, 2, 2, 2], hold=5, min_count=1, saturation=([850.0] * 4, [850.0] * 4))
+    assert clipped.mask[:, 0].all() and not clipped.mask[:, 1].any()
+    np.testing.assert_array_equal(np.abs(clipped.u[:, 0]) >= 900.0, True)  # the logged command, not the clipped one
+
+
+def test_bin_weights_give_each_band_of_the_held_command_equal_weight():
+    u = np.zeros((1000, 4))
+    u[:900, 0], u[900:, 0] = 450.0, 950.0  # 900 steps near the dead zone, 100 at full PWM
+    u[:, 1] = np.where(np.arange(1000) < 500, 600.0, -600.0)  # one band per direction
+    u[:990, 2], u[990:, 2] = 450.0, 950.0  # a rare band below the floor of 30 steps
+    mask = np.ones((1000, 4), bool)
+    mask[:, 3] = False
+    w = _bin_weights(Steady(u=u, q=u, qd=u, qd_next=u, mask=mask), floor=30)
+    band_weight = [(w[:900, 0] ** 2).sum(), (w[900:, 0] ** 2).sum()]
+    np.testing.assert_allclose(band_weight, [0.5, 0.5])
+    np.testing.assert_allclose([(w[:500, 1] ** 2).sum(), (w[500:, 1] ** 2).sum()], [0.5, 0.5])
+    np.testing.assert_allclose((w[990:, 2] ** 2).sum(), 0.5 * 10 / 30)  # 10 steps weigh as a third of a band
+    np.testing.assert_array_equal(w[:, 3], 0.0)
 
 
 def test_linkage_guess_recovers_a_known_linkage():

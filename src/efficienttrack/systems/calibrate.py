@@ -1,16 +1,15 @@
 """Fit the hydraulic simulator to a machine's logs (PWM → motion) and measure its fidelity.
 
-Calibration (:func:`calibrate`) first fits the valve-to-speed map to the logged steps at which a
-command has been held until the joint settled (:func:`steady_samples`; a static fit, cheap and well
-posed), then minimizes multi-step position errors with ``scipy.optimize.least_squares``: windows are
-cut from the logs, the simulator is started in each window's logged state (position, velocity and the
-commands still in the delay line) and driven either with the logged PWM (open loop) or by the PD law
-along the logged ``q_ref`` (closed loop); the residual is ``wrap(q_sim − q_log)`` over every step of
-every window. Integer delays are chosen
-per joint on a grid. A last stage runs whole episodes in closed loop and also matches each
-episode's PD tracking MAE. Episodes with a strongly perturbed reference are left out
-(:func:`reference_jitter`). The shipped ``xe75`` preset was fitted this way on ``pd_noise_train``
-(its 200 passes with σ ≤ 0.008 rad).
+Calibration (:func:`calibrate`) first fits the valve-to-speed map to the logged steps at which a command has
+been held until the joint settled (:func:`steady_samples`; a static fit, cheap and well posed, that weighs
+every band of held PWM alike: :func:`_bin_weights`), then minimizes multi-step position errors with
+``scipy.optimize.least_squares``: windows are cut from the logs, the simulator is started in each window's
+logged state (position, velocity and the commands still in the delay line) and driven either with the logged
+PWM (open loop) or by the PD law along the logged ``q_ref`` (closed loop); the residual is
+``wrap(q_sim − q_log)`` over every step of every window. Integer delays are chosen per joint on a grid. A last
+stage runs whole episodes in closed loop and also matches each episode's PD tracking MAE. Episodes with a
+strongly perturbed reference are left out (:func:`reference_jitter`). The shipped ``xe75`` preset was fitted
+this way on ``pd_noise_train`` (its 200 passes with σ ≤ 0.008 rad).
 
 Fidelity (:func:`fidelity`):
 
@@ -45,6 +44,7 @@ from efficienttrack.metrics import tracking_error
 from efficienttrack.records import EpisodeRecord
 from efficienttrack.systems.hydraulic import (
     N_JOINTS,
+    U_MAX,
     HydraulicParams,
     HydraulicState,
     initial_state,
@@ -413,7 +413,14 @@ class Steady(NamedTuple):
     mask: np.ndarray
 
 
-def steady_samples(data: Padded, delay: Sequence[int], hold: int = 5, tol: float = 40.0, min_count: int = 200) -> Steady:
+def steady_samples(
+    data: Padded,
+    delay: Sequence[int],
+    hold: int = 5,
+    tol: float = 40.0,
+    min_count: int = 200,
+    saturation: tuple[Sequence[float], Sequence[float]] | None = None,
+) -> Steady:
     """The steps where a joint's delayed command stayed within ``tol`` PWM for ``hold`` steps and its speed settled.
 
     Args:
@@ -423,18 +430,38 @@ def steady_samples(data: Padded, delay: Sequence[int], hold: int = 5, tol: float
         tol: largest spread of the held command, PWM.
         min_count: a joint with fewer settled steps keeps none: a static fit on a handful of steps would
             bend the whole speed map to them (logs of a noisy-reference PD run hold hardly any command).
+        saturation: (negative, positive) PWM magnitudes (4,) each at which the valves are fully open; commands
+            beyond them count as held at full opening (a PD law at full speed wavers between 800 and 1000).
     """
     delay = np.asarray(delay)
     first = int(delay.max()) + hold
     t = np.arange(first, len(data.q) - 1)
     rows = t[None, :, None] - delay[None, None, :] - np.arange(hold)[:, None, None]  # (hold, len(t), 4)
     lagged = data.u[rows, :, np.arange(N_JOINTS)].transpose(0, 1, 3, 2)  # (hold, len(t), N, 4)
-    held = (lagged.max(axis=0) - lagged.min(axis=0)) <= tol
+    opening = lagged if saturation is None else np.clip(lagged, -np.asarray(saturation[0]), np.asarray(saturation[1]))
+    held = (opening.max(axis=0) - opening.min(axis=0)) <= tol
     settled = np.abs(data.qd[t + 1] - data.qd[t - 1]) <= 0.1 * np.abs(data.qd[t]) + 0.02
     mask = held & settled & data.mask[t + 1][..., None]
     mask &= mask.sum(axis=(0, 1)) >= min_count
     keep = mask.any(axis=-1)  # the steps at which at least one joint is settled
     return Steady(lagged[0][keep], data.q[t][keep], data.qd[t][keep], data.qd[t + 1][keep], mask[keep])
+
+
+def _bin_weights(steady: Steady, width: float = 100.0, floor: int = 30) -> np.ndarray:
+    """Residual weights (S, 4) that give every joint, direction and ``width``-PWM band of the held command equal weight.
+
+    A PD law holds its commands near the dead zone most of the time; weighted per step, the static fit would
+    neglect the fast, rare full-PWM moves (on the XE75 it left the bucket dumping at full PWM a third too
+    fast). A band with fewer than ``floor`` steps weighs less, in proportion.
+    """
+    bands_per_direction = int(U_MAX // width) + 1
+    band = np.minimum(np.abs(steady.u) // width, bands_per_direction - 1).astype(np.intp)
+    code = np.where(steady.u > 0, band + bands_per_direction, bands_per_direction - 1 - band)  # 0 … 2·bands − 1
+    joint = np.broadcast_to(np.arange(N_JOINTS), code.shape)
+    counts = np.zeros((N_JOINTS, 2 * bands_per_direction))
+    np.add.at(counts, (joint[steady.mask], code[steady.mask]), 1.0)
+    bands = np.maximum((counts > 0).sum(axis=1), 1)
+    return steady.mask / np.sqrt(np.maximum(counts[joint, code], floor) * bands)
 
 
 def _linkage_guess(params: HydraulicParams, steady: Steady) -> HydraulicParams:
@@ -583,11 +610,11 @@ def calibrate(
     fits: dict[int, HydraulicParams] = {}
     delay_cost: dict[int, np.ndarray] = {}
     for d in cfg.delays:
-        steady = steady_samples(data, [d] * N_JOINTS)
-        scale = 1.0 / np.sqrt(steady.mask.sum(axis=0) + 1.0)
+        steady = steady_samples(data, [d] * N_JOINTS, saturation=(start.pwm_sat_neg, start.pwm_sat_pos))
+        scale = _bin_weights(steady)
 
         def steady_residual(params: HydraulicParams, s: Steady = steady, w: np.ndarray = scale) -> np.ndarray:
-            return (requested_velocity(s.u, s.q, s.qd, params) - s.qd_next) * s.mask * w
+            return (requested_velocity(s.u, s.q, s.qd, params) - s.qd_next) * w
 
         guess = _linkage_guess(start.replace(delay=[d] * N_JOINTS), steady)
         fit = _least_squares(steady_residual, guess, STEADY_FIELDS, cfg.steady_nfev)
