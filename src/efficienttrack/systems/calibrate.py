@@ -91,7 +91,7 @@ BOUNDS: dict[str, tuple[float, float]] = {
     "dead_zone_neg": (0.0, 900.0),
     "dead_zone_q": (-400.0, 400.0),
     "dead_zone_rest": (0.0, 400.0),
-    "rest_speed": (0.005, 0.5),
+    "rest_speed": (0.005, 2.0),
     "pwm_sat_pos": (550.0, 1000.0),
     "pwm_sat_neg": (550.0, 1000.0),
     "flow_curve": (0.0, 1.5),
