@@ -41,7 +41,10 @@ from efficienttrack.errors import EfficientTrackError
 N_JOINTS = 4
 OBS_DIM = 8
 
-BUILTIN_SYSTEMS: dict[str, str] = {"xe75": "efficienttrack.systems.hydraulic:xe75_closed_loop"}
+BUILTIN_SYSTEMS: dict[str, str] = {
+    "xe75": "efficienttrack.systems.hydraulic:xe75_closed_loop",
+    "learned": "efficienttrack.systems.learned:learned_system",
+}
 BUILTIN_PLANTS: dict[str, str] = {"xe75": "efficienttrack.systems.hydraulic:xe75_plant"}
 
 
