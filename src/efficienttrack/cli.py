@@ -115,7 +115,11 @@ def convert_command(
 
 
 SystemOpt = Annotated[
-    str | None, typer.Option("--system", help="Closed-loop system: built-in name (xe75) or module.path:callable.")
+    str | None,
+    typer.Option(
+        "--system",
+        help="Closed-loop system: built-in name (xe75; learned with --system-opt model=CKPT) or module.path:callable.",
+    ),
 ]
 PlantOpt = Annotated[
     str | None, typer.Option("--plant", help="Plant (PWM level) wrapped with the PD controller: xe75 or module.path:callable.")

@@ -23,9 +23,9 @@ single ``(4,)`` arrays only (a real machine is N = 1); the package then runs it 
 time. A closed-loop system may expose ``last_command`` (the PWM it applied in the last step,
 ``(4,)``/``(N, 4)``); it is recorded when present.
 
-Loading: ``load_system(spec)`` and ``load_plant(spec)`` take a built-in name (``xe75``) or an
-import path ``"module.path:callable"``; the callable is called with the keyword options and
-must return the system.
+Loading: ``load_system(spec)`` and ``load_plant(spec)`` take a built-in name (``xe75``; for systems also
+``learned``, a trained closed-loop model, :mod:`efficienttrack.systems.learned`) or an import path
+``"module.path:callable"``; the callable is called with the keyword options and must return the system.
 """
 
 from __future__ import annotations
@@ -179,7 +179,7 @@ def load_system(spec: str, **options: Any) -> BatchedSystem:
     """Load a reference-level ClosedLoopSystem.
 
     Args:
-        spec: a built-in name (``xe75``) or ``"module.path:callable"``.
+        spec: a built-in name (``xe75``, ``learned``) or ``"module.path:callable"``.
         **options: keyword options passed to the callable (``--system-opt key=value`` on the CLI).
 
     Returns:
