@@ -24,11 +24,13 @@ from efficienttrack.systems.calibrate import (
     logged_accel,
     make_windows,
     open_loop_mpe,
+    open_loop_replay,
     pad,
     reference_jitter,
     save_params,
     steady_samples,
     tracking_mae,
+    travel_ratio,
     window_error,
 )
 from efficienttrack.systems.hydraulic import HydraulicExcavator, HydraulicParams, requested_velocity
@@ -194,11 +196,31 @@ def test_fidelity_of_the_true_simulator_is_perfect():
     result = fidelity(records, system, plant)
     np.testing.assert_allclose(result.ratio, 1.0, atol=1e-9)
     np.testing.assert_allclose(result.mpe20_deg, 0.0, atol=1e-9)
+    np.testing.assert_allclose(result.travel_ratio20, 1.0, atol=1e-9)
     # padded episodes are masked: the short one's MAE equals its own unpadded MAE
     alone = tracking_mae(records[1].q[:, None], pad([records[1]]))[0]
     np.testing.assert_allclose(tracking_mae(result.q_sim, result.data)[1], alone, atol=1e-12)
     line = json.dumps(result.to_json())
     assert set(json.loads(line)) == {"closed_loop", "open_loop"}
+
+
+def test_travel_ratio_tells_a_too_slow_simulator_from_a_too_fast_one():
+    records = synthetic_records(TRUE, episodes=3, steps=160, seed=5)
+    system = BatchedSystem(ClosedLoop(HydraulicExcavator(TRUE), XE75_PD))
+
+    def travel(speed: float) -> np.ndarray:
+        scaled = TRUE.replace(v_max_pos=[v * speed for v in TRUE.v_max_pos], v_max_neg=[v * speed for v in TRUE.v_max_neg])
+        return fidelity(records, system, BatchedSystem(HydraulicExcavator(scaled))).travel_ratio20
+
+    slow, fast = travel(0.8), travel(1.25)
+    assert np.all((slow > 1.1) & (slow < 1.4)), slow  # the real machine goes further than a too-slow simulator
+    assert np.all((fast > 0.7) & (fast < 0.9)), fast
+    windows = make_windows(pad(records), 20, stride=10)
+    still = travel_ratio(np.broadcast_to(windows.q0, windows.q.shape), windows)
+    assert np.isnan(still).all()  # a simulator that never moves has no ratio, and the report says null
+    report = fidelity(records, system, BatchedSystem(HydraulicExcavator(TRUE)))._replace(travel_ratio20=still).to_json()
+    assert report["open_loop"]["travel_ratio20"] == [None] * 4
+    json.dumps(report, allow_nan=False)
 
 
 def test_fast_episode_simulation_equals_the_closed_loop_system():
@@ -235,7 +257,7 @@ def test_open_loop_error_of_a_plant_without_history_starts_at_rest():
     plant.reset(w.q0)
     q = np.stack([plant.step(u)[:, :4] for u in w.u])
     expected = np.abs(q - w.q).mean(axis=(0, 1))
-    np.testing.assert_allclose(open_loop_mpe(BatchedSystem(AtRest()), data), expected, atol=1e-12)
+    np.testing.assert_allclose(open_loop_mpe(*open_loop_replay(BatchedSystem(AtRest()), data)), expected, atol=1e-12)
     assert np.all(expected > 0)
 
 
@@ -265,6 +287,17 @@ def test_cli_fidelity_and_calibrate(tmp_path):
     report = json.loads(out.output.strip().splitlines()[-1])
     np.testing.assert_allclose(report["closed_loop"]["ratio"], 1.0, atol=1e-3)
     assert len(list((tmp_path / "plots").glob("*.png"))) == 1
+    calm = synthetic_records(TRUE, episodes=1, steps=100, seed=3)[0]
+    calm = EpisodeRecord(**{**calm.__dict__, "q_ref": calm.q_des.copy()})  # jitter 0; the others jitter ~0.02 rad
+    calm.save(logs / "calm.npz")
+    fid = ["sim", "fidelity", "--logs", str(logs), "--system-opt", f"params_file={preset}"]
+    out = runner.invoke(app, [*fid, "--max-ref-jitter", "0.01"])
+    assert out.exit_code == 0 and out.output.startswith("1 episodes"), out.output
+    out = runner.invoke(app, [*fid, "--min-ref-jitter", "0.01"])
+    assert out.exit_code == 0 and out.output.startswith("2 episodes"), out.output
+    out = runner.invoke(app, [*fid, "--min-ref-jitter", "0.05"])
+    assert out.exit_code != 0 and "--min-ref-jitter/--max-ref-jitter: no episode" in str(out.exception), out.output
+    (logs / "calm.npz").unlink()
     out = runner.invoke(
         app,
         [

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import sys
 import warnings
 from pathlib import Path
@@ -378,10 +379,16 @@ def sim_fidelity_command(
     plot: Annotated[Path | None, typer.Option("--plot", help="Folder for sim-vs-real trace plots.")] = None,
     episodes: Annotated[int, typer.Option("--episodes", help="Episodes to plot.")] = 3,
     stride: Annotated[int, typer.Option("--stride", help="Steps between open-loop window starts.")] = 10,
+    min_ref_jitter: Annotated[
+        float, typer.Option("--min-ref-jitter", help="Leave out episodes whose q_ref − q_des jitters less, rad.")
+    ] = 0.0,
+    max_ref_jitter: Annotated[
+        float | None, typer.Option("--max-ref-jitter", help="Leave out episodes whose q_ref − q_des jitters more, rad.")
+    ] = None,
 ) -> None:
-    """Compare a simulator with real PD logs: closed-loop tracking MAE ratio and open-loop 20-step error."""
+    """Compare a simulator with real PD logs: closed-loop tracking MAE ratio, open-loop 20-step error and travel."""
     from efficienttrack.plots import plot_sim_vs_real
-    from efficienttrack.systems.calibrate import fidelity, load_logs
+    from efficienttrack.systems.calibrate import fidelity, load_logs, select_by_jitter
     from efficienttrack.systems.pd import XE75_PD, ClosedLoop
     from efficienttrack.systems.protocol import BUILTIN_PLANTS, BatchedSystem, load_plant, load_system
 
@@ -396,6 +403,9 @@ def sim_fidelity_command(
         system_view = load_system(spec, **options)
         plant_view = load_plant(spec, **options) if spec in BUILTIN_PLANTS else None
     records = load_logs(logs, need_u=plant_view is not None)
+    if min_ref_jitter > 0 or max_ref_jitter is not None:
+        high = math.inf if max_ref_jitter is None else max_ref_jitter
+        records = select_by_jitter(records, min_ref_jitter, high, option="--min-ref-jitter/--max-ref-jitter")
     result = fidelity(records, system_view, plant_view, stride=stride)
     if plot is not None:
         for i in range(min(episodes, len(records))):
@@ -407,14 +417,17 @@ def sim_fidelity_command(
         typer.echo(json.dumps(report))
         return
 
-    def fmt(values: list[float] | None, unit: str = "°") -> str:
-        return "n/a (no plant)" if values is None else ", ".join(f"{v:.3f}{unit}" for v in values)
+    def fmt(values: list[float | None] | None, unit: str = "°") -> str:
+        if values is None:
+            return "n/a (no plant)"
+        return ", ".join("n/a" if v is None else f"{v:.3f}{unit}" for v in values)
 
     typer.echo(f"{len(records)} episodes; joints boom, arm, bucket, swing")
-    typer.echo(f"closed-loop PD MAE real: {fmt(report['closed_loop']['real_mae_deg'])}")
-    typer.echo(f"closed-loop PD MAE sim:  {fmt(report['closed_loop']['sim_mae_deg'])}")
-    typer.echo(f"ratio sim/real:          {fmt(report['closed_loop']['ratio'], '')}")
-    typer.echo(f"open-loop 20-step error: {fmt(report['open_loop']['mpe20_deg'])}")
+    typer.echo(f"closed-loop PD MAE real:   {fmt(report['closed_loop']['real_mae_deg'])}")
+    typer.echo(f"closed-loop PD MAE sim:    {fmt(report['closed_loop']['sim_mae_deg'])}")
+    typer.echo(f"ratio sim/real:            {fmt(report['closed_loop']['ratio'], '')}")
+    typer.echo(f"open-loop 20-step error:   {fmt(report['open_loop']['mpe20_deg'])}")
+    typer.echo(f"open-loop travel real/sim: {fmt(report['open_loop']['travel_ratio20'], '')}")
 
 
 def _one_line_warning(

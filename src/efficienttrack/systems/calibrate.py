@@ -22,6 +22,10 @@ Fidelity (:func:`fidelity`):
   ``|wrap(q_sim[t0+k] − q[t0+k])|`` over k = 1 … 20, then over windows, per joint. Plants whose
   ``reset`` accepts ``qd0`` and ``u_past`` (the built-in one) start with the logged velocity and
   the logged commands in the delay line; other plants start at rest at ``q[t0]``.
+- **open loop** ``travel_ratio20``: on the same windows, the real joint's travel over the 20 steps against the
+  simulated one's, ``Σ D_real·D_sim / Σ D_sim²`` with ``D = wrap(q[t0+20] − q[t0])`` (the least-squares slope
+  of real over simulated travel), per joint. Above 1 the real joint goes further than the simulated one under
+  the same PWM: a simulator that is too slow overall, under that set's commands.
 """
 
 from __future__ import annotations
@@ -383,7 +387,8 @@ def estimate_sensor_noise(data: Padded, dt: float = 0.05) -> tuple[np.ndarray, n
 def reference_jitter(record: EpisodeRecord) -> float:
     """RMS step-to-step change of an episode's reference perturbation ``wrap(q_ref − q_des)``, rad.
 
-    About √2 × the noise level of a noisy-reference pass, zero for a plain PD run. Strongly perturbed
+    About the noise level σ of a noisy-reference pass (√2 × the 0.72 σ standard deviation of clipped Gaussian
+    noise; on ``pd_noise_train`` 0.0081 rad for σ = 0.008), zero for a plain PD run. Strongly perturbed
     passes make the PD law chatter between full PWM in both directions; fitted on those, the model
     generalizes worse to smooth commands (on the XE75, keeping the passes up to σ = 0.008 rad of
     ``pd_noise_train`` gave a simulator closer to the real machine under the learned policies).
@@ -393,6 +398,27 @@ def reference_jitter(record: EpisodeRecord) -> float:
     """
     offset = wrap(record.q_ref - record.q_des)
     return float(np.sqrt(np.mean(np.diff(offset, axis=0) ** 2))) if len(offset) > 1 else 0.0
+
+
+def select_by_jitter(
+    records: Sequence[EpisodeRecord], low: float = 0.0, high: float = np.inf, option: str = "reference jitter"
+) -> list[EpisodeRecord]:
+    """The episodes whose :func:`reference_jitter` lies in ``[low, high]`` rad; an error names ``option`` if none does.
+
+    Args:
+        records: the episodes (``q_ref``, ``q_des`` (T, 4) rad).
+        low: smallest jitter kept, rad.
+        high: largest jitter kept, rad.
+        option: the setting the bounds come from, named in the error message.
+    """
+    jitter = np.array([reference_jitter(r) for r in records])
+    kept = [r for r, j in zip(records, jitter, strict=True) if low <= j <= high]
+    if not kept:
+        raise EfficientTrackError(
+            f"{option}: no episode's reference jitter lies in [{low:g}, {high:g}] rad "
+            f"(the logs' range: {jitter.min():.4g} … {jitter.max():.4g} rad)"
+        )
+    return kept
 
 
 class Steady(NamedTuple):
@@ -587,14 +613,9 @@ def calibrate(
     report = progress or (lambda line: None)
     if start is None:
         start = xe75_params()
-    jitter = np.array([reference_jitter(r) for r in records])
-    records = [r for r, j in zip(records, jitter, strict=True) if j <= cfg.max_ref_jitter]
-    if not records:
-        raise EfficientTrackError(
-            f"no episode to fit on: every reference perturbation jitters more than max_ref_jitter = "
-            f"{cfg.max_ref_jitter} rad (the calmest: {jitter.min():.4g} rad)"
-        )
-    report(f"fitting on {len(records)} of {len(jitter)} episodes (reference jitter ≤ {cfg.max_ref_jitter} rad)")
+    total = len(records)
+    records = select_by_jitter(records, high=cfg.max_ref_jitter, option="fit setting 'max_ref_jitter'")
+    report(f"fitting on {len(records)} of {total} episodes (reference jitter ≤ {cfg.max_ref_jitter} rad)")
     data = pad(records)
     start = start.replace(accel_max=np.minimum(start.accel_max, logged_accel(data, start.dt)).tolist())
     open_w = _strided_windows(data, cfg.open_horizon, cfg.max_windows)
@@ -667,6 +688,8 @@ class Fidelity(NamedTuple):
         sim_mae_deg: (4,) deg, the same for the simulator driven with the logged q_ref.
         ratio: (4,) sim / real.
         mpe20_deg: (4,) deg, open-loop 20-step position error per joint, or None without a plant.
+        travel_ratio20: (4,) real / simulated joint travel over the open-loop windows, or None without a plant
+            (NaN for a joint the simulator never moves).
         q_sim: (T, N, 4) rad, the simulated closed-loop positions (padded like ``data``).
         data: the padded logs.
     """
@@ -675,22 +698,25 @@ class Fidelity(NamedTuple):
     sim_mae_deg: np.ndarray
     ratio: np.ndarray
     mpe20_deg: np.ndarray | None
+    travel_ratio20: np.ndarray | None
     q_sim: np.ndarray
     data: Padded
 
     def to_json(self, decimals: int = 4) -> dict[str, Any]:
-        """The one-line JSON report: ``{"closed_loop": {...}, "open_loop": {"mpe20_deg": [4] | null}}``.
+        """The one-line JSON report: ``{"closed_loop": {...}, "open_loop": {"mpe20_deg": [4], "travel_ratio20": [4]}}``.
+
+        The open-loop lists are null without a plant; a NaN value (a joint the simulator never moves) is null.
 
         Args:
             decimals: digits after the decimal point each value (deg, or the unitless ratio) is rounded to.
         """
 
-        def r(x: np.ndarray | None) -> list[float] | None:
-            return None if x is None else [round(float(v), decimals) for v in x]
+        def r(x: np.ndarray | None) -> list[float | None] | None:
+            return None if x is None else [round(float(v), decimals) if np.isfinite(v) else None for v in x]
 
         return {
             "closed_loop": {"real_mae_deg": r(self.real_mae_deg), "sim_mae_deg": r(self.sim_mae_deg), "ratio": r(self.ratio)},
-            "open_loop": {"mpe20_deg": r(self.mpe20_deg)},
+            "open_loop": {"mpe20_deg": r(self.mpe20_deg), "travel_ratio20": r(self.travel_ratio20)},
         }
 
 
@@ -702,40 +728,64 @@ def _accepts_history(plant: Any) -> bool:
     return "qd0" in names and "u_past" in names and bool(getattr(plant, "batched", False))
 
 
-def open_loop_mpe(plant: BatchedSystem, data: Padded, horizon: int = 20, stride: int = 10) -> np.ndarray:
-    """Open-loop ``horizon``-step position error per joint, (4,) rad (definition in the module docstring).
+def open_loop_replay(plant: BatchedSystem, data: Padded, horizon: int = 20, stride: int = 10) -> tuple[np.ndarray, Windows]:
+    """Replay the logged PWM from every ``stride``-th step (definition in the module docstring).
 
     Args:
         plant: the PWM-level plant (checked view; the raw plant is used for history-aware resets).
         data: padded logs with the PWM ``u``.
         horizon: steps replayed from each start.
         stride: distance between window starts, steps.
+
+    Returns:
+        The simulated positions q (H, W, 4) rad, and the windows they replay (logged positions ``windows.q``).
     """
     w = make_windows(data, horizon, stride=stride)
     raw = plant.system
     if _accepts_history(raw):
         raw.reset(w.q0, qd0=w.qd0, u_past=w.u_past)
-        q = np.stack([np.asarray(raw.step(u), dtype=np.float64)[:, :N_JOINTS] for u in w.u])
-        return np.abs(wrap(q - w.q)).mean(axis=(0, 1))
+        return np.stack([np.asarray(raw.step(u), dtype=np.float64)[:, :N_JOINTS] for u in w.u]), w
     chunk = plant.max_batch or len(w.q0)
-    errors = []
+    parts = []
     for i in range(0, len(w.q0), chunk):
         part = slice(i, i + chunk)
         plant.reset(w.q0[part])
-        q = np.stack([plant.step(u[part])[:, :N_JOINTS] for u in w.u])
-        errors.append(np.abs(wrap(q - w.q[:, part])).sum(axis=(0, 1)))
-    return np.sum(errors, axis=0) / (len(w.u) * len(w.q0))
+        parts.append(np.stack([plant.step(u[part])[:, :N_JOINTS] for u in w.u]))
+    return np.concatenate(parts, axis=1), w
+
+
+def open_loop_mpe(q_sim: np.ndarray, windows: Windows) -> np.ndarray:
+    """Open-loop position error per joint, mean over the steps and windows, (4,) rad.
+
+    Args:
+        q_sim: (H, W, 4) rad, simulated positions from :func:`open_loop_replay`.
+        windows: the windows replayed (W of them).
+    """
+    return np.abs(wrap(q_sim - windows.q)).mean(axis=(0, 1))
+
+
+def travel_ratio(q_sim: np.ndarray, windows: Windows) -> np.ndarray:
+    """Real over simulated joint travel at the windows' end, (4,), NaN for a joint the simulation never moves.
+
+    Args:
+        q_sim: (H, W, 4) rad, simulated positions from :func:`open_loop_replay`.
+        windows: the windows replayed (W of them).
+    """
+    real = wrap(windows.q[-1] - windows.q0)
+    sim = wrap(q_sim[-1] - windows.q0)
+    power = (sim * sim).sum(axis=0)
+    return np.divide((real * sim).sum(axis=0), power, out=np.full(N_JOINTS, np.nan), where=power > 0)
 
 
 def fidelity(
     records: Sequence[EpisodeRecord], system: BatchedSystem, plant: BatchedSystem | None = None, stride: int = 10
 ) -> Fidelity:
-    """Closed-loop PD tracking MAE of a system vs the logs, and the plant's open-loop 20-step error.
+    """Closed-loop PD tracking MAE of a system vs the logs, and the plant's open-loop 20-step error and travel.
 
     Args:
         records: logs of the real machine under its PD law (``u`` needed for the open loop).
         system: the reference-level system (PD law included).
-        plant: its PWM-level plant, for the open-loop error (skipped when None).
+        plant: its PWM-level plant, for the open-loop figures (skipped when None).
         stride: distance between the open-loop window starts, steps.
 
     Returns:
@@ -751,12 +801,14 @@ def fidelity(
             q_sim[: len(q_i), i], q_sim[len(q_i) :, i] = q_i, q_i[-1]
     real = np.degrees(tracking_mae(data.q, data).mean(axis=0))
     sim = np.degrees(tracking_mae(q_sim, data).mean(axis=0))
-    mpe = None
+    mpe = travel = None
     if plant is not None:
         if any(r.u is None for r in records):
             raise EfficientTrackError("open-loop fidelity needs logs with the PWM command 'u'")
-        mpe = np.degrees(open_loop_mpe(plant, data, stride=stride))
-    return Fidelity(real, sim, sim / np.maximum(real, 1e-12), mpe, q_sim, data)
+        q_open, windows = open_loop_replay(plant, data, stride=stride)
+        mpe = np.degrees(open_loop_mpe(q_open, windows))
+        travel = travel_ratio(q_open, windows)
+    return Fidelity(real, sim, sim / np.maximum(real, 1e-12), mpe, travel, q_sim, data)
 
 
 def _significant(value: Any, digits: int = 6) -> Any:
