@@ -22,8 +22,9 @@ from rich.console import Console
 from rich.table import Table
 
 from efficienttrack.config import PRESETS, RunConfig
-from efficienttrack.pipeline import DEMO_REFERENCES, DEMO_SEED, DEMO_TRAIN, SystemSpec, run_pipeline
-from efficienttrack.trajectories import generate_references
+from efficienttrack.cycles import generate_references
+from efficienttrack.pipeline import DEMO_REFERENCES, DEMO_SEED, DEMO_TRAIN, run_pipeline
+from efficienttrack.systems.spec import SystemSpec
 
 ROWS = (
     ("MAE (°)", "mae_deg"),
@@ -57,7 +58,7 @@ def main() -> None:
     for seed in args.seeds:
         cfg = replace(base, seed=seed, device=args.device, collect=replace(base.collect, seed=seed))
         start = time.perf_counter()
-        results.append(run_pipeline(SystemSpec(system="xe75"), train, test, args.out / f"seed_{seed}", cfg, console).metrics)
+        results.append(run_pipeline(SystemSpec(), train, test, args.out / f"seed_{seed}", cfg, console).metrics)
         walls.append(time.perf_counter() - start)
 
     table = Table(title=f"xe75, {len(train)} train / {len(test)} test references, preset {args.preset}, seeds {args.seeds}")

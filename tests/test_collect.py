@@ -5,7 +5,8 @@ import pytest
 
 from efficienttrack.collect import CollectConfig, collect, episode_noise
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.systems.protocol import BatchedSystem, load_system
+from efficienttrack.systems.protocol import BatchedSystem
+from efficienttrack.systems.spec import load_system
 from toy_system import make, sine_refs
 
 

@@ -9,10 +9,10 @@ from typer.testing import CliRunner
 from efficienttrack.cli import app
 from efficienttrack.dynamics import MODEL_PRESETS, ClosedLoopModel, rollout, save_model
 from efficienttrack.errors import EfficientTrackError
+from efficienttrack.learned_system import LearnedSystem
 from efficienttrack.records import save_records
 from efficienttrack.systems import check_system, load_system
 from efficienttrack.systems.calibrate import fidelity
-from efficienttrack.systems.learned import LearnedSystem
 from test_dynamics import lag_records, train_tiny_model
 
 

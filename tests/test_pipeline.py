@@ -11,8 +11,9 @@ from efficienttrack import cli, dynamics
 from efficienttrack.config import PRESETS, RunConfig, from_dict, load_config
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.metrics import METRIC_KEYS
-from efficienttrack.pipeline import SystemSpec, run_pipeline
-from efficienttrack.trajectories import save_references
+from efficienttrack.pipeline import run_pipeline
+from efficienttrack.references import save_references
+from efficienttrack.systems.spec import SystemSpec
 from toy_system import sine_refs
 
 TOY = SystemSpec(system="toy_system:make")
@@ -152,7 +153,7 @@ def test_cli_run_resumes_evaluate_and_collect(tmp_path, refs, finished_run, monk
             "nowhere: no such file or folder",
         ),
         (["--system", "no_such_module:make", "--train-refs", "{refs}", "--test-refs", "{refs}"], "cannot import module"),
-        (["--system", "xe75", "--plant", "xe75", "--train-refs", "{refs}", "--test-refs", "{refs}"], "exactly one of"),
+        (["--system", "xe75", "--plant", "xe75", "--train-refs", "{refs}", "--test-refs", "{refs}"], "not both"),
         (["--system", "xe75", "--train-refs", "{refs}", "--test-refs", "{refs}", "--preset", "huge"], "unknown, choose one"),
     ],
 )

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from efficienttrack.trajectories import Reference
+from efficienttrack.references import Reference
 
 
 class LagSystem:

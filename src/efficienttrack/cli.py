@@ -68,7 +68,8 @@ def refs_generate_command(
     preset_name: Annotated[str, typer.Option("--preset", help="Cycle generator preset (xe75).")] = "xe75",
 ) -> None:
     """Draw operator-like loading cycles (15–25 s at 20 Hz) and write them as ref_XX.npy."""
-    from efficienttrack.trajectories import generate_references, save_references
+    from efficienttrack.cycles import generate_references
+    from efficienttrack.references import save_references
 
     refs = generate_references(n, seed, preset_name)
     save_references(refs, out)
@@ -83,7 +84,7 @@ def refs_plot_command(
 ) -> None:
     """Draw all references per joint, in degrees against time."""
     from efficienttrack.plots import plot_references
-    from efficienttrack.trajectories import load_references
+    from efficienttrack.references import load_references
 
     refs = load_references(source)
     path = plot_references(refs, out or (source if source.is_dir() else source.parent) / "references.png")
@@ -130,7 +131,7 @@ SystemOpts = Annotated[list[str] | None, typer.Option("--system-opt", help="key=
 
 
 def _system_spec(system: str | None, plant: str | None, pd: str, options: list[str] | None):
-    from efficienttrack.pipeline import SystemSpec
+    from efficienttrack.systems.spec import SystemSpec
 
     return SystemSpec(system=system, plant=plant, pd=pd, options=tuple(parse_options(options).items()))
 
@@ -157,8 +158,7 @@ def collect_command(
 ) -> None:
     """Algorithm 1: track the references with the position controller, with and without noise, and record it."""
     from efficienttrack.collect import CollectConfig, collect
-    from efficienttrack.pipeline import open_system
-    from efficienttrack.trajectories import load_references
+    from efficienttrack.references import load_references
 
     try:
         noisy, clean = (float(part) for part in noise_ratio.split(":"))
@@ -167,7 +167,7 @@ def collect_command(
     cfg = CollectConfig(sigma_max=sigma_max, noise_ratio=(noisy, clean), passes=passes, seed=seed)
     spec = _system_spec(system, plant, pd, system_opt)
     references = load_references(refs)
-    result = collect(open_system(spec), references, cfg, out)
+    result = collect(spec.open(), references, cfg, out)
     typer.echo(
         f"collected {len(result.records)} episodes, {result.interaction_steps} interaction steps "
         f"({result.resumed_passes} pass(es) resumed) into {out}"
@@ -191,7 +191,7 @@ def evaluate_command(
 ) -> None:
     """Algorithm 2: track the references with the adjustment policy (or the PD controller alone) and report metrics."""
     from efficienttrack.pipeline import evaluate
-    from efficienttrack.trajectories import load_references
+    from efficienttrack.references import load_references
 
     spec = _system_spec(system, plant, pd, system_opt)
     evaluate(spec, load_references(refs), out, policy, device, Console(width=max(Console().width, 140)))
@@ -229,7 +229,7 @@ def run_command(
 ) -> None:
     """The whole method: collect, train model and policy, evaluate PD alone vs EfficientTrack on the test references."""
     from efficienttrack.pipeline import run_pipeline
-    from efficienttrack.trajectories import load_references
+    from efficienttrack.references import load_references
 
     _set_threads(threads)
     spec = _system_spec(system, plant, pd, system_opt)
@@ -374,6 +374,7 @@ def sim_fidelity_command(
     logs: LogsOpt,
     system: SystemOpt = None,
     plant: PlantOpt = None,
+    pd: PdOpt = "xe75",
     system_opt: SystemOpts = None,
     json_output: Annotated[bool, typer.Option("--json", help="Print one JSON line.")] = False,
     plot: Annotated[Path | None, typer.Option("--plot", help="Folder for sim-vs-real trace plots.")] = None,
@@ -389,19 +390,9 @@ def sim_fidelity_command(
     """Compare a simulator with real PD logs: closed-loop tracking MAE ratio, open-loop 20-step error and travel."""
     from efficienttrack.plots import plot_sim_vs_real
     from efficienttrack.systems.calibrate import fidelity, load_logs, select_by_jitter
-    from efficienttrack.systems.pd import XE75_PD, ClosedLoop
-    from efficienttrack.systems.protocol import BUILTIN_PLANTS, BatchedSystem, load_plant, load_system
 
-    options = parse_options(system_opt)
-    if system is not None and plant is not None:
-        raise EfficientTrackError("give --system or --plant, not both")
-    if plant is not None:
-        plant_view = load_plant(plant, **options)
-        system_view = BatchedSystem(ClosedLoop(plant_view.system, XE75_PD), name=f"plant '{plant}' + PD")
-    else:
-        spec = system or "xe75"
-        system_view = load_system(spec, **options)
-        plant_view = load_plant(spec, **options) if spec in BUILTIN_PLANTS else None
+    spec = _system_spec(system, plant, pd, system_opt)
+    system_view, plant_view = spec.open(), spec.open_plant()
     records = load_logs(logs, need_u=plant_view is not None)
     if min_ref_jitter > 0 or max_ref_jitter is not None:
         high = math.inf if max_ref_jitter is None else max_ref_jitter

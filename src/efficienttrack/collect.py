@@ -26,12 +26,12 @@ from typing import NamedTuple
 import numpy as np
 from rich.progress import Progress
 
+from efficienttrack.episodes import Sent, batches, rollout
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import write_json
 from efficienttrack.records import EpisodeRecord, load_named_records, load_records, save_records
-from efficienttrack.runtime import Sent, batches, rollout
+from efficienttrack.references import Reference
 from efficienttrack.systems.protocol import BatchedSystem
-from efficienttrack.trajectories import Reference
 
 
 @dataclass(frozen=True)

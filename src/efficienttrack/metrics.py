@@ -23,11 +23,10 @@ from rich.table import Table
 
 from efficienttrack.angles import wrap
 from efficienttrack.errors import EfficientTrackError
+from efficienttrack.joints import CONTROL_RATE_HZ
 from efficienttrack.kinematics import tip_position
 from efficienttrack.records import EpisodeRecord
 
-CONTROL_RATE_HZ = 20.0
-"""Control steps per second, to turn a step count into interaction time."""
 METRIC_KEYS = (
     "episodes",
     "steps",

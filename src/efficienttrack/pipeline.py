@@ -32,15 +32,16 @@ from rich.console import Console
 from efficienttrack import dynamics, plots, policy
 from efficienttrack.collect import collect
 from efficienttrack.config import DEMO, RunConfig
+from efficienttrack.cycles import generate_references
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import write_json
 from efficienttrack.metrics import compute_metrics, metrics_table, rounded
 from efficienttrack.nets import resolve_device
 from efficienttrack.records import EpisodeRecord, load_named_records, save_records
+from efficienttrack.references import Reference, save_references
 from efficienttrack.runtime import track
-from efficienttrack.systems.pd import ClosedLoop, PDGains
-from efficienttrack.systems.protocol import BatchedSystem, load_plant, load_system
-from efficienttrack.trajectories import Reference, generate_references, save_references
+from efficienttrack.systems.protocol import BatchedSystem
+from efficienttrack.systems.spec import SystemSpec
 
 PLOTTED_REFERENCES = 3
 """Test references drawn in the tracking plots."""
@@ -52,47 +53,6 @@ DEMO_TRAIN = 32
 """The first references of the demo are for training, the rest are held out."""
 DEMO_SEED = 2025
 """Seed of the demo's reference generator."""
-
-
-@dataclass(frozen=True)
-class SystemSpec:
-    """How to build the closed-loop system: a reference-level system, or a plant under PD control."""
-
-    system: str | None = None
-    """Built-in name or ``module:callable`` of a ClosedLoopSystem (``--system``)."""
-    plant: str | None = None
-    """Built-in name or ``module:callable`` of a Plant wrapped with the PD controller (``--plant``)."""
-    pd: str = "xe75"
-    """PD gains for ``plant``: a preset name or a JSON file (``--pd``)."""
-    options: tuple[tuple[str, Any], ...] = ()
-    """Keyword options of the callable (``--system-opt key=value``)."""
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON form (for run.json and metrics.json)."""
-        return {
-            "system": self.system,
-            "plant": self.plant,
-            "pd": self.pd if self.plant else None,
-            "options": dict(self.options),
-        }
-
-
-def open_system(spec: SystemSpec) -> BatchedSystem:
-    """Build the closed-loop system a spec names.
-
-    Args:
-        spec: exactly one of ``system`` / ``plant`` set (EfficientTrackError otherwise).
-
-    Returns:
-        The checked, batched view of the system (a plant is wrapped with its PD controller).
-    """
-    if (spec.system is None) == (spec.plant is None):
-        raise EfficientTrackError("give exactly one of --system SPEC or --plant SPEC")
-    options = dict(spec.options)
-    if spec.system is not None:
-        return load_system(spec.system, **options)
-    plant = load_plant(spec.plant, **options)
-    return BatchedSystem(ClosedLoop(plant.system, PDGains.load(spec.pd)), name=f"plant '{spec.plant}' under PD '{spec.pd}'")
 
 
 @dataclass(frozen=True)
@@ -192,7 +152,7 @@ def run_pipeline(
     if not train_refs or not test_refs:
         raise EfficientTrackError("run: needs at least one training and one test reference")
     out = Path(out)
-    env = open_system(system)
+    env = system.open()
     identity = {
         "config": cfg.to_dict(),
         "system": system.to_dict(),
@@ -292,7 +252,7 @@ def evaluate(
         The content of ``metrics.json`` ({"method", "metrics", "fallbacks", "system", "policy"}).
     """
     console = console or Console()
-    env = open_system(system)
+    env = system.open()
     pi = None
     if policy_path is not None:
         if not Path(policy_path).is_file():
@@ -333,7 +293,7 @@ def demo(out: str | Path = "runs/demo", cfg: RunConfig | None = None, console: C
     save_references(train, Path(out) / "refs" / "train")
     save_references(test, Path(out) / "refs" / "test")
     start = time.perf_counter()
-    result = run_pipeline(SystemSpec(system="xe75"), train, test, out, cfg or DEMO, console)
+    result = run_pipeline(SystemSpec(), train, test, out, cfg or DEMO, console)
     ratio = result.metrics["efficienttrack"]["mae_deg"] / result.metrics["pd"]["mae_deg"]
     console.print(
         f"EfficientTrack MAE = {ratio:.2f} × PD MAE; wall time {time.perf_counter() - start:.0f} s; outputs in {out}"

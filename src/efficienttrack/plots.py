@@ -15,11 +15,10 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from efficienttrack.fileio import atomic_write
+from efficienttrack.joints import DT, JOINT_NAMES
 from efficienttrack.metrics import tracking_error
 from efficienttrack.records import EpisodeRecord
-from efficienttrack.trajectories import Reference
-
-JOINT_NAMES = ("boom", "arm", "bucket", "swing")
+from efficienttrack.references import Reference
 
 
 def plot_references(refs: list[Reference], path: str | Path) -> Path:
@@ -152,7 +151,7 @@ def plot_training_curves(curves: dict[str, tuple[list[float], list[float]]], pat
 
 
 def plot_sim_vs_real(
-    q_real: np.ndarray, q_sim: np.ndarray, q_des: np.ndarray, path: str | Path, title: str = "", dt: float = 0.05
+    q_real: np.ndarray, q_sim: np.ndarray, q_des: np.ndarray, path: str | Path, title: str = "", dt: float = DT
 ) -> Path:
     """Joint traces of one episode on the real machine and in simulation, degrees against time, one subplot per joint.
 

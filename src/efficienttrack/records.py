@@ -36,11 +36,9 @@ import numpy.lib.format as npy_format
 
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import atomic_write
+from efficienttrack.joints import JOINT_NAMES, MAX_ABS_ANGLE
 
-JOINTS = ("boom", "arm", "bucket", "swing")
 JOINT_FIELDS = ("q", "qd", "q_ref", "q_des", "u")
-MAX_ABS_ANGLE = 2 * np.pi
-"""Angles beyond ±2π rad are taken for degrees (or garbage) and refused."""
 ANGLE_FIELDS = ("q", "q_ref", "q_des")
 JITTER_RANGE = (0.1, 2.0)
 """Time steps outside this range, in median steps, are reported as jitter (the XE75 logs stay within 0.28…1.72)."""
@@ -49,7 +47,7 @@ RECORD_SUFFIXES = (".npz", ".npy", ".csv")
 
 UPSTREAM_KEYS = {"js": "q", "jv": "qd", "target": "q_ref", "real_target": "q_des", "action": "u", "time": "t"}
 """Keys of the original repository's episode dict → our field names."""
-CSV_COLUMNS = ("t", *(f"{name}_{joint}" for name in JOINT_FIELDS for joint in JOINTS))
+CSV_COLUMNS = ("t", *(f"{name}_{joint}" for name in JOINT_FIELDS for joint in JOINT_NAMES))
 """Header of our CSV format (the ``u_*`` columns are left out when u is None)."""
 
 
@@ -125,7 +123,7 @@ class EpisodeRecord:
             if bad.any():
                 step, joint = np.argwhere(bad)[0]
                 raise EfficientTrackError(
-                    f"{source}: field '{name}' has NaN/inf values (first at step {step}, joint {JOINTS[joint]})"
+                    f"{source}: field '{name}' has NaN/inf values (first at step {step}, joint {JOINT_NAMES[joint]})"
                 )
         if self.t.shape != (steps,):
             raise EfficientTrackError(f"{source}: field 't' has shape {self.t.shape}, expected ({steps},)")
@@ -216,7 +214,7 @@ def save_csv(record: EpisodeRecord, path: str | Path) -> Path:
         The path written.
     """
     names = [name for name in JOINT_FIELDS if getattr(record, name) is not None]
-    columns = ["t", *(f"{name}_{joint}" for name in names for joint in JOINTS)]
+    columns = ["t", *(f"{name}_{joint}" for name in names for joint in JOINT_NAMES)]
     table = np.column_stack([record.t, *(getattr(record, name) for name in names)])
 
     def write(f: io.TextIOBase) -> None:
@@ -250,11 +248,11 @@ def _load_csv_ours(path: Path, lines: list[str]) -> EpisodeRecord:
     column = {name: table[:, i] for i, name in enumerate(header)}
     fields: dict[str, np.ndarray | None] = {"t": column.get("t")}
     for name in JOINT_FIELDS:
-        present = [f"{name}_{joint}" in column for joint in JOINTS]
+        present = [f"{name}_{joint}" in column for joint in JOINT_NAMES]
         if any(present) and not all(present):
-            missing = [f"{name}_{joint}" for joint, ok in zip(JOINTS, present, strict=True) if not ok]
+            missing = [f"{name}_{joint}" for joint, ok in zip(JOINT_NAMES, present, strict=True) if not ok]
             raise EfficientTrackError(f"{path}: field '{name}' lacks column(s) {', '.join(missing)}")
-        fields[name] = np.column_stack([column[f"{name}_{joint}"] for joint in JOINTS]) if all(present) else None
+        fields[name] = np.column_stack([column[f"{name}_{joint}"] for joint in JOINT_NAMES]) if all(present) else None
     meta.setdefault("name", path.stem)
     return EpisodeRecord(meta=meta, **fields).validate(str(path))  # type: ignore[arg-type]
 

@@ -1,14 +1,8 @@
 """System interfaces (Plant, ClosedLoopSystem), the PD position controller and the built-in simulator."""
 
 from efficienttrack.systems.pd import XE75_PD, ClosedLoop, PDGains
-from efficienttrack.systems.protocol import (
-    BatchedSystem,
-    ClosedLoopSystem,
-    Plant,
-    check_system,
-    load_plant,
-    load_system,
-)
+from efficienttrack.systems.protocol import BatchedSystem, ClosedLoopSystem, Plant, check_system
+from efficienttrack.systems.spec import SystemSpec, load_plant, load_system
 
 __all__ = [
     "XE75_PD",
@@ -17,6 +11,7 @@ __all__ = [
     "ClosedLoopSystem",
     "PDGains",
     "Plant",
+    "SystemSpec",
     "check_system",
     "load_plant",
     "load_system",

@@ -44,10 +44,10 @@ from scipy.optimize import least_squares
 from efficienttrack.angles import wrap
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import atomic_write
+from efficienttrack.joints import DT, N_JOINTS
 from efficienttrack.metrics import tracking_error
 from efficienttrack.records import EpisodeRecord
 from efficienttrack.systems.hydraulic import (
-    N_JOINTS,
     U_MAX,
     HydraulicParams,
     HydraulicState,
@@ -363,7 +363,7 @@ class CalibrationResult:
     delay_cost: dict[int, np.ndarray]
 
 
-def estimate_sensor_noise(data: Padded, dt: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+def estimate_sensor_noise(data: Padded, dt: float = DT) -> tuple[np.ndarray, np.ndarray]:
     """Robust sensor-noise levels of the logs: (noise_q (4,) rad, noise_qd (4,) rad/s).
 
     ``noise_q`` from the second difference of q (6σ² for white noise on a smooth motion),
@@ -516,7 +516,7 @@ def _linkage_guess(params: HydraulicParams, steady: Steady) -> HydraulicParams:
     )
 
 
-def logged_accel(data: Padded, dt: float = 0.05, quantile: float = 0.999) -> np.ndarray:
+def logged_accel(data: Padded, dt: float = DT, quantile: float = 0.999) -> np.ndarray:
     """The largest joint accelerations in the logs, (4,) rad/s²: a quantile of ``|qd[t+1] − qd[t−1]| / 2dt``.
 
     The calibration starts the acceleration limit here: started above every logged acceleration the

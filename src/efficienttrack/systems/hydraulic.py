@@ -48,9 +48,9 @@ import numpy as np
 
 from efficienttrack.angles import wrap
 from efficienttrack.errors import EfficientTrackError
+from efficienttrack.joints import DT, N_JOINTS, SWING
 from efficienttrack.systems.pd import XE75_PD, ClosedLoop
 
-N_JOINTS = 4
 U_MAX = 1000.0
 DIRECTION = np.array([-1.0, -1.0, -1.0, 1.0])
 """Sign of the joint velocity for a positive PWM (boom, arm, bucket, swing)."""
@@ -119,7 +119,7 @@ class HydraulicParams:
     """Standard deviation of the velocity sensor noise, rad/s (used when sensor noise is on)."""
     payload: float = 0.0
     """Bucket load fraction, 0 (empty) … 1 (full)."""
-    dt: float = 0.05
+    dt: float = DT
     """Control period, s."""
 
     def __post_init__(self) -> None:
@@ -174,7 +174,7 @@ class HydraulicParams:
         return _Arrays(
             delay=np.asarray(self.delay, dtype=np.intp),
             beta=1.0 - np.exp(-self.dt / np.maximum(a["tau_spool"], 1e-9)),
-            q_mid=np.where(np.arange(N_JOINTS) == 3, 0.0, (a["q_min"] + a["q_max"]) / 2),
+            q_mid=np.where(np.arange(N_JOINTS) == SWING, 0.0, (a["q_min"] + a["q_max"]) / 2),
             speed_q=a["speed_q"],
             speed_q2=a["speed_q2"],
             alpha=1.0 - np.exp(-self.dt / np.maximum(a["tau"], 1e-9)),
@@ -193,8 +193,8 @@ class HydraulicParams:
             v_pos=v_pos,
             v_neg=v_neg,
             pump_coupling=a["pump_coupling"],
-            q_min=np.where(np.arange(N_JOINTS) == 3, -np.inf, a["q_min"]),
-            q_max=np.where(np.arange(N_JOINTS) == 3, np.inf, a["q_max"]),
+            q_min=np.where(np.arange(N_JOINTS) == SWING, -np.inf, a["q_min"]),
+            q_max=np.where(np.arange(N_JOINTS) == SWING, np.inf, a["q_max"]),
             noise=np.concatenate([a["noise_q"], a["noise_qd"]]),
             dt=float(self.dt),
         )

@@ -23,29 +23,17 @@ single ``(4,)`` arrays only (a real machine is N = 1); the package then runs it 
 time. A closed-loop system may expose ``last_command`` (the PWM it applied in the last step,
 ``(4,)``/``(N, 4)``); it is recorded when present.
 
-Loading: ``load_system(spec)`` and ``load_plant(spec)`` take a built-in name (``xe75``; for systems also
-``learned``, a trained closed-loop model, :mod:`efficienttrack.systems.learned`) or an import path
-``"module.path:callable"``; the callable is called with the keyword options and must return the system.
+Loading a system by name or import path: :mod:`efficienttrack.systems.spec`.
 """
 
 from __future__ import annotations
 
-import importlib
-from collections.abc import Callable, Mapping
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
 from efficienttrack.errors import EfficientTrackError
-
-N_JOINTS = 4
-OBS_DIM = 8
-
-BUILTIN_SYSTEMS: dict[str, str] = {
-    "xe75": "efficienttrack.systems.hydraulic:xe75_closed_loop",
-    "learned": "efficienttrack.systems.learned:learned_system",
-}
-BUILTIN_PLANTS: dict[str, str] = {"xe75": "efficienttrack.systems.hydraulic:xe75_plant"}
+from efficienttrack.joints import N_JOINTS, OBS_DIM
 
 
 @runtime_checkable
@@ -146,59 +134,6 @@ class BatchedSystem:
         if not np.all(np.isfinite(obs)):
             raise EfficientTrackError(f"{self.name}: {what} returned a non-finite observation {obs.tolist()}")
         return obs.reshape(self._n, OBS_DIM)
-
-
-def _resolve(spec: str, builtins: Mapping[str, str], what: str) -> Callable[..., Any]:
-    target = builtins.get(spec, spec)
-    if ":" not in target:
-        names = ", ".join(sorted(builtins)) or "none"
-        raise EfficientTrackError(
-            f"unknown {what} '{spec}': give a built-in name ({names}) or an import path 'module.path:callable'"
-        )
-    module_name, _, attr = target.partition(":")
-    try:
-        module = importlib.import_module(module_name)
-    except ImportError as exc:
-        raise EfficientTrackError(f"{what} '{spec}': cannot import module '{module_name}': {exc}") from exc
-    factory = getattr(module, attr, None)
-    if factory is None or not callable(factory):
-        raise EfficientTrackError(f"{what} '{spec}': module '{module_name}' has no callable '{attr}'")
-    return factory
-
-
-def _build(spec: str, builtins: Mapping[str, str], what: str, options: Mapping[str, Any]) -> BatchedSystem:
-    factory = _resolve(spec, builtins, what)
-    try:
-        system = factory(**options)
-    except TypeError as exc:
-        raise EfficientTrackError(f"{what} '{spec}': cannot be built with options {dict(options)}: {exc}") from exc
-    return BatchedSystem(system, name=f"{what} '{spec}'")
-
-
-def load_system(spec: str, **options: Any) -> BatchedSystem:
-    """Load a reference-level ClosedLoopSystem.
-
-    Args:
-        spec: a built-in name (``xe75``, ``learned``) or ``"module.path:callable"``.
-        **options: keyword options passed to the callable (``--system-opt key=value`` on the CLI).
-
-    Returns:
-        The system, wrapped in a checked batched view.
-    """
-    return _build(spec, BUILTIN_SYSTEMS, "system", options)
-
-
-def load_plant(spec: str, **options: Any) -> BatchedSystem:
-    """Load a PWM-level Plant (same spec rules as :func:`load_system`).
-
-    Args:
-        spec: a built-in name (``xe75``) or ``"module.path:callable"``.
-        **options: keyword options passed to the callable (``--system-opt key=value`` on the CLI).
-
-    Returns:
-        The plant, wrapped in a checked batched view.
-    """
-    return _build(spec, BUILTIN_PLANTS, "plant", options)
 
 
 def check_system(system: Any, q0: np.ndarray | None = None, steps: int = 5, name: str = "system") -> None:

@@ -5,16 +5,13 @@ import pytest
 from typer.testing import CliRunner
 
 from efficienttrack.cli import app
+from efficienttrack.cycles import CYCLE_PRESETS, CycleConfig, generate_references, reference_stats
 from efficienttrack.errors import EfficientTrackError
+from efficienttrack.joints import DT
 from efficienttrack.plots import plot_references
-from efficienttrack.trajectories import (
-    CYCLE_PRESETS,
-    DT,
-    CycleConfig,
+from efficienttrack.references import (
     Reference,
-    generate_references,
     load_references,
-    reference_stats,
     save_references,
 )
 

@@ -19,10 +19,8 @@ from efficienttrack.angles import wrap
 from efficienttrack.dataset import push
 from efficienttrack.dynamics import ClosedLoopModel, load_model
 from efficienttrack.errors import EfficientTrackError
+from efficienttrack.joints import DT, N_JOINTS, OBS_DIM, SWING
 from efficienttrack.nets import resolve_device
-from efficienttrack.systems.protocol import N_JOINTS, OBS_DIM
-
-SWING = 3
 
 
 class LearnedSystem:
@@ -46,7 +44,7 @@ class LearnedSystem:
 
     batched = True
 
-    def __init__(self, model: ClosedLoopModel, dt: float = 0.05, device: str | torch.device = "auto") -> None:
+    def __init__(self, model: ClosedLoopModel, dt: float = DT, device: str | torch.device = "auto") -> None:
         if not dt > 0:
             raise EfficientTrackError(f"learned system: dt must be a positive number of seconds, got {dt!r}")
         self.device = resolve_device(device)
@@ -89,7 +87,7 @@ class LearnedSystem:
         return out[0] if self._single else out
 
 
-def learned_system(model: str | Path, dt: float = 0.05, device: str = "auto") -> LearnedSystem:
+def learned_system(model: str | Path, dt: float = DT, device: str = "auto") -> LearnedSystem:
     """The built-in system ``learned``: a model checkpoint from ``train-model`` (or ``run``) as a simulator.
 
     Args:

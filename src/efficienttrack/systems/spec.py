@@ -1,0 +1,178 @@
+"""Systems by name: built-in names and ``module.path:callable`` specs, and the one place a plant is closed with a PD law.
+
+A **spec** is a built-in name (``xe75``: the calibrated hydraulic simulator under the real PD law;
+``learned``: a trained closed-loop model, :mod:`efficienttrack.learned_system`) or an import path
+``"module.path:callable"``. The callable is called with the keyword options (``--system-opt key=value``)
+and must return the system. Modules are looked up in the current working directory first, so a
+``mymachines.py`` next to where the command runs is found without installing it.
+
+:class:`SystemSpec` is what the CLI and the pipeline carry around: a reference-level system
+(``--system``), or a PWM-level plant (``--plant``) closed with PD gains (``--pd``); with neither,
+the built-in ``xe75``.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import sys
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any
+
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.systems.pd import ClosedLoop, PDGains
+from efficienttrack.systems.protocol import BatchedSystem
+
+DEFAULT_SYSTEM = "xe75"
+"""The system used when neither ``--system`` nor ``--plant`` is given."""
+BUILTIN_SYSTEMS: dict[str, str] = {
+    "xe75": "efficienttrack.systems.hydraulic:xe75_closed_loop",
+    "learned": "efficienttrack.learned_system:learned_system",
+}
+"""Built-in reference-level systems: name → import path."""
+BUILTIN_PLANTS: dict[str, str] = {"xe75": "efficienttrack.systems.hydraulic:xe75_plant"}
+"""Built-in PWM-level plants: name → import path."""
+
+
+@contextmanager
+def _working_directory_first() -> Iterator[None]:
+    """Put the current working directory at the front of ``sys.path`` while importing a user's module.
+
+    The ``efficienttrack`` console script does not have the working directory on its path (``python -m``
+    and the interactive interpreter do), so without this a ``mymachines.py`` beside the user is not found.
+    """
+    cwd = os.getcwd()
+    sys.path.insert(0, cwd)
+    try:
+        yield
+    finally:
+        sys.path.remove(cwd)
+
+
+def _resolve(spec: str, builtins: Mapping[str, str], what: str) -> Callable[..., Any]:
+    target = builtins.get(spec, spec)
+    if ":" not in target:
+        names = ", ".join(sorted(builtins)) or "none"
+        raise EfficientTrackError(
+            f"unknown {what} '{spec}': give a built-in name ({names}) or an import path 'module.path:callable'"
+        )
+    module_name, _, attr = target.partition(":")
+    try:
+        with _working_directory_first():
+            module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise EfficientTrackError(f"{what} '{spec}': cannot import module '{module_name}': {exc}") from exc
+    factory = getattr(module, attr, None)
+    if factory is None or not callable(factory):
+        raise EfficientTrackError(f"{what} '{spec}': module '{module_name}' has no callable '{attr}'")
+    return factory
+
+
+def _build(spec: str, builtins: Mapping[str, str], what: str, options: Mapping[str, Any]) -> BatchedSystem:
+    factory = _resolve(spec, builtins, what)
+    try:
+        system = factory(**options)
+    except TypeError as exc:
+        raise EfficientTrackError(f"{what} '{spec}': cannot be built with options {dict(options)}: {exc}") from exc
+    return BatchedSystem(system, name=f"{what} '{spec}'")
+
+
+def load_system(spec: str, **options: Any) -> BatchedSystem:
+    """Load a reference-level ClosedLoopSystem.
+
+    Args:
+        spec: a built-in name (``xe75``, ``learned``) or ``"module.path:callable"``.
+        **options: keyword options passed to the callable (``--system-opt key=value`` on the CLI).
+
+    Returns:
+        The system, wrapped in a checked batched view.
+    """
+    return _build(spec, BUILTIN_SYSTEMS, "system", options)
+
+
+def load_plant(spec: str, **options: Any) -> BatchedSystem:
+    """Load a PWM-level Plant (same spec rules as :func:`load_system`).
+
+    Args:
+        spec: a built-in name (``xe75``) or ``"module.path:callable"``.
+        **options: keyword options passed to the callable (``--system-opt key=value`` on the CLI).
+
+    Returns:
+        The plant, wrapped in a checked batched view.
+    """
+    return _build(spec, BUILTIN_PLANTS, "plant", options)
+
+
+def close_loop(plant: BatchedSystem, gains: PDGains, name: str) -> BatchedSystem:
+    """A plant under PD position control, as a checked reference-level system: the one place this is wired.
+
+    Args:
+        plant: the checked view of a PWM-level plant (from :func:`load_plant`).
+        gains: the PD law.
+        name: how to name the closed loop in errors.
+
+    Returns:
+        The checked, batched view of ``ClosedLoop(plant, gains)``.
+    """
+    return BatchedSystem(ClosedLoop(plant.system, gains), name=name)
+
+
+@dataclass(frozen=True)
+class SystemSpec:
+    """How to build the closed-loop system: a reference-level system, or a plant under PD control (``xe75`` without either)."""
+
+    system: str | None = None
+    """Built-in name or ``module:callable`` of a ClosedLoopSystem (``--system``)."""
+    plant: str | None = None
+    """Built-in name or ``module:callable`` of a Plant wrapped with the PD controller (``--plant``)."""
+    pd: str = "xe75"
+    """PD gains for ``plant``: a preset name or a JSON file (``--pd``)."""
+    options: tuple[tuple[str, Any], ...] = ()
+    """Keyword options of the callable (``--system-opt key=value``)."""
+
+    def __post_init__(self) -> None:
+        """Refuse a spec naming both a system and a plant."""
+        if self.system is not None and self.plant is not None:
+            raise EfficientTrackError("give --system SPEC or --plant SPEC, not both")
+
+    @property
+    def system_name(self) -> str:
+        """The reference-level system built when no plant is given: ``system``, or :data:`DEFAULT_SYSTEM`."""
+        return self.system if self.system is not None else DEFAULT_SYSTEM
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON form (for run.json and metrics.json)."""
+        return {
+            "system": None if self.plant else self.system_name,
+            "plant": self.plant,
+            "pd": self.pd if self.plant else None,
+            "options": dict(self.options),
+        }
+
+    def open(self) -> BatchedSystem:
+        """Build the closed-loop system this spec names.
+
+        Returns:
+            The checked, batched view of the system (a plant is closed with its PD gains).
+        """
+        options = dict(self.options)
+        if self.plant is None:
+            return load_system(self.system_name, **options)
+        plant = load_plant(self.plant, **options)
+        return close_loop(plant, PDGains.load(self.pd), name=f"plant '{self.plant}' under PD '{self.pd}'")
+
+    def open_plant(self) -> BatchedSystem | None:
+        """The PWM-level plant under the system, where there is one: ``--plant``, or a built-in system's own plant.
+
+        Returns:
+            The checked view of the plant, or None for a reference-level system without one (a user's machine,
+            a learned model).
+        """
+        options = dict(self.options)
+        if self.plant is not None:
+            return load_plant(self.plant, **options)
+        if self.system_name in BUILTIN_PLANTS:
+            return load_plant(self.system_name, **options)
+        return None
