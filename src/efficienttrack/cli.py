@@ -12,6 +12,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
+from efficienttrack import __version__
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.metrics import compute_metrics, metrics_table, rounded
 from efficienttrack.records import load_records, save_records
@@ -26,6 +27,21 @@ refs_app = typer.Typer(help="Reference trajectories: generate and plot.", no_arg
 sim_app = typer.Typer(help="The built-in hydraulic simulator: calibrate and check fidelity.", no_args_is_help=True)
 app.add_typer(refs_app, name="refs")
 app.add_typer(sim_app, name="sim")
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        typer.echo(f"efficienttrack {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _options(
+    version: Annotated[
+        bool, typer.Option("--version", help="Print the version and exit.", callback=_print_version, is_eager=True)
+    ] = False,
+) -> None:
+    """Options of the ``efficienttrack`` command itself (before the subcommand)."""
 
 
 def parse_options(pairs: list[str] | None, flag: str = "--system-opt") -> dict[str, object]:
