@@ -12,7 +12,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
-from efficienttrack import __version__
+import efficienttrack
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import prepare_output_folder
 from efficienttrack.metrics import metrics_by_path, metrics_table, rounded, write_metrics_csv
@@ -32,7 +32,7 @@ app.add_typer(sim_app, name="sim")
 
 def _print_version(value: bool) -> None:
     if value:
-        typer.echo(f"efficienttrack {__version__}")
+        typer.echo(f"efficienttrack {efficienttrack.__version__}")
         raise typer.Exit()
 
 
