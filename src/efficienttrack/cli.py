@@ -257,9 +257,9 @@ def evaluate_command(
     from efficienttrack.pipeline import EVALUATE_OUTPUTS, evaluate
     from efficienttrack.references import load_references
 
-    spec = _system_spec(system, plant, pd, system_opt)
+    spec, references = _system_spec(system, plant, pd, system_opt), load_references(refs)
     prepare_output_folder(out, EVALUATE_OUTPUTS, force)
-    evaluate(spec, load_references(refs), out, policy, device, Console(width=max(Console().width, 140)))
+    evaluate(spec, references, out, policy, device, Console(width=max(Console().width, 140)))
 
 
 ThreadsOpt = Annotated[
