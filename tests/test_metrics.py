@@ -207,7 +207,7 @@ def test_metrics_cli_json_pd_clean():
     result = CliRunner().invoke(app, ["metrics", "--json", str(DATA / "xe75" / "pd_clean_train")])
     assert result.exit_code == 0, result.output
     figures = json.loads(result.output)
-    assert list(figures) == list(METRIC_KEYS)
+    assert list(figures) == ["path", *METRIC_KEYS]
     assert figures["mae_deg"] == 5.4391 and figures["per_joint_mae_deg"] == [1.4497, 4.722, 5.0496, 10.5352]
     result = CliRunner().invoke(app, ["metrics", str(DATA / "xe75" / "pd_clean_train")], env={"COLUMNS": "80"})
     assert result.exit_code == 0 and "pd_clean_train" in result.output and "80.02" in result.output

@@ -88,7 +88,9 @@ def test_save_and_load_records_folder(tmp_path):
     paths = save_records(records, tmp_path / "out")
     assert [p.name for p in paths] == ["run_2.npz", "run_0.npz", "run_1.npz"]
     save_records(records[:1], tmp_path / "out" / "sub", fmt="csv")
-    loaded = load_records(tmp_path / "out")  # recursive, sorted by path
+    loaded = load_records(tmp_path / "out")  # the episodes directly in the folder, sorted
+    assert [r.meta["name"] for r in loaded] == ["run_0", "run_1", "run_2"]
+    loaded = load_records(tmp_path / "out", recursive=True)  # subfolders too, sorted by path
     assert [r.meta["name"] for r in loaded] == ["run_0", "run_1", "run_2", "run_2"]
     assert_same(loaded[3], records[0])
     with pytest.raises(EfficientTrackError, match="several records are named run_0"):
@@ -242,6 +244,14 @@ def test_missing_and_empty_paths(tmp_path):
     (tmp_path / "empty" / "notes.txt").write_text("no episodes here")
     with pytest.raises(EfficientTrackError, match="empty: folder holds no episode files"):
         load_records(tmp_path / "empty")
+    save_records([make_record(name="a")], tmp_path / "empty" / "pass_000")
+    save_records([make_record(name="b")], tmp_path / "empty" / "pass_001")
+    with pytest.raises(
+        EfficientTrackError,
+        match=r"empty: no episode files directly .* 2 in 2 subfolder\(s\) \(pass_000/, pass_001/\); .*--recursive",
+    ):
+        load_records(tmp_path / "empty")
+    assert [r.meta["name"] for r in load_records(tmp_path / "empty", recursive=True)] == ["a", "b"]
     with pytest.raises(EfficientTrackError, match="notes.txt: unknown episode format"):
         load_records([tmp_path / "empty" / "notes.txt"])
     (tmp_path / "garbage.npz").write_bytes(b"not a zip")

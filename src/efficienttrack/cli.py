@@ -12,9 +12,11 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
+import efficienttrack
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.metrics import compute_metrics, metrics_table, rounded
-from efficienttrack.records import load_records, save_records
+from efficienttrack.fileio import prepare_output_folder
+from efficienttrack.metrics import metrics_by_path, metrics_table, rounded, write_metrics_csv
+from efficienttrack.records import RECORD_SUFFIXES, load_records, record_files, save_records
 
 app = typer.Typer(
     help="EfficientTrack: high-precision excavator trajectory tracking from learned closed-loop dynamics.",
@@ -26,6 +28,21 @@ refs_app = typer.Typer(help="Reference trajectories: generate and plot.", no_arg
 sim_app = typer.Typer(help="The built-in hydraulic simulator: calibrate and check fidelity.", no_args_is_help=True)
 app.add_typer(refs_app, name="refs")
 app.add_typer(sim_app, name="sim")
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        typer.echo(f"efficienttrack {efficienttrack.__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _options(
+    version: Annotated[
+        bool, typer.Option("--version", help="Print the version and exit.", callback=_print_version, is_eager=True)
+    ] = False,
+) -> None:
+    """Options of the ``efficienttrack`` command itself (before the subcommand)."""
 
 
 def parse_options(pairs: list[str] | None, flag: str = "--system-opt") -> dict[str, object]:
@@ -60,18 +77,34 @@ def parse_options(pairs: list[str] | None, flag: str = "--system-opt") -> dict[s
     return options
 
 
+REFERENCES_PLOT = "references.png"
+"""Default name of the plot ``refs plot`` draws next to the references."""
+RecursiveOpt = Annotated[
+    bool, typer.Option("--recursive", "-r", help="Read subfolders too (a folder alone means the episodes directly in it).")
+]
+
+
 @refs_app.command("generate")
 def refs_generate_command(
     out: Annotated[Path, typer.Option("--out", help="Destination folder for ref_XX.npy (rad, 20 Hz).")],
     n: Annotated[int, typer.Option("--n", help="Number of references.")] = 40,
     seed: Annotated[int, typer.Option("--seed", help="Random seed.")] = 0,
     preset_name: Annotated[str, typer.Option("--preset", help="Cycle generator preset (xe75).")] = "xe75",
+    force: Annotated[
+        bool,
+        typer.Option(
+            "--force",
+            help="Write into a non-empty OUT: first delete its reference files (*.npy, *.csv) and references.png, "
+            "which would be read along with the new ones; other files are kept.",
+        ),
+    ] = False,
 ) -> None:
     """Draw operator-like loading cycles (15–25 s at 20 Hz) and write them as ref_XX.npy."""
     from efficienttrack.cycles import generate_references
-    from efficienttrack.references import save_references
+    from efficienttrack.references import SUFFIXES, save_references
 
     refs = generate_references(n, seed, preset_name)
+    prepare_output_folder(out, (*(f"*{suffix}" for suffix in SUFFIXES), REFERENCES_PLOT), force)
     save_references(refs, out)
     durations = [ref.duration for ref in refs]
     typer.echo(f"wrote {len(refs)} references to {out} ({min(durations):.1f}–{max(durations):.1f} s)")
@@ -87,21 +120,33 @@ def refs_plot_command(
     from efficienttrack.references import load_references
 
     refs = load_references(source)
-    path = plot_references(refs, out or (source if source.is_dir() else source.parent) / "references.png")
+    path = plot_references(refs, out or (source if source.is_dir() else source.parent) / REFERENCES_PLOT)
     typer.echo(f"plotted {len(refs)} references to {path}")
 
 
 @app.command("metrics")
 def metrics_command(
     paths: Annotated[list[Path], typer.Argument(help="Episode files or folders (.npz, our .csv, upstream .npy/.csv).")],
-    json_output: Annotated[bool, typer.Option("--json", help="Print one JSON line instead of the table.")] = False,
+    json_output: Annotated[bool, typer.Option("--json", help='One JSON object per row and line, with a "path".')] = False,
+    pool: Annotated[bool, typer.Option("--pool", help="One row for all the episodes of all PATHs.")] = False,
+    per_episode: Annotated[bool, typer.Option("--per-episode", help="One row per episode file.")] = False,
+    csv_file: Annotated[Path | None, typer.Option("--csv", help="Also write the rows to this CSV file.")] = None,
+    recursive: RecursiveOpt = False,
 ) -> None:
-    """Tracking metrics of a set of episodes: the paper's definitions, per episode, averaged over episodes."""
-    result = compute_metrics(load_records(paths))
+    """Tracking metrics (the paper's definitions, per episode, averaged over episodes): one row per PATH.
+
+    A folder means the episodes directly in it (--recursive for its subfolders too).
+    """
+    if pool and per_episode:
+        raise EfficientTrackError("metrics: --pool and --per-episode exclude each other")
+    rows = metrics_by_path(paths, recursive=recursive, pool=pool, per_episode=per_episode)
+    if csv_file is not None:
+        write_metrics_csv(rows, csv_file)
     if json_output:
-        typer.echo(json.dumps(rounded(result)))
+        for name, result in rows.items():
+            typer.echo(json.dumps({"path": name, **rounded(result)}))
     else:
-        table = metrics_table({", ".join(path.name for path in paths): result}, title="Tracking metrics")
+        table = metrics_table(rows, title="Tracking metrics")
         Console(width=max(Console().width, 140)).print(table)  # never crop figures on a narrow or non-terminal output
 
 
@@ -110,9 +155,24 @@ def convert_command(
     paths: Annotated[list[Path], typer.Argument(help="Episode files or folders (.npz, our .csv, upstream .npy/.csv).")],
     out: Annotated[Path, typer.Option("--out", help="Destination folder; files are named after the episodes.")],
     fmt: Annotated[str, typer.Option("--format", help="Output format: npz or csv.")] = "npz",
+    recursive: RecursiveOpt = False,
+    force: Annotated[
+        bool,
+        typer.Option(
+            "--force",
+            help="Write into a non-empty OUT: first delete its episode files (*.npz, *.npy, *.csv), which would be read "
+            "along with the new ones; other files are kept.",
+        ),
+    ] = False,
 ) -> None:
     """Convert episode records between formats (upstream .npy/.csv → .npz, .npz ↔ .csv)."""
-    written = save_records(load_records(paths), out, fmt)
+    files = [file for path in paths for file in record_files(path, recursive)]
+    inside = [file for file in files if file.resolve().parent == out.resolve()]
+    if inside:
+        raise EfficientTrackError(f"--out {out}: holds the input {inside[0].name}; write the converted episodes elsewhere")
+    records = load_records(files)
+    prepare_output_folder(out, tuple(f"*{suffix}" for suffix in RECORD_SUFFIXES), force)
+    written = save_records(records, out, fmt)
     typer.echo(f"wrote {len(written)} episode(s) to {out}")
 
 
@@ -188,13 +248,18 @@ def evaluate_command(
     system_opt: SystemOpts = None,
     policy: Annotated[Path | None, typer.Option("--policy", help="Policy checkpoint (policy.pt); PD alone without.")] = None,
     device: DeviceOpt = "auto",
+    force: Annotated[
+        bool,
+        typer.Option("--force", help="Write into a non-empty OUT: first delete an earlier evaluation's outputs there."),
+    ] = False,
 ) -> None:
     """Algorithm 2: track the references with the adjustment policy (or the PD controller alone) and report metrics."""
-    from efficienttrack.pipeline import evaluate
+    from efficienttrack.pipeline import EVALUATE_OUTPUTS, evaluate
     from efficienttrack.references import load_references
 
-    spec = _system_spec(system, plant, pd, system_opt)
-    evaluate(spec, load_references(refs), out, policy, device, Console(width=max(Console().width, 140)))
+    spec, references = _system_spec(system, plant, pd, system_opt), load_references(refs)
+    prepare_output_folder(out, EVALUATE_OUTPUTS, force)
+    evaluate(spec, references, out, policy, device, Console(width=max(Console().width, 140)))
 
 
 ThreadsOpt = Annotated[
@@ -212,6 +277,27 @@ def _set_threads(threads: int) -> None:
         torch.set_num_threads(threads)
 
 
+RunForceOpt = Annotated[
+    bool,
+    typer.Option(
+        "--force",
+        help="Start afresh: delete the earlier run's outputs in OUT (records, checkpoints and training states, model, "
+        "policy, metrics, plots; other files are kept) instead of resuming it or refusing other settings.",
+    ),
+]
+PresetOpt = Annotated[str, typer.Option("--preset", help="Settings preset: paper, cpu or tiny.")]
+ConfigOpt = Annotated[Path | None, typer.Option("--config", help="YAML/JSON overriding preset fields.")]
+RunSeedOpt = Annotated[int | None, typer.Option("--seed", help="Seed of collection noise and training.")]
+RunDeviceOpt = Annotated[str | None, typer.Option("--device", help="auto, cpu or cuda.")]
+
+
+def _prepare_run_folder(out: Path, outputs: tuple[str, ...], force: bool) -> None:
+    """With ``force`` delete the run's ``outputs`` in OUT; else refuse an OUT holding other files and no run to resume."""
+    resumable = (out / "run.json").exists() or not out.is_dir() or all(entry.name in outputs for entry in out.iterdir())
+    if force or not resumable:
+        prepare_output_folder(out, outputs, force)
+
+
 @app.command("run")
 def run_command(
     train_refs: Annotated[Path, typer.Option("--train-refs", help="Folder of training references.")],
@@ -221,36 +307,60 @@ def run_command(
     plant: PlantOpt = None,
     pd: PdOpt = "xe75",
     system_opt: SystemOpts = None,
-    preset_name: Annotated[str, typer.Option("--preset", help="Settings preset: paper, cpu or tiny.")] = "cpu",
-    config: Annotated[Path | None, typer.Option("--config", help="YAML/JSON overriding preset fields.")] = None,
-    seed: Annotated[int | None, typer.Option("--seed", help="Seed of collection noise and training.")] = None,
-    device: Annotated[str | None, typer.Option("--device", help="auto, cpu or cuda.")] = None,
+    preset_name: PresetOpt = "cpu",
+    config: ConfigOpt = None,
+    seed: RunSeedOpt = None,
+    device: RunDeviceOpt = None,
     threads: ThreadsOpt = 1,
+    force: RunForceOpt = False,
 ) -> None:
     """The whole method: collect, train model and policy, evaluate PD alone vs EfficientTrack on the test references."""
-    from efficienttrack.pipeline import run_pipeline
+    from efficienttrack.pipeline import RUN_OUTPUTS, run_pipeline
     from efficienttrack.references import load_references
 
     _set_threads(threads)
     spec = _system_spec(system, plant, pd, system_opt)
     cfg = _run_config(config, preset_name, seed, device)
     train, test = load_references(train_refs), load_references(test_refs)
+    _prepare_run_folder(out, RUN_OUTPUTS, force)
     run_pipeline(spec, train, test, out, cfg, Console(width=max(Console().width, 140)))
 
 
 @app.command("demo")
 def demo_command(
     out: Annotated[Path, typer.Option("--out", help="Output folder; rerunning resumes where it stopped.")] = Path("runs/demo"),
+    preset_name: PresetOpt = "cpu",
+    config: ConfigOpt = None,
+    seed: RunSeedOpt = None,
+    device: RunDeviceOpt = None,
     threads: ThreadsOpt = 1,
+    force: RunForceOpt = False,
 ) -> None:
     """The whole method on the built-in xe75 simulator with generated references (32 train / 8 test)."""
-    from efficienttrack.pipeline import demo
+    from efficienttrack.pipeline import DEMO_OUTPUTS, demo
 
     _set_threads(threads)
-    demo(out, console=Console(width=max(Console().width, 140)))
+    cfg = _run_config(config, preset_name, seed, device)
+    _prepare_run_folder(out, DEMO_OUTPUTS, force)
+    demo(out, cfg, console=Console(width=max(Console().width, 140)))
 
 
-DataOpt = Annotated[list[Path], typer.Option("--data", help="Episode files or folders (repeatable).")]
+DataOpt = Annotated[
+    list[Path], typer.Option("--data", help="Episode files or folders (repeatable; a folder's own episodes, see --recursive).")
+]
+TrainForceOpt = Annotated[
+    bool, typer.Option("--force", help="Start afresh: delete the training state (OUT with .state.pt) instead of resuming it.")
+]
+
+
+def _training_state(out: Path, force: bool) -> Path:
+    """The training-state file next to checkpoint ``out``, deleted first when ``force``."""
+    state = out.with_suffix(".state.pt")
+    if force:
+        state.unlink(missing_ok=True)
+    return state
+
+
 LearnPresetOpt = Annotated[str, typer.Option("--preset", help="Training preset: paper (GPU), cpu or tiny.")]
 StepsOpt = Annotated[int | None, typer.Option("--steps", help="Override the preset's number of optimizer steps.")]
 
@@ -272,14 +382,16 @@ def train_model_command(
     device: DeviceOpt = "auto",
     seed: TrainSeedOpt = 0,
     threads: ThreadsOpt = 1,
+    recursive: RecursiveOpt = False,
+    force: TrainForceOpt = False,
 ) -> None:
     """Train the closed-loop dynamics model on records (multi-step BPTT); an interrupted run resumes."""
     from efficienttrack.dynamics import MODEL_PRESETS, save_model, train_model
 
     _set_threads(threads)
     cfg = _learn_preset(MODEL_PRESETS, preset_name, steps)
-    records = load_records(data)
-    result = train_model(cfg, records, device, seed, progress=True, checkpoint=out.with_suffix(".state.pt"))
+    records = load_records(data, recursive)
+    result = train_model(cfg, records, device, seed, progress=True, checkpoint=_training_state(out, force))
     save_model(result.model, out)
     typer.echo(
         f"trained model on {result.windows} windows ({sum(map(len, records))} steps), {result.steps} steps in "
@@ -295,12 +407,13 @@ def model_error_command(
     device: DeviceOpt = "auto",
     json_output: Annotated[bool, typer.Option("--json", help="Print one JSON line.")] = False,
     threads: ThreadsOpt = 1,
+    recursive: RecursiveOpt = False,
 ) -> None:
     """Multi-step model prediction error (MPE, the paper's Tr.MPE/Te.MPE) on records, degrees."""
     from efficienttrack.dynamics import load_model, model_error
 
     _set_threads(threads)
-    result = model_error(load_model(model, device), load_records(data), steps)
+    result = model_error(load_model(model, device), load_records(data, recursive), steps)
     if json_output:
         typer.echo(json.dumps(result._asdict()))
         return
@@ -318,6 +431,8 @@ def train_policy_command(
     device: DeviceOpt = "auto",
     seed: TrainSeedOpt = 0,
     threads: ThreadsOpt = 1,
+    recursive: RecursiveOpt = False,
+    force: TrainForceOpt = False,
 ) -> None:
     """Train the adjustment policy through the frozen model (multi-step BPTT); an interrupted run resumes."""
     from efficienttrack.dynamics import load_model
@@ -325,8 +440,8 @@ def train_policy_command(
 
     _set_threads(threads)
     cfg = _learn_preset(POLICY_PRESETS, preset_name, steps)
-    g_theta, records = load_model(model, device), load_records(data)
-    result = train_policy(cfg, g_theta, records, device, seed, progress=True, checkpoint=out.with_suffix(".state.pt"))
+    g_theta, records = load_model(model, device), load_records(data, recursive)
+    result = train_policy(cfg, g_theta, records, device, seed, progress=True, checkpoint=_training_state(out, force))
     save_policy(result.policy, out)
     before = predicted_tracking_error(g_theta, records, None, cfg.horizon)
     after = predicted_tracking_error(g_theta, records, result.policy, cfg.horizon)
@@ -336,6 +451,8 @@ def train_policy_command(
     )
 
 
+SIM_VS_REAL_PREFIX = "sim_vs_real_"
+"""Name prefix of the plots ``sim fidelity --plot`` draws."""
 LogsOpt = Annotated[list[Path], typer.Option("--logs", help="Folder of .npz episode logs with the PWM u (repeatable).")]
 
 
@@ -378,6 +495,9 @@ def sim_fidelity_command(
     system_opt: SystemOpts = None,
     json_output: Annotated[bool, typer.Option("--json", help="Print one JSON line.")] = False,
     plot: Annotated[Path | None, typer.Option("--plot", help="Folder for sim-vs-real trace plots.")] = None,
+    force: Annotated[
+        bool, typer.Option("--force", help="Plot into a non-empty --plot folder: first delete its sim_vs_real_*.png.")
+    ] = False,
     episodes: Annotated[int, typer.Option("--episodes", help="Episodes to plot.")] = 3,
     stride: Annotated[int, typer.Option("--stride", help="Steps between open-loop window starts.")] = 10,
     min_ref_jitter: Annotated[
@@ -397,12 +517,15 @@ def sim_fidelity_command(
     if min_ref_jitter > 0 or max_ref_jitter is not None:
         high = math.inf if max_ref_jitter is None else max_ref_jitter
         records = select_by_jitter(records, min_ref_jitter, high, option="--min-ref-jitter/--max-ref-jitter")
+    if plot is not None:
+        prepare_output_folder(plot, (f"{SIM_VS_REAL_PREFIX}*.png",), force, option="--plot")
     result = fidelity(records, system_view, plant_view, stride=stride)
     if plot is not None:
         for i in range(min(episodes, len(records))):
             n = len(records[i])
             name = records[i].meta.get("name", f"episode{i}")
-            plot_sim_vs_real(records[i].q, result.q_sim[:n, i], records[i].q_des, plot / f"sim_vs_real_{name}.png", name)
+            path = plot / f"{SIM_VS_REAL_PREFIX}{name}.png"
+            plot_sim_vs_real(records[i].q, result.q_sim[:n, i], records[i].q_des, path, name)
     report = result.to_json()
     if json_output:
         typer.echo(json.dumps(report))

@@ -3,7 +3,7 @@
 ``RunConfig`` composes the component configs: :class:`~efficienttrack.collect.CollectConfig`,
 ``ModelConfig`` (``efficienttrack.dynamics``) and ``PolicyConfig`` (``efficienttrack.policy``).
 Presets: ``paper`` (the paper's settings), ``cpu`` (a laptop-sized run), ``tiny`` (seconds; tests).
-Configs are read from YAML or JSON with ``yaml.safe_load`` and checked field by field against
+Configs are read from YAML (a safe loader that also reads ``1e-5`` as a number) or JSON and checked field by field against
 the dataclass types; unknown or mistyped fields are errors naming the file and the field.
 """
 
@@ -18,7 +18,7 @@ from typing import Any
 import yaml
 
 from efficienttrack.collect import CollectConfig
-from efficienttrack.configfile import config_from_dict
+from efficienttrack.configfile import config_from_dict, read_mapping_file
 from efficienttrack.dynamics import MODEL_PRESETS, ModelConfig
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import atomic_write, write_json
@@ -129,7 +129,7 @@ def from_dict(data: Any, source: str = "config") -> RunConfig:
 
 
 def load_config(path: str | Path, base: RunConfig | None = None) -> RunConfig:
-    """Read a RunConfig from YAML (``yaml.safe_load``) or ``.json``, validated field by field.
+    """Read a RunConfig from YAML or ``.json`` (:func:`~efficienttrack.configfile.read_mapping_file`), checked field by field.
 
     Args:
         path: the file; component sections (``collect``, ``model``, ``policy``) may list only some fields.
@@ -142,11 +142,7 @@ def load_config(path: str | Path, base: RunConfig | None = None) -> RunConfig:
         EfficientTrackError: unreadable file, unknown field, wrong type or invalid value (naming the field).
     """
     path = Path(path)
-    try:
-        text = path.read_text()
-        data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)  # YAML 1.1 reads 1e-05 as a string
-    except (OSError, yaml.YAMLError, json.JSONDecodeError) as exc:
-        raise EfficientTrackError(f"{path}: cannot read the config ({exc})") from exc
+    data = read_mapping_file(path)
     base = base or PRESETS["cpu"]
     if not isinstance(data, dict):
         raise EfficientTrackError(f"{path}: expected a mapping of fields")

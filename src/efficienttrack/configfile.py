@@ -1,14 +1,63 @@
-"""Frozen config dataclasses from JSON/YAML mappings, validated field by field (no code execution)."""
+"""Frozen config dataclasses from JSON/YAML files and mappings, validated field by field (no code execution)."""
 
 from __future__ import annotations
 
 import dataclasses
+import json
+import re
 import types
+from pathlib import Path
 from typing import Any, TypeVar, Union, get_args, get_origin, get_type_hints
+
+import yaml
 
 from efficienttrack.errors import EfficientTrackError
 
 ConfigT = TypeVar("ConfigT")
+
+
+class ConfigLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that reads ``1e-5``, ``3E4`` and ``.5`` as floats (YAML 1.2), where YAML 1.1 gives strings.
+
+    PyYAML follows YAML 1.1, whose float pattern needs a dot and a signed exponent (``1.0e-5``); a
+    learning rate written ``lr: 1e-5`` would otherwise be refused as a string.
+    """
+
+
+ConfigLoader.yaml_implicit_resolvers = {key: list(value) for key, value in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+ConfigLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(
+        r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+        |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+        |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+        |[-+]?[0-9][0-9_]*(?::[0-5]?[0-9])+\.[0-9_]*
+        |[-+]?\.(?:inf|Inf|INF)
+        |\.(?:nan|NaN|NAN))$""",
+        re.X,
+    ),
+    list("-+0123456789."),
+)
+
+
+def read_mapping_file(path: str | Path) -> Any:
+    """Read a config file: JSON when it ends in ``.json``, else YAML through :class:`ConfigLoader` (no code execution).
+
+    Args:
+        path: the file.
+
+    Returns:
+        The loaded data (a mapping for a well-formed config; the caller checks).
+
+    Raises:
+        EfficientTrackError: the file is missing, unreadable or not valid JSON/YAML.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text()
+        return json.loads(text) if path.suffix == ".json" else yaml.load(text, Loader=ConfigLoader)
+    except (OSError, UnicodeDecodeError, yaml.YAMLError, json.JSONDecodeError) as exc:
+        raise EfficientTrackError(f"{path}: cannot read the config ({exc})") from exc
 
 
 def config_from_dict(cls: type[ConfigT], data: dict[str, Any], source: str) -> ConfigT:

@@ -1,17 +1,49 @@
-"""Atomic file writing: nothing the user recorded or trained is left half-written by a crash."""
+"""Atomic file writing: nothing the user recorded or trained is left half-written by a crash.
+
+Files get the permissions a plain ``open()`` would give them (``0o666`` less the umask, so
+``-rw-r--r--`` under the usual umask 022), not the private ``0o600`` of the temporary file.
+"""
 
 from __future__ import annotations
 
+import fnmatch
 import json
 import os
+import shutil
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import IO, Any
+
+from efficienttrack.errors import EfficientTrackError
+
+
+def current_umask() -> int:
+    """The process's file-creation mask, e.g. ``0o022``.
+
+    Read from ``/proc/self/status`` (Linux ≥ 4.7) without touching it; elsewhere it is read by
+    setting and restoring it (``os.umask`` has no read-only form), which a thread creating files at
+    that instant could notice.
+
+    Returns:
+        The umask bits.
+    """
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o077)
+    os.umask(mask)
+    return mask
 
 
 def atomic_write(path: str | Path, write: Callable[[IO[Any]], object], mode: str = "wb") -> Path:
     """Write a file through ``write(fileobj)`` into a temporary sibling, then rename it into place.
+
+    The file gets mode ``0o666 & ~umask``, as with ``open()``.
 
     Args:
         path: destination; parent folders are created.
@@ -25,6 +57,7 @@ def atomic_write(path: str | Path, write: Callable[[IO[Any]], object], mode: str
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        os.chmod(fd, 0o666 & ~current_umask())  # mkstemp creates 0o600; give what open() would
         with os.fdopen(fd, mode) as f:
             write(f)
             f.flush()
@@ -47,3 +80,45 @@ def write_json(path: str | Path, data: Any) -> Path:
         The destination path.
     """
     return atomic_write(path, lambda f: json.dump(data, f, indent=2, sort_keys=False), mode="w")
+
+
+def prepare_output_folder(folder: str | Path, owned: Sequence[str], force: bool = False, option: str = "--out") -> list[Path]:
+    """Make ``folder`` ready for a command's fresh output: refuse a non-empty one, or with ``force`` clear the old output.
+
+    A command writing a folder names the entries it writes there (``owned``, glob patterns matched
+    against the names directly in ``folder``). Without ``force`` any entry at all is refused, so that
+    no stale file of an earlier run is mixed with the new ones. With ``force`` the entries matching
+    ``owned`` are removed (a matching folder with everything in it; a symbolic link as the link
+    itself, never its target) and every other entry is left alone: nothing outside ``folder`` and
+    nothing the command would not have written is deleted.
+
+    Args:
+        folder: the output folder (created when missing).
+        owned: glob patterns of the names the command writes, e.g. ``("*.npy",)`` or ``("records", "metrics.json")``.
+        force: clear the old output instead of refusing a non-empty folder.
+        option: the command-line option naming the folder, for messages.
+
+    Returns:
+        The entries removed (empty without ``force``).
+
+    Raises:
+        EfficientTrackError: ``folder`` is a file, or is not empty and ``force`` is off.
+    """
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise EfficientTrackError(f"{option} {folder}: is a file, expected a folder")
+    entries = sorted(folder.iterdir()) if folder.is_dir() else []
+    if entries and not force:
+        names = ", ".join(entry.name for entry in entries[:5]) + (", ..." if len(entries) > 5 else "")
+        raise EfficientTrackError(
+            f"{option} {folder}: folder is not empty ({len(entries)} entries: {names}); use another folder, "
+            "or --force to replace the earlier output"
+        )
+    removed = [entry for entry in entries if any(fnmatch.fnmatchcase(entry.name, pattern) for pattern in owned)]
+    for entry in removed:
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.rmtree(entry)
+        else:
+            entry.unlink()
+    folder.mkdir(parents=True, exist_ok=True)
+    return removed

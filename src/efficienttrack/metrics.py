@@ -15,7 +15,10 @@ metres inside; the report (:func:`compute_metrics`) is in degrees and centimetre
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+import csv
+import io
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -23,9 +26,10 @@ from rich.table import Table
 
 from efficienttrack.angles import wrap
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.joints import CONTROL_RATE_HZ
+from efficienttrack.fileio import atomic_write
+from efficienttrack.joints import CONTROL_RATE_HZ, JOINT_NAMES
 from efficienttrack.kinematics import tip_position
-from efficienttrack.records import EpisodeRecord
+from efficienttrack.records import EpisodeRecord, load_record, record_files
 
 METRIC_KEYS = (
     "episodes",
@@ -159,6 +163,56 @@ def compute_metrics(records: Sequence[EpisodeRecord]) -> dict[str, Any]:
         result[key] = float(np.mean([m[key] for m in per_episode]))
     result["per_joint_mae_deg"] = np.mean([m["per_joint_mae_deg"] for m in per_episode], axis=0).tolist()
     return result
+
+
+def metrics_by_path(
+    paths: Iterable[str | Path], recursive: bool = False, pool: bool = False, per_episode: bool = False
+) -> dict[str, dict[str, Any]]:
+    """The metrics of episode files and folders: one entry per path, per episode, or all pooled.
+
+    Args:
+        paths: episode files or folders (a folder means the episodes directly in it unless ``recursive``).
+        recursive: read the subfolders of folders too.
+        pool: one entry for all the episodes of all ``paths``, keyed by the paths joined with `` + ``.
+        per_episode: one entry per episode file, keyed by its path (overrides ``pool``).
+
+    Returns:
+        Name → the dict of :func:`compute_metrics`, in the order of ``paths`` (folders sorted).
+
+    Raises:
+        EfficientTrackError: a missing or empty path, an invalid episode, or one path given twice.
+    """
+    paths = [Path(path) for path in paths]
+    if not paths:
+        raise EfficientTrackError("metrics: no episode files given")
+    if len(set(paths)) < len(paths):
+        raise EfficientTrackError(f"metrics: a path is given twice ({', '.join(map(str, paths))})")
+    files = {path: record_files(path, recursive) for path in paths}
+    if per_episode:
+        return {str(file): compute_metrics([load_record(file)]) for group in files.values() for file in group}
+    records = {path: [load_record(file) for file in group] for path, group in files.items()}
+    if pool:
+        return {" + ".join(map(str, paths)): compute_metrics([r for group in records.values() for r in group])}
+    return {str(path): compute_metrics(group) for path, group in records.items()}
+
+
+def write_metrics_csv(rows: Mapping[str, Mapping[str, Any]], path: str | Path) -> Path:
+    """Write metric rows as CSV atomically: a ``path`` column, then :data:`METRIC_KEYS` (per-joint MAE in 4 columns).
+
+    Args:
+        rows: name → the dict of :func:`compute_metrics` (e.g. from :func:`metrics_by_path`).
+        path: the CSV file to write.
+
+    Returns:
+        The path written.
+    """
+    header = ["path", *METRIC_KEYS[:-1], *(f"mae_deg_{joint}" for joint in JOINT_NAMES)]
+    text = io.StringIO()
+    writer = csv.writer(text, lineterminator="\n")
+    writer.writerow(header)
+    for name, m in rows.items():
+        writer.writerow([name, *(m[key] for key in METRIC_KEYS[:-1]), *m["per_joint_mae_deg"]])
+    return atomic_write(path, lambda f: f.write(text.getvalue()), mode="w")
 
 
 def rounded(metrics: Mapping[str, Any], decimals: int = 4) -> dict[str, Any]:

@@ -53,6 +53,24 @@ DEMO_TRAIN = 32
 """The first references of the demo are for training, the rest are held out."""
 DEMO_SEED = 2025
 """Seed of the demo's reference generator."""
+RUN_OUTPUTS = (
+    "run.json",
+    "config.json",
+    "records",
+    "model.pt",
+    "model.json",
+    "policy.pt",
+    "policy.json",
+    "checkpoints",
+    "stages",
+    "metrics.json",
+    "plots",
+)
+"""What :func:`run_pipeline` writes in its folder (see the module docstring): a fresh start deletes these."""
+DEMO_OUTPUTS = (*RUN_OUTPUTS, "refs")
+"""What :func:`demo` writes in its folder: the run's outputs and the generated references."""
+EVALUATE_OUTPUTS = ("records", "metrics.json", "plots")
+"""What :func:`evaluate` writes in its folder: a fresh evaluation deletes these."""
 
 
 @dataclass(frozen=True)
@@ -106,7 +124,8 @@ def _check_run(out: Path, identity: dict[str, Any]) -> None:
     if path.exists():
         if json.loads(path.read_text()) != identity:
             raise EfficientTrackError(
-                f"{path}: this folder holds a run with other settings, system or references; use another --out"
+                f"{path}: this folder holds a run with other settings, system or references; "
+                "use another --out, or --force to start afresh"
             )
     else:
         write_json(path, identity)

@@ -423,51 +423,78 @@ def load_record(path: str | Path) -> EpisodeRecord:
     raise EfficientTrackError(f"{path}: unknown episode format '{path.suffix}' (expected {', '.join(RECORD_SUFFIXES)})")
 
 
-def find_record_files(folder: Path) -> list[Path]:
-    """Episode files under ``folder`` (recursive, sorted); one file per (folder, stem), the best format first.
+def find_record_files(folder: Path, recursive: bool = False) -> list[Path]:
+    """Episode files in ``folder`` (sorted); one file per (folder, stem), the best format first.
 
     The same episode in several formats side by side (e.g. upstream ``.npy`` and ``.csv``) is
     read once, from the first of :data:`RECORD_SUFFIXES` present.
 
     Args:
         folder: the folder to search.
+        recursive: also search its subfolders, at any depth (else only the files directly in it).
 
     Returns:
         Sorted paths.
     """
     chosen: dict[tuple[Path, str], Path] = {}
-    for path in sorted(p for p in folder.rglob("*") if p.suffix in RECORD_SUFFIXES and p.is_file()):
+    candidates = folder.rglob("*") if recursive else folder.iterdir()
+    for path in sorted(p for p in candidates if p.suffix in RECORD_SUFFIXES and p.is_file()):
         key = (path.parent, path.stem)
         if key not in chosen or RECORD_SUFFIXES.index(path.suffix) < RECORD_SUFFIXES.index(chosen[key].suffix):
             chosen[key] = path
     return sorted(chosen.values())
 
 
-def load_records(paths: str | Path | Iterable[str | Path]) -> list[EpisodeRecord]:
-    """Read every episode in ``paths``: files, or folders searched recursively (see :func:`find_record_files`).
+def record_files(path: str | Path, recursive: bool = False) -> list[Path]:
+    """The episode files ``path`` stands for: itself when a file, else the folder's (:func:`find_record_files`).
+
+    Args:
+        path: an episode file or a folder.
+        recursive: for a folder, search its subfolders too.
+
+    Returns:
+        Sorted paths, at least one.
+
+    Raises:
+        EfficientTrackError: no such path, or a folder without episode files; when only its subfolders hold
+            some, the message names them and says how to include them.
+    """
+    path = Path(path)
+    if not path.is_dir():
+        if not path.exists():
+            raise EfficientTrackError(f"{path}: no such file or folder")
+        return [path]
+    files = find_record_files(path, recursive)
+    if files:
+        return files
+    nested = [] if recursive else find_record_files(path, recursive=True)
+    if nested:
+        subfolders = sorted({str(file.parent.relative_to(path)) for file in nested})
+        shown = ", ".join(f"{name}/" for name in subfolders[:3]) + (", ..." if len(subfolders) > 3 else "")
+        raise EfficientTrackError(
+            f"{path}: no episode files directly in this folder, but {len(nested)} in {len(subfolders)} subfolder(s) "
+            f"({shown}); include subfolders with --recursive (recursive=True), or name the subfolders"
+        )
+    raise EfficientTrackError(f"{path}: folder holds no episode files ({', '.join(RECORD_SUFFIXES)})")
+
+
+def load_records(paths: str | Path | Iterable[str | Path], recursive: bool = False) -> list[EpisodeRecord]:
+    """Read every episode in ``paths``: files, or the episode files of folders (see :func:`record_files`).
 
     Args:
         paths: one path or several; files are read whatever their stem, folders in sorted order.
+        recursive: read the subfolders of folders too (else a folder means the episodes directly in it).
 
     Returns:
         The validated records, in the order of ``paths`` (folders sorted).
 
     Raises:
-        EfficientTrackError: a path does not exist, a folder holds no episode, or a file is invalid.
+        EfficientTrackError: a path does not exist, a folder holds no episode (naming subfolders that do
+            when ``recursive`` is off), or a file is invalid.
     """
     if isinstance(paths, str | Path):
         paths = [paths]
-    records: list[EpisodeRecord] = []
-    for path in map(Path, paths):
-        if path.is_dir():
-            files = find_record_files(path)
-            if not files:
-                raise EfficientTrackError(f"{path}: folder holds no episode files ({', '.join(RECORD_SUFFIXES)})")
-            records.extend(load_record(file) for file in files)
-        elif path.exists():
-            records.append(load_record(path))
-        else:
-            raise EfficientTrackError(f"{path}: no such file or folder")
+    records = [load_record(file) for path in paths for file in record_files(path, recursive)]
     if not records:
         raise EfficientTrackError("no episode files given")
     return records

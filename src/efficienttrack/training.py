@@ -190,7 +190,7 @@ class TrainLoop:
         if same != (self.kind, self._config, self.total, self.inputs):
             raise EfficientTrackError(
                 f"{self.checkpoint}: training state of another run (kind, config, steps, data, seed or model differ); "
-                "delete it to start afresh, or train with the config it was made with"
+                "delete it (--force on the command line) to start afresh, or train with the config it was made with"
             )
         try:
             self.module.load_state_dict(state["module"])
