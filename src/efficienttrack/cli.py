@@ -6,6 +6,7 @@ import json
 import math
 import sys
 import warnings
+from dataclasses import replace
 from pathlib import Path
 from typing import Annotated
 
@@ -15,6 +16,7 @@ from rich.console import Console
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.metrics import compute_metrics, metrics_table, rounded
 from efficienttrack.records import load_records, save_records
+from efficienttrack.systems.fit import FitConfig
 
 app = typer.Typer(
     help="EfficientTrack: high-precision excavator trajectory tracking from learned closed-loop dynamics.",
@@ -336,7 +338,30 @@ def train_policy_command(
     )
 
 
-LogsOpt = Annotated[list[Path], typer.Option("--logs", help="Folder of .npz episode logs with the PWM u (repeatable).")]
+LogsOpt = Annotated[list[Path], typer.Option("--logs", help="Episode files or folders (logs with the PWM u; repeatable).")]
+
+
+FIT = FitConfig()
+"""The fit's default settings, shown as the ``sim calibrate`` options' defaults."""
+
+
+def parse_ints(text: str, flag: str) -> tuple[int, ...]:
+    """Parse a comma-separated list of integers given to an option, e.g. ``--delays 2,3,4``.
+
+    Args:
+        text: the option's value as given on the command line.
+        flag: the option's name, used in error messages.
+
+    Returns:
+        The integers, in the order given.
+
+    Raises:
+        EfficientTrackError: an item is not an integer.
+    """
+    try:
+        return tuple(int(item) for item in text.split(","))
+    except ValueError as exc:
+        raise EfficientTrackError(f"{flag} '{text}': expected comma-separated integers, e.g. 2,3,4") from exc
 
 
 @sim_app.command("calibrate")
@@ -344,22 +369,21 @@ def sim_calibrate_command(
     logs: LogsOpt,
     out: Annotated[Path, typer.Option("--out", help="JSON preset to write (load it with --system-opt params_file=...).")],
     start: Annotated[Path | None, typer.Option("--start", help="Preset to start from (default: the shipped xe75).")] = None,
-    delays: Annotated[str, typer.Option("--delays", help="Candidate transport delays, steps, comma-separated.")] = "2,3,4,5,6",
-    max_windows: Annotated[int, typer.Option("--max-windows", help="Fit windows of each kind at most.")] = 2500,
-    max_nfev: Annotated[int, typer.Option("--max-nfev", help="Residual evaluations per least-squares stage.")] = 40,
+    delays: Annotated[
+        str, typer.Option("--delays", help="Candidate transport delays, steps, comma-separated (e.g. 2,3,4).")
+    ] = ",".join(map(str, FIT.delays)),
+    max_windows: Annotated[int, typer.Option("--max-windows", help="Fit windows of each kind at most.")] = FIT.max_windows,
+    max_nfev: Annotated[int, typer.Option("--max-nfev", help="Residual evaluations per least-squares stage.")] = FIT.max_nfev,
     max_ref_jitter: Annotated[
         float, typer.Option("--max-ref-jitter", help="Leave out episodes whose q_ref − q_des jitters more, rad.")
-    ] = 0.01,
+    ] = FIT.max_ref_jitter,
 ) -> None:
     """Fit the hydraulic simulator to a machine's PD logs (PWM → motion) and write the preset."""
-    from efficienttrack.systems.calibrate import FitConfig, calibrate, load_logs, save_params
+    from efficienttrack.systems.fit import calibrate, load_logs, save_params
     from efficienttrack.systems.hydraulic import HydraulicParams
 
-    try:
-        candidates = tuple(int(d) for d in delays.split(","))
-    except ValueError as exc:
-        raise EfficientTrackError(f"--delays '{delays}': expected comma-separated integers") from exc
-    config = FitConfig(delays=candidates, max_windows=max_windows, max_nfev=max_nfev, max_ref_jitter=max_ref_jitter)
+    candidates = parse_ints(delays, "--delays")
+    config = replace(FIT, delays=candidates, max_windows=max_windows, max_nfev=max_nfev, max_ref_jitter=max_ref_jitter)
     first = HydraulicParams.load(start) if start is not None else None
     result = calibrate(load_logs(logs), first, config, progress=typer.echo)
     save_params(result.params, out)
@@ -389,7 +413,7 @@ def sim_fidelity_command(
 ) -> None:
     """Compare a simulator with real PD logs: closed-loop tracking MAE ratio, open-loop 20-step error and travel."""
     from efficienttrack.plots import plot_sim_vs_real
-    from efficienttrack.systems.calibrate import fidelity, load_logs, select_by_jitter
+    from efficienttrack.systems.fit import fidelity, load_logs, select_by_jitter
 
     spec = _system_spec(system, plant, pd, system_opt)
     system_view, plant_view = spec.open(), spec.open_plant()
