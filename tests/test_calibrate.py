@@ -7,15 +7,12 @@ from typer.testing import CliRunner
 
 from efficienttrack.cli import app
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.records import EpisodeRecord
+from efficienttrack.records import EpisodeRecord, save_csv
 from efficienttrack.systems import load_plant, load_system
-from efficienttrack.systems.calibrate import (
+from efficienttrack.systems.fit import (
     FitConfig,
     Padded,
     Steady,
-    _bin_weights,
-    _linkage_guess,
-    _simulate_episodes,
     calibrate,
     closed_loop_rollout,
     estimate_sensor_noise,
@@ -23,16 +20,18 @@ from efficienttrack.systems.calibrate import (
     load_logs,
     logged_accel,
     make_windows,
-    open_loop_mpe,
     open_loop_replay,
     pad,
     reference_jitter,
+    rollout_windows,
     save_params,
+    simulate_episodes,
     steady_samples,
     tracking_mae,
     travel_ratio,
     window_error,
 )
+from efficienttrack.systems.fit.calibrate import _bin_weights, _linkage_guess
 from efficienttrack.systems.hydraulic import HydraulicExcavator, HydraulicParams, requested_velocity
 from efficienttrack.systems.pd import XE75_PD, ClosedLoop
 from efficienttrack.systems.protocol import BatchedSystem
@@ -91,7 +90,8 @@ def test_calibrate_recovers_a_known_simulator():
     config = FitConfig(
         delays=(3, 4), open_horizon=10, closed_horizon=30, max_windows=60, max_episodes=4, max_nfev=10, max_ref_jitter=0.05
     )
-    before = window_error(start, make_windows(pad(records), 10, stride=20))
+    windows = make_windows(pad(records), 10, stride=20)
+    before = window_error(rollout_windows(start, windows), windows)
     result = calibrate(records, start, config)
     fit = result.params
     assert fit.delay == TRUE.delay
@@ -224,12 +224,13 @@ def test_travel_ratio_tells_a_too_slow_simulator_from_a_too_fast_one():
 
 
 def test_fast_episode_simulation_equals_the_closed_loop_system():
+    # both start at rest at the logged start and take the first step with e_prev = e (PDGains.step with None)
     records = synthetic_records(TRUE, episodes=3, steps=80, seed=4)
     data = pad(records)
     params = TRUE.replace(
         pump_coupling=((0.1, 0.2, 0.3, 0.4),) * 4, tau_spool=(0.02, 0.05, 0.0, 0.1), dead_zone_rest=(50.0, 40.0, 30.0, 20.0)
     )
-    fast = _simulate_episodes(params, data, XE75_PD)
+    fast = simulate_episodes(params, data, XE75_PD)
     reference = closed_loop_rollout(BatchedSystem(ClosedLoop(HydraulicExcavator(params), XE75_PD)), data)
     np.testing.assert_allclose(fast, reference, rtol=0, atol=1e-12)
 
@@ -257,7 +258,7 @@ def test_open_loop_error_of_a_plant_without_history_starts_at_rest():
     plant.reset(w.q0)
     q = np.stack([plant.step(u)[:, :4] for u in w.u])
     expected = np.abs(q - w.q).mean(axis=(0, 1))
-    np.testing.assert_allclose(open_loop_mpe(*open_loop_replay(BatchedSystem(AtRest()), data)), expected, atol=1e-12)
+    np.testing.assert_allclose(window_error(*open_loop_replay(BatchedSystem(AtRest()), data)), expected, atol=1e-12)
     assert np.all(expected > 0)
 
 
@@ -351,3 +352,15 @@ def test_fit_config_is_validated():
         FitConfig(max_nfev=0)
     out = CliRunner().invoke(app, ["sim", "calibrate", "--logs", "/nonexistent", "--out", "x.json", "--delays", "a,b"])
     assert out.exit_code != 0
+
+
+def test_load_logs_reads_any_record_format_and_names_an_episode_without_pwm(tmp_path):
+    records = synthetic_records(TRUE, episodes=2, steps=20, seed=6)
+    records[0].save(tmp_path / "a" / "ep0.npz")
+    save_csv(records[1], tmp_path / "a" / "sub" / "ep1.csv")  # the records loader: every format, subfolders on request
+    loaded = load_logs([tmp_path / "a"], recursive=True)
+    np.testing.assert_array_equal(pad(loaded).u, pad(records).u)
+    EpisodeRecord(**{**records[0].__dict__, "u": None}).save(tmp_path / "b" / "no_pwm.npz")
+    with pytest.raises(EfficientTrackError, match="no_pwm has no PWM command 'u'"):
+        load_logs([tmp_path / "b"])
+    assert load_logs([tmp_path / "b"], need_u=False)[0].u is None

@@ -9,7 +9,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "src" / "efficienttrack"
 
 LAYERS = (
     ("base", {"errors", "fileio", "angles", "joints", "configfile"}),
-    ("data", {"kinematics", "references", "cycles", "records", "metrics"}),
+    ("data", {"kinematics", "references", "cycles", "records", "metrics", "windows"}),
     ("systems", {"systems"}),
     ("episode loop", {"episodes"}),
     ("collection", {"collect"}),

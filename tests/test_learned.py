@@ -12,7 +12,7 @@ from efficienttrack.errors import EfficientTrackError
 from efficienttrack.learned_system import LearnedSystem
 from efficienttrack.records import save_records
 from efficienttrack.systems import check_system, load_system
-from efficienttrack.systems.calibrate import fidelity
+from efficienttrack.systems.fit import fidelity
 from test_dynamics import lag_records, train_tiny_model
 
 

@@ -116,3 +116,12 @@ def test_batched_closed_loop_equals_single_loops():
         obs = np.stack([single.reset(q0[i])] + [single.step(q_ref[t, i]) for t in range(steps)])
         np.testing.assert_allclose(obs, obs_batched[:, i], atol=1e-12, rtol=0)
     assert np.abs(obs_batched[-1, :, :4] - q_ref[-1]).max() < 0.2  # it tracks
+
+
+def test_pd_step_wraps_the_error_and_takes_the_first_step_without_derivative_kick():
+    q_ref, q = np.full(4, np.pi - 0.01), np.full(4, -np.pi + 0.01)  # 0.02 rad apart across ±π
+    u, e = XE75_PD.step(q_ref, q, None)
+    np.testing.assert_allclose(e, -0.02, atol=1e-12)
+    np.testing.assert_array_equal(u, XE75_PD.command(e, e))
+    u_next, _ = XE75_PD.step(q_ref, q, e_prev=np.zeros(4))
+    np.testing.assert_array_equal(u_next, XE75_PD.command(e, np.zeros(4)))

@@ -6,6 +6,7 @@ import json
 import math
 import sys
 import warnings
+from dataclasses import replace
 from pathlib import Path
 from typing import Annotated
 
@@ -17,6 +18,10 @@ from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import prepare_output_folder
 from efficienttrack.metrics import metrics_by_path, metrics_table, rounded, write_metrics_csv
 from efficienttrack.records import RECORD_SUFFIXES, load_records, record_files, save_records
+from efficienttrack.systems.fit import FitConfig
+
+TABLE_WIDTH = 132
+"""Characters the columns of a metrics table take besides its row labels."""
 
 app = typer.Typer(
     help="EfficientTrack: high-precision excavator trajectory tracking from learned closed-loop dynamics.",
@@ -84,6 +89,17 @@ RecursiveOpt = Annotated[
 ]
 
 
+def wide_console(label_width: int = 8) -> Console:
+    """A console wide enough for a metrics table whose row labels are ``label_width`` characters long.
+
+    Figures are never cropped or folded, also on a narrow terminal or when the output is not a terminal.
+
+    Args:
+        label_width: length of the longest row label (a method name or a path).
+    """
+    return Console(width=max(Console().width, TABLE_WIDTH + label_width))
+
+
 @refs_app.command("generate")
 def refs_generate_command(
     out: Annotated[Path, typer.Option("--out", help="Destination folder for ref_XX.npy (rad, 20 Hz).")],
@@ -146,8 +162,7 @@ def metrics_command(
         for name, result in rows.items():
             typer.echo(json.dumps({"path": name, **rounded(result)}))
     else:
-        table = metrics_table(rows, title="Tracking metrics")
-        Console(width=max(Console().width, 140)).print(table)  # never crop figures on a narrow or non-terminal output
+        wide_console(max(map(len, rows))).print(metrics_table(rows, title="Tracking metrics"))
 
 
 @app.command("convert")
@@ -259,7 +274,7 @@ def evaluate_command(
 
     spec, references = _system_spec(system, plant, pd, system_opt), load_references(refs)
     prepare_output_folder(out, EVALUATE_OUTPUTS, force)
-    evaluate(spec, references, out, policy, device, Console(width=max(Console().width, 140)))
+    evaluate(spec, references, out, policy, device, wide_console())
 
 
 ThreadsOpt = Annotated[
@@ -323,7 +338,7 @@ def run_command(
     cfg = _run_config(config, preset_name, seed, device)
     train, test = load_references(train_refs), load_references(test_refs)
     _prepare_run_folder(out, RUN_OUTPUTS, force)
-    run_pipeline(spec, train, test, out, cfg, Console(width=max(Console().width, 140)))
+    run_pipeline(spec, train, test, out, cfg, wide_console())
 
 
 @app.command("demo")
@@ -342,7 +357,7 @@ def demo_command(
     _set_threads(threads)
     cfg = _run_config(config, preset_name, seed, device)
     _prepare_run_folder(out, DEMO_OUTPUTS, force)
-    demo(out, cfg, console=Console(width=max(Console().width, 140)))
+    demo(out, cfg, console=wide_console())
 
 
 DataOpt = Annotated[
@@ -453,7 +468,30 @@ def train_policy_command(
 
 SIM_VS_REAL_PREFIX = "sim_vs_real_"
 """Name prefix of the plots ``sim fidelity --plot`` draws."""
-LogsOpt = Annotated[list[Path], typer.Option("--logs", help="Folder of .npz episode logs with the PWM u (repeatable).")]
+LogsOpt = Annotated[list[Path], typer.Option("--logs", help="Episode files or folders (logs with the PWM u; repeatable).")]
+
+
+FIT = FitConfig()
+"""The fit's default settings, shown as the ``sim calibrate`` options' defaults."""
+
+
+def parse_ints(text: str, flag: str) -> tuple[int, ...]:
+    """Parse a comma-separated list of integers given to an option, e.g. ``--delays 2,3,4``.
+
+    Args:
+        text: the option's value as given on the command line.
+        flag: the option's name, used in error messages.
+
+    Returns:
+        The integers, in the order given.
+
+    Raises:
+        EfficientTrackError: an item is not an integer.
+    """
+    try:
+        return tuple(int(item) for item in text.split(","))
+    except ValueError as exc:
+        raise EfficientTrackError(f"{flag} '{text}': expected comma-separated integers, e.g. 2,3,4") from exc
 
 
 @sim_app.command("calibrate")
@@ -461,24 +499,24 @@ def sim_calibrate_command(
     logs: LogsOpt,
     out: Annotated[Path, typer.Option("--out", help="JSON preset to write (load it with --system-opt params_file=...).")],
     start: Annotated[Path | None, typer.Option("--start", help="Preset to start from (default: the shipped xe75).")] = None,
-    delays: Annotated[str, typer.Option("--delays", help="Candidate transport delays, steps, comma-separated.")] = "2,3,4,5,6",
-    max_windows: Annotated[int, typer.Option("--max-windows", help="Fit windows of each kind at most.")] = 2500,
-    max_nfev: Annotated[int, typer.Option("--max-nfev", help="Residual evaluations per least-squares stage.")] = 40,
+    delays: Annotated[
+        str, typer.Option("--delays", help="Candidate transport delays, steps, comma-separated (e.g. 2,3,4).")
+    ] = ",".join(map(str, FIT.delays)),
+    max_windows: Annotated[int, typer.Option("--max-windows", help="Fit windows of each kind at most.")] = FIT.max_windows,
+    max_nfev: Annotated[int, typer.Option("--max-nfev", help="Residual evaluations per least-squares stage.")] = FIT.max_nfev,
     max_ref_jitter: Annotated[
         float, typer.Option("--max-ref-jitter", help="Leave out episodes whose q_ref − q_des jitters more, rad.")
-    ] = 0.01,
+    ] = FIT.max_ref_jitter,
+    recursive: RecursiveOpt = False,
 ) -> None:
     """Fit the hydraulic simulator to a machine's PD logs (PWM → motion) and write the preset."""
-    from efficienttrack.systems.calibrate import FitConfig, calibrate, load_logs, save_params
+    from efficienttrack.systems.fit import calibrate, load_logs, save_params
     from efficienttrack.systems.hydraulic import HydraulicParams
 
-    try:
-        candidates = tuple(int(d) for d in delays.split(","))
-    except ValueError as exc:
-        raise EfficientTrackError(f"--delays '{delays}': expected comma-separated integers") from exc
-    config = FitConfig(delays=candidates, max_windows=max_windows, max_nfev=max_nfev, max_ref_jitter=max_ref_jitter)
+    candidates = parse_ints(delays, "--delays")
+    config = replace(FIT, delays=candidates, max_windows=max_windows, max_nfev=max_nfev, max_ref_jitter=max_ref_jitter)
     first = HydraulicParams.load(start) if start is not None else None
-    result = calibrate(load_logs(logs), first, config, progress=typer.echo)
+    result = calibrate(load_logs(logs, recursive=recursive), first, config, progress=typer.echo)
     save_params(result.params, out)
     typer.echo(
         f"open-loop window error (deg) {[round(float(v), 3) for v in result.open_loop_deg]}, closed-loop "
@@ -506,14 +544,15 @@ def sim_fidelity_command(
     max_ref_jitter: Annotated[
         float | None, typer.Option("--max-ref-jitter", help="Leave out episodes whose q_ref − q_des jitters more, rad.")
     ] = None,
+    recursive: RecursiveOpt = False,
 ) -> None:
     """Compare a simulator with real PD logs: closed-loop tracking MAE ratio, open-loop 20-step error and travel."""
     from efficienttrack.plots import plot_sim_vs_real
-    from efficienttrack.systems.calibrate import fidelity, load_logs, select_by_jitter
+    from efficienttrack.systems.fit import fidelity, load_logs, select_by_jitter
 
     spec = _system_spec(system, plant, pd, system_opt)
     system_view, plant_view = spec.open(), spec.open_plant()
-    records = load_logs(logs, need_u=plant_view is not None)
+    records = load_logs(logs, need_u=plant_view is not None, recursive=recursive)
     if min_ref_jitter > 0 or max_ref_jitter is not None:
         high = math.inf if max_ref_jitter is None else max_ref_jitter
         records = select_by_jitter(records, min_ref_jitter, high, option="--min-ref-jitter/--max-ref-jitter")

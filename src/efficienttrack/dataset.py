@@ -24,6 +24,7 @@ import torch
 
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.records import EpisodeRecord
+from efficienttrack.windows import window_starts
 
 ArrayT = TypeVar("ArrayT", np.ndarray, torch.Tensor)
 
@@ -169,7 +170,7 @@ class Sequences:
         return int(self.lengths.sum())
 
     def starts(self, horizon: int) -> torch.Tensor:
-        """Flat indices of every t with a full recorded horizon, t + horizon ≤ T − 1 (horizon 0: every t).
+        """Flat indices of every t with a full recorded horizon, t + horizon ≤ T − 1 (:func:`window_starts`).
 
         Args:
             horizon: steps of recorded future the windows need (model: rollout length; policy: 0).
@@ -182,17 +183,13 @@ class Sequences:
         """
         if horizon > self.future:
             raise EfficientTrackError(f"windows of horizon {horizon} need future ≥ {horizon}, the buffer has {self.future}")
-        counts = (self.lengths - horizon).clamp(min=0)
-        if int(counts.sum()) == 0:
-            raise EfficientTrackError(
-                f"no episode is long enough for a {horizon}-step window (longest has {int(self.lengths.max())} steps)"
-            )
-        episode_origin = torch.repeat_interleave(self.origin, counts)
-        first = torch.repeat_interleave(torch.cumsum(counts, 0) - counts, counts)
-        return (episode_origin + torch.arange(int(counts.sum())) - first).to(self.device)
+        episode, t0 = window_starts(self.lengths.numpy(), horizon)
+        return torch.as_tensor(self.origin.numpy()[episode] + t0, device=self.device)
 
     def window(self, start: torch.Tensor, horizon: int, desired: int = 0) -> Window:
-        """Gather windows at flat indices ``start`` (B,) (from :meth:`starts`).
+        """Gather windows at flat indices ``start`` (B,) (from :meth:`starts`), batch-major (B, H, C) for torch.
+
+        The simulator fit gathers the same windows time-major (H, W, C) (:func:`efficienttrack.systems.fit.make_windows`).
 
         Args:
             start: (B,) int64 flat indices of t.

@@ -35,6 +35,7 @@ from efficienttrack.angles import wrap
 from efficienttrack.configfile import config_from_dict
 from efficienttrack.dataset import Sequences, push
 from efficienttrack.errors import EfficientTrackError
+from efficienttrack.metrics import position_error
 from efficienttrack.nets import MLP, Standardizer, relative_features, resolve_device
 from efficienttrack.records import EpisodeRecord
 from efficienttrack.training import TrainLoop, fingerprint, load_checkpoint, save_checkpoint
@@ -330,7 +331,7 @@ def model_error(
     for chunk in starts.split(MPE_CHUNK):
         window = data.window(chunk, horizon=steps)
         o_hat = rollout(model, window.obs_hist, window.qref_hist, window.qref_future)
-        total += wrap(o_hat[..., :4] - window.obs_future[..., :4]).abs().sum(0).double()
+        total += position_error(o_hat[..., :4], window.obs_future[..., :4]).sum(0).double()
     model.train(was_training)
     mean = torch.rad2deg(total / len(starts)).cpu().numpy()
     return MPE(float(mean.mean()), mean.mean(0).tolist(), mean.mean(1).tolist(), len(starts))

@@ -17,6 +17,7 @@ from rich.progress import Progress
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.records import EpisodeRecord
 from efficienttrack.systems.protocol import BatchedSystem
+from efficienttrack.windows import pad_time_major
 
 
 class Sent(NamedTuple):
@@ -58,24 +59,6 @@ class Driver(Protocol):
         ...
 
 
-def pad_references(references: Sequence[np.ndarray], extra: int) -> np.ndarray:
-    """Stack references of different lengths time-major, each padded with its last position.
-
-    Args:
-        references: N arrays (L_i, 4) rad, desired positions q*_0 … q*_{L_i − 1}.
-        extra: rows to add beyond the longest reference (room for the future window).
-
-    Returns:
-        (max L_i + extra, N, 4) rad.
-    """
-    length = max(len(q) for q in references) + extra
-    padded = np.empty((length, len(references), 4))
-    for i, q in enumerate(references):  # one copy per reference; the time loop below is the only loop over steps
-        padded[: len(q), i] = q
-        padded[len(q) :, i] = q[-1]
-    return padded
-
-
 def rollout(
     system: BatchedSystem,
     references: Sequence[np.ndarray],
@@ -106,7 +89,7 @@ def rollout(
     if np.any(lengths < 3):
         raise EfficientTrackError("rollout: every reference needs at least 3 positions")
     steps = int(lengths.max()) - 1
-    q_des = pad_references(references, horizon + 1)  # (L_max + h + 1, N, 4)
+    q_des = pad_time_major(references, horizon + 1)  # (L_max + h + 1, N, 4)
     n = len(references)
     q, qd, q_ref = np.empty((steps, n, 4)), np.empty((steps, n, 4)), np.empty((steps, n, 4))
     u = np.empty((steps, n, 4))

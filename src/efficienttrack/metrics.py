@@ -19,9 +19,10 @@ import csv
 import io
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
+import torch
 from rich.table import Table
 
 from efficienttrack.angles import wrap
@@ -46,6 +47,7 @@ METRIC_KEYS = (
 """Keys of the dict returned by :func:`compute_metrics`."""
 MIN_STEPS = 4
 """Shortest episode with every metric defined (the 2nd-order smoothness needs q[1], q[2], q[3])."""
+ArrayT = TypeVar("ArrayT", np.ndarray, torch.Tensor)
 
 
 def tracking_error(q: np.ndarray, q_des: np.ndarray) -> np.ndarray:
@@ -59,6 +61,22 @@ def tracking_error(q: np.ndarray, q_des: np.ndarray) -> np.ndarray:
         (T−1, 4) rad.
     """
     return wrap(q[1:] - q_des[:-1])
+
+
+def position_error(q_hat: ArrayT, q: ArrayT) -> ArrayT:
+    """Absolute position error |wrap(q̂ − q)| of predicted or simulated positions, numpy or torch.
+
+    The multi-step errors (the learned model's MPE, the simulator's open-loop error and window error)
+    are means of this over windows and steps.
+
+    Args:
+        q_hat: (..., 4) rad, predicted or simulated positions.
+        q: (..., 4) rad, the recorded positions they are compared with (same kind and shape).
+
+    Returns:
+        (..., 4) rad, the same kind of array.
+    """
+    return abs(wrap(q_hat - q))
 
 
 def mae(e: np.ndarray) -> float:

@@ -43,6 +43,20 @@ class PDGains:
         raw = s * (kp * e + kd * (e - e_prev) + self.c * np.sign(e))
         return np.clip(raw, -self.u_max, self.u_max)
 
+    def step(self, q_ref: np.ndarray, q: np.ndarray, e_prev: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """One step of the law: the PWM and the error ``e = wrap(q_ref − q)`` to pass as ``e_prev`` next step.
+
+        Args:
+            q_ref: (..., 4) rad, the reference (target of the next step).
+            q: (..., 4) rad, the measured position.
+            e_prev: (..., 4) rad, the error of the previous step; None at an episode's first step (taken equal to e).
+
+        Returns:
+            u (..., 4) PWM and e (..., 4) rad.
+        """
+        e = wrap(np.asarray(q_ref, dtype=np.float64) - q)
+        return self.command(e, e if e_prev is None else e_prev), e
+
     @classmethod
     def load(cls, spec: str) -> PDGains:
         """A named preset (``xe75``) or a JSON file with the fields of this class.
@@ -107,8 +121,7 @@ class ClosedLoop:
         """Track ``q_ref`` (4,)/(N, 4) rad for one step; return obs (8,)/(N, 8)."""
         if self._q is None:
             raise EfficientTrackError("ClosedLoop.step called before reset")
-        e = wrap(np.asarray(q_ref, dtype=np.float64) - self._q)
-        u = self.gains.command(e, e if self._e_prev is None else self._e_prev)
+        u, e = self.gains.step(q_ref, self._q, self._e_prev)
         obs = np.asarray(self.plant.step(u), dtype=np.float64)
         self._e_prev, self._q, self.last_command = e, obs[..., :4], u
         return obs
