@@ -328,8 +328,8 @@ def train_policy_command(
     g_theta, records = load_model(model, device), load_records(data)
     result = train_policy(cfg, g_theta, records, device, seed, progress=True, checkpoint=out.with_suffix(".state.pt"))
     save_policy(result.policy, out)
-    before = predicted_tracking_error(g_theta, records, None, cfg.horizon)
-    after = predicted_tracking_error(g_theta, records, result.policy, cfg.horizon)
+    before = predicted_tracking_error(g_theta, records, None, cfg.rollout_length)
+    after = predicted_tracking_error(g_theta, records, result.policy, cfg.rollout_length)
     typer.echo(
         f"trained policy, {result.steps} steps in {result.seconds:.0f} s; model-predicted tracking error "
         f"{before.mae_deg:.3f}° (a = 0) → {after.mae_deg:.3f}°; saved {out}"
