@@ -4,8 +4,9 @@ import pytest
 import torch
 
 from efficienttrack.dynamics import ClosedLoopModel, ModelConfig
+from efficienttrack.errors import EfficientTrackError
 from efficienttrack.nets import feature_width, relative_features
-from efficienttrack.policy import AdjustmentPolicy, PolicyConfig, desired_length, seen_lengths
+from efficienttrack.policy import AdjustmentPolicy, PolicyConfig, desired_length, policy_rollout, seen_lengths
 
 
 @pytest.mark.parametrize(("h", "K"), [(1, 1), (2, 1), (3, 5), (5, 1), (20, 20)])
@@ -32,3 +33,14 @@ def test_policy_lengths_and_what_a_rollout_needs():
     # a rollout of H steps slides the F desired positions seen along q*_{t+1} … q*_{t+H−1+F}
     assert desired_length(cfg, cfg.rollout_length) == 9 and desired_length(cfg, 1) == 5 and desired_length(None, 4) == 4
     assert not {"history_length", "future_length", "rollout_length", "in_dim"} & set(dataclasses.asdict(cfg))
+
+
+def test_policy_rollout_reads_exactly_the_desired_length():
+    model = ClosedLoopModel(ModelConfig(hidden=8, layers=1, horizon=3))
+    policy = AdjustmentPolicy(PolicyConfig(hidden=8, layers=1, horizon=3))
+    obs_hist, qref_hist = torch.zeros(2, 3, 8), torch.zeros(2, 3, 4)
+    need = desired_length(policy.cfg, 4)
+    with torch.no_grad():
+        assert policy_rollout(model, policy, obs_hist, qref_hist, torch.zeros(2, need, 4), steps=4).q_hat.shape == (2, 4, 4)
+        with pytest.raises(EfficientTrackError, match=f"needs {need} future desired positions, got {need - 1}"):
+            policy_rollout(model, policy, obs_hist, qref_hist, torch.zeros(2, need - 1, 4), steps=4)

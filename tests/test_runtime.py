@@ -99,6 +99,15 @@ def test_runtime_refuses_non_finite_inputs_before_sending():
     assert runtime.steps == 0
 
 
+def test_runtime_keeps_the_policy_lengths_and_refuses_too_few_desired_positions():
+    runtime = Runtime(LinearPolicy(horizon=3))
+    assert (runtime.history_length, runtime.future_length) == (3, 3)
+    assert (Runtime(None).history_length, Runtime(None).future_length) == (1, 1)
+    runtime.start(np.zeros((1, 8)))
+    with pytest.raises(EfficientTrackError, match="needs 3 future desired positions, got 2"):
+        runtime.step(np.zeros((1, 8)), np.zeros((1, 2, 4)))
+
+
 def test_runtime_equals_offline_policy_on_the_log(refs):
     """Alg. 2 vs offline: the policy applied to the training windows of the recorded log gives the logged adjustments."""
     pi = LinearPolicy(horizon=3)
