@@ -21,9 +21,9 @@ from efficienttrack.policy import POLICY_PRESETS, AdjustmentPolicy
 
 def latencies(policy: AdjustmentPolicy, calls: int, warmup: int = 200) -> tuple[np.ndarray, np.ndarray]:
     """Wall-clock and thread-CPU milliseconds of ``calls`` single-step calls (CPU time excludes preemption)."""
-    h = policy.cfg.horizon
+    h, F = policy.cfg.history_length, policy.cfg.future_length
     rng = np.random.default_rng(0)
-    obs, q_ref, q_des = rng.normal(size=(1, h, 8)), rng.normal(size=(1, h, 4)), rng.normal(size=(1, h, 4))
+    obs, q_ref, q_des = rng.normal(size=(1, h, 8)), rng.normal(size=(1, h, 4)), rng.normal(size=(1, F, 4))
     wall, cpu = np.empty(calls), np.empty(calls)
     with torch.inference_mode():
         for i in range(warmup + calls):
@@ -53,7 +53,8 @@ def main() -> None:
         c50, c99 = np.percentile(cpu, [50, 99])
         verdict = "ok" if p99 <= 1.0 else "ABOVE 1 ms"
         print(
-            f"{size:5s} ({cfg.layers}×{cfg.hidden}, h={cfg.horizon}): wall p50 {p50:.3f} ms, p99 {p99:.3f} ms "
+            f"{size:5s} ({cfg.layers}×{cfg.hidden}, h={cfg.history_length}, F={cfg.future_length}): "
+            f"wall p50 {p50:.3f} ms, p99 {p99:.3f} ms "
             f"[{verdict}], max {wall.max():.3f} ms; thread CPU time p50 {c50:.3f} ms, p99 {c99:.3f} ms "
             f"({args.calls} calls; wall ≫ CPU means the core was shared)"
         )

@@ -62,9 +62,9 @@ def main() -> None:
             cfg = MODEL_PRESETS[size]
             steps = args.steps or (3 if size == "paper" and device == "cpu" else 20)
             per_step = seconds_per_step(cfg, records, device, steps)
-            rate = cfg.batch_size * cfg.horizon / per_step
+            rate = cfg.batch_size * cfg.rollout_length / per_step
             print(
-                f"{size:5s} ({cfg.layers}×{cfg.hidden}, h={cfg.horizon}, batch {cfg.batch_size}) on {device}: "
+                f"{size:5s} ({cfg.layers}×{cfg.hidden}, H={cfg.rollout_length}, batch {cfg.batch_size}) on {device}: "
                 f"{rate:,.0f} window-steps/s, {per_step:.3f} s per optimizer step ({steps} steps timed)"
             )
     print("command: python " + " ".join(shlex.quote(a) for a in sys.argv))

@@ -1,10 +1,13 @@
+import json
 import shutil
+from dataclasses import asdict
 
 import numpy as np
 import pytest
 
 from efficienttrack.collect import CollectConfig, collect, episode_noise
 from efficienttrack.errors import EfficientTrackError
+from efficienttrack.references import save_references
 from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.systems.spec import load_system
 from toy_system import make, sine_refs
@@ -141,9 +144,38 @@ def test_too_few_passes_for_any_noise_warn(refs):
     [
         ({"sigma_max": -0.1}, "sigma_max"),
         ({"noise_ratio": (0, 0)}, "noise_ratio"),
+        ({"noise_ratio": (float("nan"), 2)}, "noise_ratio"),
         ({"passes": 0}, "passes"),
     ],
 )
 def test_bad_config(kwargs, message):
     with pytest.raises(EfficientTrackError, match=message):
         CollectConfig(**kwargs)
+
+
+@pytest.mark.parametrize("ratio", [(9.0, 2.0), (0.1, 3.0), (1e-7, 2.5), (0.0, 1.0)])
+def test_noise_ratio_text_reads_back_exactly(ratio):
+    text = CollectConfig(noise_ratio=ratio).noise_ratio_text
+    assert CollectConfig.parse_noise_ratio(text) == ratio
+    assert CollectConfig().noise_ratio_text == "9:2"
+
+
+@pytest.mark.parametrize("text", ["9", "9:2:1", "a:2", "9-2", ""])
+def test_noise_ratio_text_errors_name_the_option(text):
+    with pytest.raises(EfficientTrackError, match=f"--noise-ratio '{text}': expected noisy:clean"):
+        CollectConfig.parse_noise_ratio(text)
+
+
+def test_cli_collect_defaults_are_the_config_defaults(tmp_path):
+    from typer.testing import CliRunner
+
+    from efficienttrack.cli import app
+
+    save_references(sine_refs([12, 9]), tmp_path / "refs")
+    args = ["collect", "--system", "toy_system:make", "--refs", str(tmp_path / "refs"), "--out", str(tmp_path / "col")]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    written = json.loads((tmp_path / "col" / "collect.json").read_text())["config"]
+    assert written == json.loads(json.dumps(asdict(CollectConfig())))
+    result = CliRunner().invoke(app, [*args, "--noise-ratio", "9/2"])
+    assert isinstance(result.exception, EfficientTrackError) and "--noise-ratio '9/2'" in str(result.exception)

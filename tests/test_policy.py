@@ -14,6 +14,7 @@ from efficienttrack.policy import (
     policy_rollout,
     predicted_tracking_error,
     save_policy,
+    seen_lengths,
     train_policy,
 )
 from test_dynamics import LAG_GAIN, lag_records, train_tiny_model
@@ -33,8 +34,8 @@ def track_lag_system(policy, records):
     """Closed-loop MAE (deg) of the true lag system tracking the records' q_des, Algorithm 2 with ``policy`` (None: a = 0)."""
     q_des = np.stack([r.q_des for r in records])
     N, T, _ = q_des.shape
-    h = policy.cfg.horizon if policy is not None else 1
-    future = np.concatenate([q_des, np.repeat(q_des[:, -1:], h, 1)], 1)
+    h, F = seen_lengths(policy.cfg if policy is not None else None)
+    future = np.concatenate([q_des, np.repeat(q_des[:, -1:], F, 1)], 1)
     q, qd = np.stack([r.q[0] for r in records]), np.zeros((N, 4))
     hist = initial_history(np.concatenate([q, qd], 1), h)
     errors = []
@@ -44,7 +45,7 @@ def track_lag_system(policy, records):
         if policy is not None:
             with torch.no_grad():
                 a = (
-                    policy(*(torch.as_tensor(x, dtype=torch.float32) for x in (hist.obs, hist.q_ref, future[:, t : t + h])))
+                    policy(*(torch.as_tensor(x, dtype=torch.float32) for x in (hist.obs, hist.q_ref, future[:, t : t + F])))
                     .double()
                     .numpy()
                 )

@@ -1,11 +1,10 @@
-from types import SimpleNamespace
-
 import numpy as np
 import pytest
 import torch
 
 from efficienttrack.dataset import Sequences
 from efficienttrack.errors import EfficientTrackError
+from efficienttrack.policy import PolicyConfig
 from efficienttrack.runtime import Runtime, track
 from efficienttrack.systems.protocol import BatchedSystem
 from toy_system import make, sine_refs
@@ -18,9 +17,9 @@ class LinearPolicy(torch.nn.Module):
 
     def __init__(self, horizon=3, seed=0):
         super().__init__()
-        self.cfg = SimpleNamespace(horizon=horizon, max_adjust=MAX_ADJUST)
+        self.cfg = PolicyConfig(horizon=horizon, max_adjust=MAX_ADJUST)
         torch.manual_seed(seed)
-        self.lin = torch.nn.Linear(horizon * 16, 4)
+        self.lin = torch.nn.Linear(self.cfg.in_dim, 4)
 
     def forward(self, obs_hist, qref_hist, qdes_future):
         x = torch.cat([obs_hist.flatten(1), qref_hist.flatten(1), qdes_future.flatten(1)], dim=1)
@@ -32,7 +31,7 @@ class BrokenPolicy(torch.nn.Module):
 
     def __init__(self):
         super().__init__()
-        self.cfg = SimpleNamespace(horizon=2, max_adjust=MAX_ADJUST)
+        self.cfg = PolicyConfig(horizon=2, max_adjust=MAX_ADJUST)
         self.calls = 0
         self.dummy = torch.nn.Parameter(torch.zeros(1))
 
@@ -100,14 +99,23 @@ def test_runtime_refuses_non_finite_inputs_before_sending():
     assert runtime.steps == 0
 
 
+def test_runtime_keeps_the_policy_lengths_and_refuses_too_few_desired_positions():
+    runtime = Runtime(LinearPolicy(horizon=3))
+    assert (runtime.history_length, runtime.future_length) == (3, 3)
+    assert (Runtime(None).history_length, Runtime(None).future_length) == (1, 1)
+    runtime.start(np.zeros((1, 8)))
+    with pytest.raises(EfficientTrackError, match="needs 3 future desired positions, got 2"):
+        runtime.step(np.zeros((1, 8)), np.zeros((1, 2, 4)))
+
+
 def test_runtime_equals_offline_policy_on_the_log(refs):
     """Alg. 2 vs offline: the policy applied to the training windows of the recorded log gives the logged adjustments."""
     pi = LinearPolicy(horizon=3)
     records = track(BatchedSystem(make()), pi, refs, progress=False)
     assert sum(r.meta["fallbacks"] for r in records) == 0
     for record in records:
-        seqs = Sequences([record], history=3, future=3)
-        w = seqs.window(seqs.starts(0), horizon=0, desired=3)
+        seqs = Sequences([record], history=pi.cfg.history_length, future=pi.cfg.future_length)
+        w = seqs.window(seqs.starts(0), horizon=0, desired=pi.cfg.future_length)
         with torch.no_grad():
             offline = pi(w.obs_hist, w.qref_hist, w.qdes_future).double().numpy()
         logged = record.q_ref - record.q_des

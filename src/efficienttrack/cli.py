@@ -14,6 +14,7 @@ import typer
 from rich.console import Console
 
 import efficienttrack
+from efficienttrack.collect import CollectConfig
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import prepare_output_folder
 from efficienttrack.metrics import metrics_by_path, metrics_table, rounded, write_metrics_csv
@@ -218,6 +219,10 @@ def _run_config(config: Path | None, preset_name: str, seed: int | None, device:
     return with_overrides(load_config(config, base) if config is not None else base, seed=seed, device=device)
 
 
+COLLECT = CollectConfig()
+"""Where the ``collect`` options take their defaults from."""
+
+
 @app.command("collect")
 def collect_command(
     refs: Annotated[Path, typer.Option("--refs", help="Folder of reference trajectories (.npy/.csv, rad).")],
@@ -226,20 +231,17 @@ def collect_command(
     plant: PlantOpt = None,
     pd: PdOpt = "xe75",
     system_opt: SystemOpts = None,
-    passes: Annotated[int, typer.Option("--passes", help="Passes over the references.")] = 10,
-    noise_ratio: Annotated[str, typer.Option("--noise-ratio", help="Noisy:clean passes, e.g. 9:2.")] = "9:2",
-    sigma_max: Annotated[float, typer.Option("--sigma-max", help="Largest noise level σ_max, rad.")] = 0.05,
-    seed: Annotated[int, typer.Option("--seed", help="Noise seed.")] = 0,
+    passes: Annotated[int, typer.Option("--passes", help="Passes over the references.")] = COLLECT.passes,
+    noise_ratio: Annotated[str, typer.Option("--noise-ratio", help="Noisy:clean passes.")] = COLLECT.noise_ratio_text,
+    sigma_max: Annotated[float, typer.Option("--sigma-max", help="Largest noise level σ_max, rad.")] = COLLECT.sigma_max,
+    seed: Annotated[int, typer.Option("--seed", help="Noise seed.")] = COLLECT.seed,
 ) -> None:
     """Algorithm 1: track the references with the position controller, with and without noise, and record it."""
-    from efficienttrack.collect import CollectConfig, collect
+    from efficienttrack.collect import collect
     from efficienttrack.references import load_references
 
-    try:
-        noisy, clean = (float(part) for part in noise_ratio.split(":"))
-    except ValueError as exc:
-        raise EfficientTrackError(f"--noise-ratio '{noise_ratio}': expected two numbers like 9:2") from exc
-    cfg = CollectConfig(sigma_max=sigma_max, noise_ratio=(noisy, clean), passes=passes, seed=seed)
+    ratio = CollectConfig.parse_noise_ratio(noise_ratio)
+    cfg = CollectConfig(sigma_max=sigma_max, noise_ratio=ratio, passes=passes, seed=seed)
     spec = _system_spec(system, plant, pd, system_opt)
     references = load_references(refs)
     result = collect(spec.open(), references, cfg, out)
@@ -458,8 +460,8 @@ def train_policy_command(
     g_theta, records = load_model(model, device), load_records(data, recursive)
     result = train_policy(cfg, g_theta, records, device, seed, progress=True, checkpoint=_training_state(out, force))
     save_policy(result.policy, out)
-    before = predicted_tracking_error(g_theta, records, None, cfg.horizon)
-    after = predicted_tracking_error(g_theta, records, result.policy, cfg.horizon)
+    before = predicted_tracking_error(g_theta, records, None, cfg.rollout_length)
+    after = predicted_tracking_error(g_theta, records, result.policy, cfg.rollout_length)
     typer.echo(
         f"trained policy, {result.steps} steps in {result.seconds:.0f} s; model-predicted tracking error "
         f"{before.mae_deg:.3f}° (a = 0) → {after.mae_deg:.3f}°; saved {out}"

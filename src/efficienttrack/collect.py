@@ -51,10 +51,37 @@ class CollectConfig:
         """Check the values (EfficientTrackError naming the field)."""
         if not (np.isfinite(self.sigma_max) and self.sigma_max >= 0):
             raise EfficientTrackError(f"collect.sigma_max: must be ≥ 0 rad, got {self.sigma_max}")
-        if len(self.noise_ratio) != 2 or min(self.noise_ratio) < 0 or sum(self.noise_ratio) == 0:
+        weights = self.noise_ratio
+        if len(weights) != 2 or not all(np.isfinite(w) and w >= 0 for w in weights) or sum(weights) == 0:
             raise EfficientTrackError(f"collect.noise_ratio: needs two weights ≥ 0, not both 0, got {self.noise_ratio}")
         if self.passes < 1:
             raise EfficientTrackError(f"collect.passes: must be ≥ 1, got {self.passes}")
+
+    @staticmethod
+    def parse_noise_ratio(text: str, option: str = "--noise-ratio") -> tuple[float, float]:
+        """Read a ``noise_ratio`` written as ``noisy:clean`` (the paper's notation, e.g. ``9:2``).
+
+        Args:
+            text: the two weights separated by a colon.
+            option: where ``text`` came from, named in errors.
+
+        Returns:
+            (noisy, clean) weights; :class:`CollectConfig` checks their values.
+
+        Raises:
+            EfficientTrackError: not two numbers separated by a colon.
+        """
+        parts = text.split(":")
+        try:
+            noisy, clean = (float(part) for part in parts)
+        except ValueError as exc:
+            raise EfficientTrackError(f"{option} '{text}': expected noisy:clean, two numbers like 9:2") from exc
+        return noisy, clean
+
+    @property
+    def noise_ratio_text(self) -> str:
+        """``noise_ratio`` as ``noisy:clean`` (``9:2``), read back exactly by :meth:`parse_noise_ratio`."""
+        return ":".join(str(float(w)).removesuffix(".0") for w in self.noise_ratio)
 
     @property
     def noisy_passes(self) -> tuple[bool, ...]:

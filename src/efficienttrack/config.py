@@ -66,12 +66,12 @@ PRESETS: dict[str, RunConfig] = {
         policy=POLICY_PRESETS["paper"],
     ),
     "cpu": RunConfig(
-        collect=CollectConfig(sigma_max=0.05, noise_ratio=(9, 2), passes=10),
+        collect=CollectConfig(),
         model=MODEL_PRESETS["cpu"],
         policy=POLICY_PRESETS["cpu"],
     ),
     "tiny": RunConfig(
-        collect=CollectConfig(sigma_max=0.05, noise_ratio=(9, 2), passes=3),
+        collect=CollectConfig(passes=3),
         model=MODEL_PRESETS["tiny"],
         policy=POLICY_PRESETS["tiny"],
     ),

@@ -118,7 +118,7 @@ class Sequences:
     Args:
         records: the episodes (each validated ``EpisodeRecord``).
         history: h, the history length of the windows.
-        future: how many steps past t a window may look (≥ the rollout horizon; 2h for the policy).
+        future: how many steps past t a window may look (≥ the rollout horizon; the policy's ``desired_length``).
         device: where the tensors live.
 
     Attributes:

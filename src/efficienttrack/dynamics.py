@@ -36,7 +36,7 @@ from efficienttrack.configfile import config_from_dict
 from efficienttrack.dataset import Sequences, push
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.metrics import position_error
-from efficienttrack.nets import MLP, Standardizer, relative_features, resolve_device
+from efficienttrack.nets import MLP, Standardizer, feature_width, relative_features, resolve_device
 from efficienttrack.records import EpisodeRecord
 from efficienttrack.training import TrainLoop, fingerprint, load_checkpoint, save_checkpoint
 
@@ -55,9 +55,11 @@ class ModelConfig:
     layers: int = 3
     """Hidden Linear → LayerNorm → ELU blocks (paper 6)."""
     horizon: int = 20
-    """h: multi-step training horizon, and the history length unless ``history`` is set (paper 20)."""
+    """h: multi-step training horizon (:attr:`rollout_length`), and the history length unless ``history`` is set
+    (paper 20)."""
     history: int | None = None
-    """Length of the histories o_H, q^r_H the model sees; None: h (the paper). Shorter generalizes better on the XE75."""
+    """Length of the histories o_H, q^r_H the model sees (:attr:`history_length`); None: h (the paper). Shorter
+    generalizes better on the XE75."""
     batch_size: int = 256
     """Windows per optimizer step (paper 2048)."""
     lr: float = 1e-3
@@ -91,13 +93,18 @@ class ModelConfig:
 
     @property
     def history_length(self) -> int:
-        """Length of the histories the model sees: ``history``, or ``horizon`` when unset."""
+        """Length of the histories o_H, q^r_H the model sees: ``history``, or ``horizon`` when unset."""
         return self.horizon if self.history is None else self.history
 
     @property
+    def rollout_length(self) -> int:
+        """Steps the model is rolled on its own predictions per training window (``horizon``)."""
+        return self.horizon
+
+    @property
     def in_dim(self) -> int:
-        """Network input features: 12 · history_length + 4."""
-        return 12 * self.history_length + 4
+        """Network input features: :func:`~efficienttrack.nets.feature_width` of the history and one target q^r_{t+1}."""
+        return feature_width(self.history_length, 1)
 
     def total_steps(self, windows: int) -> int:
         """Optimizer steps of a run on ``windows`` training windows."""
@@ -239,7 +246,7 @@ def train_model(
     progress: bool = True,
     checkpoint: str | Path | None = None,
 ) -> ModelTrainResult:
-    """Train g_θ by multi-step backpropagation through h-step rollouts (Algorithm 1, TrainModel).
+    """Train g_θ by multi-step backpropagation through ``cfg.rollout_length``-step rollouts (Algorithm 1, TrainModel).
 
     Args:
         cfg: model config (see :data:`MODEL_PRESETS`).
@@ -255,10 +262,10 @@ def train_model(
     """
     started = time.perf_counter()
     device = resolve_device(device)
-    h = cfg.horizon
+    H = cfg.rollout_length
     torch.manual_seed(seed)
-    data = Sequences(records, history=cfg.history_length, future=h, device=device)
-    starts = data.starts(h)
+    data = Sequences(records, history=cfg.history_length, future=H, device=device)
+    starts = data.starts(H)
     g_theta = ClosedLoopModel(cfg).to(device)
     sample = data.window(starts[torch.randperm(len(starts))[:NORM_SAMPLES].to(device)], horizon=1)
     g_theta.fit_scaling(sample.obs_hist, sample.qref_hist, sample.qref_future[:, 0], sample.obs_future[:, 0])
@@ -268,10 +275,10 @@ def train_model(
     loop = TrainLoop("model", cfg, cfg.total_steps(len(starts)), g_theta, optimizer, seed, checkpoint, progress, inputs)
 
     for step in loop:
-        window = data.window(starts[loop.sample(len(starts), cfg.batch_size).to(device)], horizon=h)
-        # rollout: ô_{t+1..t+h} on the model's own predictions, driven by the recorded q^r_{t+1..t+h}
+        window = data.window(starts[loop.sample(len(starts), cfg.batch_size).to(device)], horizon=H)
+        # rollout: ô_{t+1..t+H} on the model's own predictions, driven by the recorded q^r_{t+1..t+H}
         o_hat = rollout(g_theta, window.obs_hist, window.qref_hist, window.qref_future)
-        # loss: (1/h) Σ_i ‖ô_{t+i} − o_{t+i}‖², each channel in units of its one-step change σ_Δ
+        # loss: (1/H) Σ_i ‖ô_{t+i} − o_{t+i}‖², each channel in units of its one-step change σ_Δ
         loss = (observation_error(o_hat, window.obs_future) / sigma).pow(2).sum(-1).mean()
         # step: Adam with decoupled weight decay w
         optimizer.zero_grad(set_to_none=True)

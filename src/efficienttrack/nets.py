@@ -9,6 +9,7 @@ from torch import nn
 
 from efficienttrack.angles import wrap
 from efficienttrack.errors import EfficientTrackError
+from efficienttrack.joints import N_JOINTS
 
 ConfigT = TypeVar("ConfigT")
 
@@ -98,12 +99,26 @@ def resolve_device(device: str | torch.device = "auto") -> torch.device:
     return resolved
 
 
+def feature_width(history: int, targets: int) -> int:
+    """Width of :func:`relative_features` for histories of length ``history`` and ``targets`` positions ahead.
+
+    Args:
+        history: h, length of the observation and reference histories.
+        targets: K, positions ahead (1 for the model: ``q^r_{t+1}``; F for the policy: ``q*_F``).
+
+    Returns:
+        12h + 4K: ``q_t``, h−1 past positions, h velocities, h references and K targets, 4 joints each.
+    """
+    return N_JOINTS * (1 + (history - 1) + history + history + targets)
+
+
 def relative_features(obs_hist: torch.Tensor, qref_hist: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
     """The network input: histories and targets as seen from the current position, so any machine's offsets drop out.
 
     Features, in order: the current position ``q_t`` (4), past positions ``wrap(q_{t−k} − q_t)``
     (h−1 × 4), velocities (h × 4), references ``wrap(q^r_{t−k} − q_t)`` (h × 4) and targets
-    ``wrap(target − q_t)`` (K × 4): 12h + 4K values (callers scale them with a :class:`Standardizer`).
+    ``wrap(target − q_t)`` (K × 4): :func:`feature_width` (h, K) = 12h + 4K values (callers scale them with a
+    :class:`Standardizer`).
 
     Args:
         obs_hist: (B, h, 8) [rad, rad/s], ``o_{t−h+1} … o_t``.

@@ -33,7 +33,7 @@ from efficienttrack.configfile import config_from_dict
 from efficienttrack.dataset import Sequences, push
 from efficienttrack.dynamics import NORM_SAMPLES, ClosedLoopModel
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.nets import MLP, Standardizer, relative_features, resolve_device
+from efficienttrack.nets import MLP, Standardizer, feature_width, relative_features, resolve_device
 from efficienttrack.records import EpisodeRecord
 from efficienttrack.training import TrainLoop, fingerprint, load_checkpoint, save_checkpoint
 
@@ -52,7 +52,8 @@ class PolicyConfig:
     layers: int = 3
     """Hidden Linear → LayerNorm → ELU blocks (paper 6)."""
     horizon: int = 20
-    """h: history length, future desired positions seen, and training rollout length (paper 20)."""
+    """h: the paper's one length of the policy, read as :attr:`history_length`, :attr:`future_length` and
+    :attr:`rollout_length` (paper 20)."""
     gamma: float = 0.98
     """γ: discount of the tracking loss over the rollout (paper 0.98)."""
     k_smooth: float = 1.0
@@ -98,9 +99,24 @@ class PolicyConfig:
             raise EfficientTrackError("PolicyConfig.grad_clip must be > 0 or None")
 
     @property
+    def history_length(self) -> int:
+        """Length of the histories o_H, q^r_H the policy sees (``horizon``)."""
+        return self.horizon
+
+    @property
+    def future_length(self) -> int:
+        """F: future desired positions q*_F the policy sees (``horizon``)."""
+        return self.horizon
+
+    @property
+    def rollout_length(self) -> int:
+        """Steps the model is rolled under the policy per training window (``horizon``)."""
+        return self.horizon
+
+    @property
     def in_dim(self) -> int:
-        """Network input features: 16 h."""
-        return 16 * self.horizon
+        """Network input features: :func:`~efficienttrack.nets.feature_width` of the history and the F targets."""
+        return feature_width(self.history_length, self.future_length)
 
     def total_steps(self, windows: int) -> int:
         """Optimizer steps of a run on ``windows`` training windows."""
@@ -130,11 +146,42 @@ POLICY_PRESETS: dict[str, PolicyConfig] = {
 """Named policy configs: the paper's (a GPU job), ``cpu`` (minutes on 2 cores), ``tiny`` (tests, seconds)."""
 
 
+class SeenLengths(NamedTuple):
+    """What a policy sees at time t.
+
+    Attributes:
+        history: h, length of the histories o_H, q^r_H.
+        future: F, future desired positions q*_F.
+    """
+
+    history: int
+    future: int
+
+
+def seen_lengths(cfg: PolicyConfig | None) -> SeenLengths:
+    """History and future lengths a policy with config ``cfg`` sees; (1, 1) without a policy (a = 0 needs q*_{t+1}).
+
+    Args:
+        cfg: the policy's config, or None for the position controller alone.
+    """
+    return SeenLengths(1, 1) if cfg is None else SeenLengths(cfg.history_length, cfg.future_length)
+
+
+def desired_length(cfg: PolicyConfig | None, steps: int) -> int:
+    """Future desired positions a ``steps``-step rollout under the policy needs: q*_{t+1} … q*_{t+steps−1+F}.
+
+    Args:
+        cfg: the policy's config, or None for the position controller alone (F = 1).
+        steps: H, rollout length.
+    """
+    return steps - 1 + seen_lengths(cfg).future
+
+
 class AdjustmentPolicy(nn.Module):
     """π_φ: the bounded adjustment added to the next desired position.
 
     Args:
-        cfg: the policy config (sizes, h = ``cfg.horizon``, ``max_adjust``).
+        cfg: the policy config (sizes, ``history_length`` h, ``future_length`` F, ``max_adjust``).
     """
 
     def __init__(self, cfg: PolicyConfig) -> None:
@@ -153,10 +200,9 @@ class AdjustmentPolicy(nn.Module):
         Args:
             obs_hist: (B, h', 8) [rad, rad/s], recorded observation histories, h' ≥ h (the last h are used).
             qref_hist: (B, h', 4) rad, the matching reference histories.
-            qdes_future: (B, F, 4) rad, the desired positions that follow, F ≥ h (the first h are used).
+            qdes_future: (B, F', 4) rad, the desired positions that follow, F' ≥ F (the first F are used).
         """
-        h = self.cfg.horizon
-        self.features.fit(relative_features(obs_hist[:, -h:], qref_hist[:, -h:], qdes_future[:, :h]))
+        self.features.fit(self._features(obs_hist, qref_hist, qdes_future))
 
     def forward(self, obs_hist: torch.Tensor, qref_hist: torch.Tensor, qdes_future: torch.Tensor) -> torch.Tensor:
         """a_t = π_φ(o_H, q^r_H, q*_F).
@@ -164,14 +210,16 @@ class AdjustmentPolicy(nn.Module):
         Args:
             obs_hist: (B, h', 8) [rad, rad/s], ``o_{t−h'+1} … o_t``, h' ≥ h (the last h are used).
             qref_hist: (B, h', 4) rad, ``q^r_{t−h'+1} … q^r_t``.
-            qdes_future: (B, F, 4) rad, ``q*_{t+1} … q*_{t+F}``, F ≥ h (the first h are used).
+            qdes_future: (B, F', 4) rad, ``q*_{t+1} … q*_{t+F'}``, F' ≥ F (the first F are used).
 
         Returns:
             (B, 4) rad, the adjustment a_t, |a| < max_adjust per joint.
         """
-        h = self.cfg.horizon
-        x = relative_features(obs_hist[:, -h:], qref_hist[:, -h:], qdes_future[:, :h])
-        return self.pi_phi(self.features(x))
+        return self.pi_phi(self.features(self._features(obs_hist, qref_hist, qdes_future)))
+
+    def _features(self, obs_hist: torch.Tensor, qref_hist: torch.Tensor, qdes_future: torch.Tensor) -> torch.Tensor:
+        h, F = seen_lengths(self.cfg)
+        return relative_features(obs_hist[:, -h:], qref_hist[:, -h:], qdes_future[:, :F])
 
 
 class PolicyRollout(NamedTuple):
@@ -203,20 +251,20 @@ def policy_rollout(
         pi_phi: the policy, or None for a = 0 (the position controller alone).
         obs_hist: (B, h', 8) [rad, rad/s], recorded ``o_H`` at t, h' ≥ both networks' h.
         qref_hist: (B, h', 4) rad, recorded ``q^r_H`` at t.
-        qdes_future: (B, F, 4) rad, ``q*_{t+1} … q*_{t+F}`` with F ≥ steps − 1 + policy h.
+        qdes_future: (B, F', 4) rad, ``q*_{t+1} … q*_{t+F'}`` with F' ≥ :func:`desired_length` (policy, steps).
         steps: H, rollout length.
 
     Returns:
         Predicted positions, adjustments and references.
     """
-    h = pi_phi.cfg.horizon if pi_phi is not None else 1
-    if qdes_future.shape[1] < steps - 1 + h:
-        raise EfficientTrackError(
-            f"policy_rollout: needs {steps - 1 + h} future desired positions, got {qdes_future.shape[1]}"
-        )
+    cfg = pi_phi.cfg if pi_phi is not None else None
+    needed = desired_length(cfg, steps)
+    if qdes_future.shape[1] < needed:
+        raise EfficientTrackError(f"policy_rollout: needs {needed} future desired positions, got {qdes_future.shape[1]}")
+    F = seen_lengths(cfg).future
     q_hat, actions, refs = [], [], []
     for i in range(steps):
-        q_star_F = qdes_future[:, i : i + h]
+        q_star_F = qdes_future[:, i : i + F]
         a_i = pi_phi(obs_hist, qref_hist, q_star_F) if pi_phi is not None else torch.zeros_like(q_star_F[:, 0])
         q_r = q_star_F[:, 0] + a_i
         o_hat = g_theta(obs_hist, qref_hist, q_r)
@@ -270,29 +318,29 @@ def train_policy(
     """
     started = time.perf_counter()
     device = resolve_device(device)
-    h = cfg.horizon
+    H, F, desired = cfg.rollout_length, cfg.future_length, desired_length(cfg, cfg.rollout_length)
     torch.manual_seed(seed)
-    data = Sequences(records, history=max(h, model.cfg.history_length), future=2 * h, device=device)
+    data = Sequences(records, history=max(cfg.history_length, model.cfg.history_length), future=desired, device=device)
     starts = data.starts(0)
     g_theta = ClosedLoopModel(model.cfg).to(device)
     g_theta.load_state_dict(model.state_dict())
     g_theta.eval().requires_grad_(False)
     pi_phi = AdjustmentPolicy(cfg).to(device)
-    sample = data.window(starts[torch.randperm(len(starts))[:NORM_SAMPLES].to(device)], horizon=0, desired=h)
+    sample = data.window(starts[torch.randperm(len(starts))[:NORM_SAMPLES].to(device)], horizon=0, desired=F)
     pi_phi.fit_scaling(sample.obs_hist, sample.qref_hist, sample.qdes_future)
-    gamma_i = cfg.gamma ** torch.arange(1, h + 1, device=device, dtype=torch.float32)
+    gamma_i = cfg.gamma ** torch.arange(1, H + 1, device=device, dtype=torch.float32)
     optimizer = torch.optim.AdamW(pi_phi.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     inputs = fingerprint(records, seed, frozen=model)
     loop = TrainLoop("policy", cfg, cfg.total_steps(len(starts)), pi_phi, optimizer, seed, checkpoint, progress, inputs)
 
     for step in loop:
-        window = data.window(starts[loop.sample(len(starts), cfg.batch_size).to(device)], horizon=0, desired=2 * h)
+        window = data.window(starts[loop.sample(len(starts), cfg.batch_size).to(device)], horizon=0, desired=desired)
         q_star = window.qdes_future
-        # rollout: h steps of g_θ under π_φ, q^r_{i+1} = q*_{i+1} + a_i, q*_F sliding along q*_{t+1..t+2h}
-        q_hat, a, _ = policy_rollout(g_theta, pi_phi, window.obs_hist, window.qref_hist, q_star, steps=h)
-        # loss: L_track = (1/h) Σ γ^i ‖q̂_{t+i} − q*_{t+i}‖², L_reg = (1/(h−1)) Σ ‖a_{t+i} − a_{t+i−1}‖²
-        L_track = (gamma_i * wrap(q_hat - q_star[:, :h]).pow(2).sum(-1)).sum(1).mean() / h
-        L_reg = (a[:, 1:] - a[:, :-1]).pow(2).sum(-1).sum(1).mean() / (h - 1)
+        # rollout: H steps of g_θ under π_φ, q^r_{i+1} = q*_{i+1} + a_i, q*_F sliding along q*_{t+1..t+H−1+F}
+        q_hat, a, _ = policy_rollout(g_theta, pi_phi, window.obs_hist, window.qref_hist, q_star, steps=H)
+        # loss: L_track = (1/H) Σ γ^i ‖q̂_{t+i} − q*_{t+i}‖², L_reg = (1/(H−1)) Σ ‖a_{t+i} − a_{t+i−1}‖²
+        L_track = (gamma_i * wrap(q_hat - q_star[:, :H]).pow(2).sum(-1)).sum(1).mean() / H
+        L_reg = (a[:, 1:] - a[:, :-1]).pow(2).sum(-1).sum(1).mean() / (H - 1)
         loss = L_track + cfg.k_smooth * L_reg
         # step
         optimizer.zero_grad(set_to_none=True)
@@ -348,12 +396,13 @@ def predicted_tracking_error(
     device = next(model.parameters()).device if device is None else resolve_device(device)
     model = model.eval().to(device)
     policy = policy.eval().to(device) if policy is not None else None
-    h = policy.cfg.horizon if policy is not None else 1
-    data = Sequences(records, history=max(h, model.cfg.history_length), future=steps - 1 + h, device=device)
+    cfg = policy.cfg if policy is not None else None
+    desired = desired_length(cfg, steps)
+    data = Sequences(records, history=max(seen_lengths(cfg).history, model.cfg.history_length), future=desired, device=device)
     starts = data.starts(0)
     total = torch.zeros(4, dtype=torch.float64, device=device)
     for chunk in starts.split(EVAL_CHUNK):
-        window = data.window(chunk, horizon=0, desired=steps - 1 + h)
+        window = data.window(chunk, horizon=0, desired=desired)
         rolled = policy_rollout(model, policy, window.obs_hist, window.qref_hist, window.qdes_future, steps)
         total += wrap(rolled.q_hat - window.qdes_future[:, :steps]).abs().sum((0, 1)).double()
     per_joint = torch.rad2deg(total / (len(starts) * steps)).cpu().numpy()

@@ -10,7 +10,7 @@ Two levels:
       with Runtime(load_policy("policy.pt")) as rt:
           rt.start(read_obs())                       # (1, 8)
           for t in range(T):
-              sent = rt.step(read_obs(), q_des[None, t + 1 : t + 1 + rt.horizon])  # q_des padded at the end
+              sent = rt.step(read_obs(), q_des[None, t + 1 : t + 1 + rt.future_length])  # q_des padded at the end
               send_reference(sent.q_ref[0])          # to the machine's position controller
       print(rt.fallbacks)
 - :func:`track`, whole episodes: runs :class:`Runtime` over references on a (batched) system
@@ -32,6 +32,7 @@ from efficienttrack import dataset
 from efficienttrack.episodes import Sent, batches, rollout
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.nets import resolve_device
+from efficienttrack.policy import seen_lengths
 from efficienttrack.records import EpisodeRecord
 from efficienttrack.references import Reference
 from efficienttrack.systems.protocol import BatchedSystem
@@ -55,18 +56,18 @@ class Runtime:
 
     Args:
         policy: an ``AdjustmentPolicy`` (``efficienttrack.policy``), or None for the PD controller
-            alone (a = 0; horizon 1).
+            alone (a = 0; history and future length 1).
         device: torch device the policy runs on (its own device when None).
     """
 
     def __init__(self, policy: torch.nn.Module | None, device: torch.device | str | None = None) -> None:
         self.policy = policy
+        self.history_length, self.future_length = seen_lengths(policy.cfg if policy is not None else None)
+        """h, F: lengths of the histories kept and of the desired positions ``step`` needs (policy's, or 1 without)."""
         if policy is None:
-            self.horizon = 1
             self.max_adjust = np.zeros(4)
             self.device = torch.device("cpu")
         else:
-            self.horizon = int(policy.cfg.horizon)
             self.max_adjust = np.asarray(policy.cfg.max_adjust, dtype=np.float64)
             self.device = resolve_device(device) if device is not None else next(policy.parameters()).device
             policy.to(self.device)
@@ -98,7 +99,7 @@ class Runtime:
         obs0 = np.asarray(obs0, dtype=np.float64)
         if obs0.ndim != 2 or obs0.shape[1] != 8:
             raise EfficientTrackError(f"runtime: start expects obs0 of shape (N, 8), got {obs0.shape}")
-        self._history = dataset.initial_history(obs0, self.horizon)
+        self._history = dataset.initial_history(obs0, self.history_length)
         self.fallbacks = np.zeros(len(obs0), dtype=np.int64)
         self.steps = 0
 
@@ -107,9 +108,9 @@ class Runtime:
 
         Args:
             obs: (N, 8) [rad, rad/s], the observation ``o_t`` just measured.
-            q_des_future: (N, h, 4) rad, desired positions ``q*_{t+1} … q*_{t+h}`` (padded with the
-                last desired position past the end of the reference). Only ``[:, 0]`` is used
-                when there is no policy.
+            q_des_future: (N, F', 4) rad, desired positions ``q*_{t+1} … q*_{t+F'}``, F' ≥ ``future_length``
+                (padded with the last desired position past the end of the reference). Only ``[:, 0]`` is
+                used when there is no policy.
 
         Returns:
             The reference sent, the adjustment and the per-machine fallback flags.
@@ -121,7 +122,7 @@ class Runtime:
         n = len(self.fallbacks)
         if obs.shape != (n, 8) or q_des_future.ndim != 3 or q_des_future.shape[0] != n or q_des_future.shape[2] != 4:
             raise EfficientTrackError(
-                f"runtime: step expects obs (N, 8) and q_des_future (N, h, 4) with N = {n}, "
+                f"runtime: step expects obs (N, 8) and q_des_future (N, F, 4) with N = {n}, "
                 f"got {obs.shape} and {q_des_future.shape}"
             )
         if not (np.all(np.isfinite(obs)) and np.all(np.isfinite(q_des_future))):
@@ -145,14 +146,14 @@ class Runtime:
         self._history = None
 
     def _act(self, history: dataset.History, q_des_future: np.ndarray) -> np.ndarray:
-        h = self.horizon
-        if q_des_future.shape[1] < h:
-            raise EfficientTrackError(f"runtime: the policy needs {h} future desired positions, got {q_des_future.shape[1]}")
+        F = self.future_length
+        if q_des_future.shape[1] < F:
+            raise EfficientTrackError(f"runtime: the policy needs {F} future desired positions, got {q_des_future.shape[1]}")
         with torch.no_grad():
             a = self.policy(
                 torch.as_tensor(history.obs, dtype=torch.float32, device=self.device),
                 torch.as_tensor(history.q_ref, dtype=torch.float32, device=self.device),
-                torch.as_tensor(q_des_future[:, :h], dtype=torch.float32, device=self.device),
+                torch.as_tensor(q_des_future[:, :F], dtype=torch.float32, device=self.device),
             )
         return a.detach().cpu().double().numpy()
 
@@ -185,7 +186,8 @@ def track(
         for part in batches(system, len(references)):
             runtime = Runtime(policy, device=device)
             with runtime:
-                part_records = rollout(system, [ref.q for ref in references[part]], runtime, runtime.horizon, bar, description)
+                arrays = [ref.q for ref in references[part]]
+                part_records = rollout(system, arrays, runtime, runtime.future_length, bar, description)
             for record, ref in zip(part_records, references[part], strict=True):
                 record.meta.update(name=ref.name, method=method)
                 records.append(record)
