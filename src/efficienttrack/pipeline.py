@@ -17,7 +17,8 @@ baseline, and does not depend on training), and its records are the held-out epi
 the model's 20-step MPE and the policy's model-predicted tracking error on them are logged every
 ``eval_every`` steps. Training uses all collected episodes, as in the paper; the held-out episodes are
 unseen references, under the position controller alone. Each evaluation uses at most
-``training.HELD_OUT_STEPS`` recorded steps; on the demo's references it adds about 1 % to training time.
+``training.HELD_OUT_STEPS`` recorded steps; with the demo's settings they add 0.7 % to the model's and 2.7 % to
+the policy's training time (docs/logged-metrics.md).
 
 A rerun with the same run.json skips every finished stage; an interrupted stage resumes
 (collection at its first unwritten pass, training from its checkpoint). A rerun with other
