@@ -75,6 +75,8 @@ def test_resumed_run_writes_the_same_csv_as_an_uninterrupted_one(data, tmp_path,
     with pytest.raises(KeyboardInterrupt):
         train(CFG, data, tmp_path / "resumed", tmp_path / "state.pt")
     assert max(read_scalars(tmp_path / "resumed")[LOSS_TAG][0]) == 26
+    with (tmp_path / "resumed" / SCALARS_CSV).open("a") as f:
+        f.write("27,train/lo")  # a line torn by the crash
     monkeypatch.setattr(training.TrainLoop, "record", original)
     train(CFG, data, tmp_path / "resumed", tmp_path / "state.pt")
     assert (tmp_path / "resumed" / SCALARS_CSV).read_text() == (tmp_path / "full" / SCALARS_CSV).read_text()

@@ -212,14 +212,21 @@ def _rows(path: Path) -> list[list[str]]:
     return lines[1:]
 
 
+def _rows_through(path: Path, start: int) -> list[list[str]]:
+    """The rows of steps ≤ ``start`` of an interrupted run's CSV (a torn last line, written later, is dropped)."""
+    with path.open(newline="") as f:
+        rows = list(csv.reader(f))[1:]
+    return [row for row in rows if len(row) == 3 and row[0].isdigit() and int(row[0]) <= start]
+
+
 class TrainLog:
     """Scalars of a training run, per optimizer step, to ``scalars.csv`` and TensorBoard event files in one folder.
 
     ``step`` is the number of optimizer steps done: the loss of the k-th step is logged at k, a held-out
-    figure measured after k steps at k. Rows are flushed as they are written. Opened at ``start`` (a run
-    resumed from a state saved after ``start`` steps), the CSV keeps only the rows of steps ≤ ``start`` and
-    TensorBoard hides the events after ``start`` (``purge_step``), so a resumed run logs what an uninterrupted
-    one does.
+    figure measured after k steps at k. CSV rows are flushed as they are written, TensorBoard events every 10 s
+    and by :meth:`flush`. Opened at ``start`` (a run resumed from a state saved after ``start`` steps), the CSV
+    keeps only the rows of steps ≤ ``start`` and TensorBoard hides the events after ``start`` (``purge_step``),
+    so a resumed run logs what an uninterrupted one does.
 
     Args:
         folder: the log folder (created).
@@ -232,7 +239,7 @@ class TrainLog:
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         path = self.folder / SCALARS_CSV
-        kept = [row for row in _rows(path) if int(row[0]) <= start] if start > 0 and path.is_file() else []
+        kept = _rows_through(path, start) if start > 0 and path.is_file() else []
         atomic_write(path, lambda f: csv.writer(f).writerows([["step", "tag", "value"], *kept]), mode="w")
         self._csv = path.open("a", newline="")
         self._writer = csv.writer(self._csv)
@@ -247,6 +254,7 @@ class TrainLog:
             value: its value.
         """
         self._writer.writerow([step, tag, repr(float(value))])
+        self._csv.flush()
         self._tensorboard.add_scalar(tag, value, step)
 
     def flush(self) -> None:
