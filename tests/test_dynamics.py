@@ -11,6 +11,7 @@ from efficienttrack.dataset import push
 from efficienttrack.dynamics import MODEL_PRESETS, ClosedLoopModel, ModelConfig, load_model, model_error, rollout, save_model
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.records import EpisodeRecord
+from efficienttrack.training import read_scalars
 
 LAG_GAIN = np.array([0.3, 0.5, 0.4, 0.6])
 """Per-joint fraction of the reference error closed per step in the synthetic system."""
@@ -180,12 +181,16 @@ def test_cli_train_model_and_model_error(tmp_path):
     from efficienttrack.records import save_records
 
     save_records(lag_records(n=2, T=40), tmp_path / "data")
+    save_records(lag_records(n=1, T=40, seed=1), tmp_path / "held_out")
     runner = CliRunner()
     out = tmp_path / "model.pt"
     args = ["train-model", "--data", str(tmp_path / "data"), "--out", str(out), "--preset", "tiny", "--steps", "5"]
-    result = runner.invoke(app, args)
+    result = runner.invoke(app, [*args, "--held-out", str(tmp_path / "held_out")])
     assert result.exit_code == 0, result.output
     assert out.is_file() and (tmp_path / "model.json").is_file() and (tmp_path / "model.state.pt").is_file()
+    scalars = read_scalars(tmp_path / "model.logs")
+    assert scalars["train/loss"][0].tolist() == [1, 2, 3, 4, 5]
+    assert scalars[dynamics.HELD_OUT_TAG][0].tolist() == [1, 2, 3, 4, 5]  # a tenth of 5 steps: every step
     result = runner.invoke(app, ["model-error", "--model", str(out), "--data", str(tmp_path / "data"), "--json"])
     assert result.exit_code == 0, result.output
     mpe = json.loads(result.output.strip().splitlines()[-1])

@@ -7,13 +7,14 @@ import numpy as np
 import pytest
 import torch
 
-from efficienttrack import cli, dynamics
+from efficienttrack import cli, dynamics, policy
 from efficienttrack.config import PRESETS, RunConfig, from_dict, load_config
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.metrics import METRIC_KEYS
 from efficienttrack.pipeline import run_pipeline
 from efficienttrack.references import save_references
 from efficienttrack.systems.spec import SystemSpec
+from efficienttrack.training import read_scalars
 from toy_system import sine_refs
 
 TOY = SystemSpec(system="toy_system:make")
@@ -76,6 +77,13 @@ def test_run_writes_everything_and_beats_pd(finished_run):
     for path in ("model.pt", "model.json", "policy.pt", "policy.json", "config.json", "run.json"):
         assert (out / path).is_file(), path
     assert len(list((out / "records" / "pd").glob("*.npz"))) == 2
+    # training logs: loss and learning rate every step, the held-out figure (PD on the test references) every 30 steps
+    for name, tag in (("model", dynamics.HELD_OUT_TAG), ("policy", policy.HELD_OUT_TAG)):
+        assert json.loads((out / "stages" / f"{name}.json").read_text())["log"] == f"logs/{name}"
+        scalars = read_scalars(out / "logs" / name)
+        assert scalars["train/loss"][0].tolist() == list(range(1, 301)) and len(scalars["train/lr"][0]) == 300
+        assert scalars[tag][0].tolist() == list(range(30, 301, 30))
+        assert list((out / "logs" / name).glob("events.out.tfevents.*"))
     assert len(list((out / "records" / "efficienttrack").glob("*.npz"))) == 2
     assert {p.name for p in (out / "plots").iterdir()} == {
         "tracking_ref_04.png",
@@ -108,7 +116,7 @@ def test_interrupted_run_resumes(tmp_path, refs, monkeypatch):
     assert len(stamp) == 6 * 4
     monkeypatch.undo()
     result = run_pipeline(TOY, *refs, tmp_path, TOY_CFG)
-    assert result.skipped == ("collect",)
+    assert result.skipped == ("collect", "evaluate_pd")
     assert {p: p.stat().st_mtime_ns for p in stamp} == stamp
     assert result.metrics["efficienttrack"]["mae_deg"] < result.metrics["pd"]["mae_deg"]
 

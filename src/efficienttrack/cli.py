@@ -380,6 +380,10 @@ def _training_state(out: Path, force: bool) -> Path:
 
 LearnPresetOpt = Annotated[str, typer.Option("--preset", help="Training preset: paper (GPU), cpu or tiny.")]
 StepsOpt = Annotated[int | None, typer.Option("--steps", help="Override the preset's number of optimizer steps.")]
+HeldOutOpt = Annotated[
+    list[Path] | None,
+    typer.Option("--held-out", help="Episodes not trained on, for the held-out figure in the logs (repeatable)."),
+]
 
 
 def _learn_preset(presets: dict, name: str, steps: int | None):
@@ -393,9 +397,12 @@ def _learn_preset(presets: dict, name: str, steps: int | None):
 @app.command("train-model")
 def train_model_command(
     data: DataOpt,
-    out: Annotated[Path, typer.Option("--out", help="Model checkpoint (model.pt; config written to model.json).")],
+    out: Annotated[
+        Path, typer.Option("--out", help="Model checkpoint (model.pt; config to model.json, scalar logs to model.logs/).")
+    ],
     preset_name: LearnPresetOpt = "cpu",
     steps: StepsOpt = None,
+    held_out: HeldOutOpt = None,
     device: DeviceOpt = "auto",
     seed: TrainSeedOpt = 0,
     threads: ThreadsOpt = 1,
@@ -407,12 +414,13 @@ def train_model_command(
 
     _set_threads(threads)
     cfg = _learn_preset(MODEL_PRESETS, preset_name, steps)
-    records = load_records(data, recursive)
-    result = train_model(cfg, records, device, seed, progress=True, checkpoint=_training_state(out, force))
+    records, held = load_records(data, recursive), load_records(held_out, recursive) if held_out else []
+    logs = out.with_suffix(".logs")
+    result = train_model(cfg, records, device, seed, True, _training_state(out, force), logs, held)
     save_model(result.model, out)
     typer.echo(
         f"trained model on {result.windows} windows ({sum(map(len, records))} steps), {result.steps} steps in "
-        f"{result.seconds:.0f} s, final loss {result.losses[-1]:.4g}; saved {out}"
+        f"{result.seconds:.0f} s, final loss {result.losses[-1]:.4g}; saved {out}, logs in {logs}"
     )
 
 
@@ -442,9 +450,12 @@ def model_error_command(
 def train_policy_command(
     model: Annotated[Path, typer.Option("--model", help="Model checkpoint (model.pt) to train through.")],
     data: DataOpt,
-    out: Annotated[Path, typer.Option("--out", help="Policy checkpoint (policy.pt; config written to policy.json).")],
+    out: Annotated[
+        Path, typer.Option("--out", help="Policy checkpoint (policy.pt; config to policy.json, scalar logs to policy.logs/).")
+    ],
     preset_name: LearnPresetOpt = "cpu",
     steps: StepsOpt = None,
+    held_out: HeldOutOpt = None,
     device: DeviceOpt = "auto",
     seed: TrainSeedOpt = 0,
     threads: ThreadsOpt = 1,
@@ -458,13 +469,14 @@ def train_policy_command(
     _set_threads(threads)
     cfg = _learn_preset(POLICY_PRESETS, preset_name, steps)
     g_theta, records = load_model(model, device), load_records(data, recursive)
-    result = train_policy(cfg, g_theta, records, device, seed, progress=True, checkpoint=_training_state(out, force))
+    held, logs = load_records(held_out, recursive) if held_out else [], out.with_suffix(".logs")
+    result = train_policy(cfg, g_theta, records, device, seed, True, _training_state(out, force), logs, held)
     save_policy(result.policy, out)
     before = predicted_tracking_error(g_theta, records, None, cfg.rollout_length)
     after = predicted_tracking_error(g_theta, records, result.policy, cfg.rollout_length)
     typer.echo(
         f"trained policy, {result.steps} steps in {result.seconds:.0f} s; model-predicted tracking error "
-        f"{before.mae_deg:.3f}° (a = 0) → {after.mae_deg:.3f}°; saved {out}"
+        f"{before.mae_deg:.3f}° (a = 0) → {after.mae_deg:.3f}°; saved {out}, logs in {logs}"
     )
 
 

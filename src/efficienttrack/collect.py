@@ -24,11 +24,11 @@ from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
-from rich.progress import Progress
 
 from efficienttrack.episodes import Sent, batches, rollout
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import write_json
+from efficienttrack.progress import ProgressDisplay
 from efficienttrack.records import EpisodeRecord, load_named_records, load_records, save_records
 from efficienttrack.references import Reference
 from efficienttrack.systems.protocol import BatchedSystem
@@ -162,7 +162,7 @@ def run_pass(
     references: Sequence[Reference],
     cfg: CollectConfig,
     pass_index: int,
-    progress: Progress | None = None,
+    progress: ProgressDisplay | None = None,
     finished: Mapping[str, EpisodeRecord] | None = None,
     on_done: Callable[[list[EpisodeRecord]], None] | None = None,
 ) -> list[EpisodeRecord]:
@@ -173,7 +173,7 @@ def run_pass(
         references: the references (``.name``, ``.q`` (L_i, 4) rad).
         cfg: collection settings.
         pass_index: k, which decides noisy/clean (``cfg.noisy_passes[k]``) and seeds the noise.
-        progress: rich progress display for the steps, or None.
+        progress: progress display for the steps, or None.
         finished: episodes of this pass already recorded, by reference name; they are not run again.
         on_done: called with the records of every group of episodes as soon as it has run (to flush them).
 
@@ -224,7 +224,7 @@ def collect(
         cfg: collection settings.
         out: folder for the records (``pass_<k>/<name>.npz`` plus ``collect.json``); passes
             already there are read back instead of run. None keeps everything in memory.
-        progress: show progress bars.
+        progress: show progress (bars on a terminal, plain lines otherwise).
 
     Returns:
         All records, the interaction steps (I.S.) and how many passes were resumed from disk.
@@ -253,7 +253,7 @@ def collect(
             write_json(path, manifest)
     records: list[EpisodeRecord] = []
     resumed = 0
-    with Progress(disable=not progress, transient=True) as bar:
+    with ProgressDisplay(progress) as bar:
         passes = bar.add_task("collecting (passes)", total=cfg.passes)
         for k in range(cfg.passes):
             if folder is not None and _pass_dir(folder, k).is_dir():

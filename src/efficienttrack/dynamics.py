@@ -38,12 +38,18 @@ from efficienttrack.errors import EfficientTrackError
 from efficienttrack.metrics import position_error
 from efficienttrack.nets import MLP, Standardizer, feature_width, relative_features, resolve_device
 from efficienttrack.records import EpisodeRecord
-from efficienttrack.training import TrainLoop, fingerprint, load_checkpoint, save_checkpoint
+from efficienttrack.training import TrainLoop, fingerprint, held_out_subset, load_checkpoint, save_checkpoint
 
 NORM_SAMPLES = 65536
 """Windows used to fit the feature and output scaling."""
 MPE_CHUNK = 8192
 """Windows per batch in :func:`model_error` (bounds memory)."""
+HELD_OUT_TAG = "held_out/mpe_deg"
+"""Scalar tag of the 20-step prediction error on held-out episodes, logged during training (docs/logged-metrics.md)."""
+HELD_OUT_LABEL = "held-out 20-step MPE (°)"
+"""What :data:`HELD_OUT_TAG` is, for plot axes."""
+LOSS_LABEL = "multi-step loss (1/h) Σᵢ ‖(ô − o)/σ_Δ‖²"
+"""What the model's training loss is, for plot axes (dimensionless: each channel in units of its σ_Δ)."""
 
 
 @dataclass(frozen=True)
@@ -76,6 +82,8 @@ class ModelConfig:
     """Clip the gradient norm to this (None: no clipping)."""
     save_every: int = 200
     """Save the training state every this many steps when a checkpoint path is given."""
+    eval_every: int | None = None
+    """Optimizer steps between held-out evaluations when training logs (None: a tenth of the run)."""
 
     def __post_init__(self) -> None:
         """Validate the fields."""
@@ -90,6 +98,8 @@ class ModelConfig:
             raise EfficientTrackError("ModelConfig: lr must be > 0, weight_decay ≥ 0")
         if self.grad_clip is not None and self.grad_clip <= 0:
             raise EfficientTrackError("ModelConfig.grad_clip must be > 0 or None")
+        if self.eval_every is not None and self.eval_every < 1:
+            raise EfficientTrackError(f"ModelConfig.eval_every must be ≥ 1 or None, got {self.eval_every}")
 
     @property
     def history_length(self) -> int:
@@ -245,6 +255,8 @@ def train_model(
     seed: int = 0,
     progress: bool = True,
     checkpoint: str | Path | None = None,
+    log_dir: str | Path | None = None,
+    held_out: Sequence[EpisodeRecord] = (),
 ) -> ModelTrainResult:
     """Train g_θ by multi-step backpropagation through ``cfg.rollout_length``-step rollouts (Algorithm 1, TrainModel).
 
@@ -256,6 +268,9 @@ def train_model(
         progress: show a progress bar with the loss.
         checkpoint: training-state file; saved every ``cfg.save_every`` steps and at the end, resumed from
             when present (it must come from the same config).
+        log_dir: folder for the scalar log (``scalars.csv`` and TensorBoard events; see :class:`TrainLog`), or None.
+        held_out: episodes not trained on; with ``log_dir``, their 20-step MPE (:data:`HELD_OUT_TAG`, on at most
+            :data:`~efficienttrack.training.HELD_OUT_STEPS` recorded steps) is logged every ``cfg.eval_every`` steps.
 
     Returns:
         The model, per-step losses, time, steps and window count.
@@ -272,7 +287,10 @@ def train_model(
     sigma = g_theta.delta_scale
     optimizer = torch.optim.AdamW(g_theta.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     inputs = fingerprint(records, seed)
-    loop = TrainLoop("model", cfg, cfg.total_steps(len(starts)), g_theta, optimizer, seed, checkpoint, progress, inputs)
+    subset = held_out_subset(held_out)
+    evaluate = (lambda: {HELD_OUT_TAG: model_error(g_theta, subset).mpe_deg}) if subset else None
+    total = cfg.total_steps(len(starts))
+    loop = TrainLoop("model", cfg, total, g_theta, optimizer, seed, checkpoint, progress, inputs, log_dir, evaluate)
 
     for step in loop:
         window = data.window(starts[loop.sample(len(starts), cfg.batch_size).to(device)], horizon=H)

@@ -12,9 +12,9 @@ from collections.abc import Sequence
 from typing import NamedTuple, Protocol
 
 import numpy as np
-from rich.progress import Progress
 
 from efficienttrack.errors import EfficientTrackError
+from efficienttrack.progress import ProgressDisplay
 from efficienttrack.records import EpisodeRecord
 from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.windows import pad_time_major
@@ -64,7 +64,7 @@ def rollout(
     references: Sequence[np.ndarray],
     driver: Driver,
     horizon: int = 1,
-    progress: Progress | None = None,
+    progress: ProgressDisplay | None = None,
     description: str = "rollout",
 ) -> list[EpisodeRecord]:
     """Run N references together on a batched system (or N = 1 on any system); the only time loop.
@@ -79,7 +79,7 @@ def rollout(
         references: N arrays (L_i, 4) rad with L_i ≥ 3.
         driver: :class:`Runtime`-like object making each step's reference.
         horizon: future desired positions h handed to the driver each step.
-        progress: a rich progress display to report steps on, or None.
+        progress: a progress display to report steps on, or None.
         description: label of the progress task.
 
     Returns:

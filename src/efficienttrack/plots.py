@@ -10,6 +10,7 @@ import matplotlib
 matplotlib.use("Agg")
 
 from pathlib import Path
+from typing import NamedTuple
 
 import matplotlib.pyplot as plt
 import numpy as np
@@ -130,23 +131,59 @@ def plot_tracking_error(runs: dict[str, list[EpisodeRecord]], path: str | Path) 
     return _save(fig, path)
 
 
-def plot_training_curves(curves: dict[str, tuple[list[float], list[float]]], path: str | Path) -> Path:
-    """Training loss of each learned component over training, log scale, one subplot each.
+CURVE_POINTS = 1000
+"""Most points drawn of a training-loss curve (means of consecutive steps)."""
+
+
+class TrainingCurves(NamedTuple):
+    """What :func:`plot_training_curves` draws of one training run.
+
+    Attributes:
+        scalars: the run's scalar log, tag → ((K,) optimizer steps, (K,) values) (``training.read_scalars``).
+        loss_label: what the loss (tag ``train/loss``) is, with its unit: the y-axis label.
+        held_out_tag: the tag of the held-out figure drawn on the right axis (absent from ``scalars``: none drawn).
+        held_out_label: what the held-out figure is, with its unit.
+    """
+
+    scalars: dict[str, tuple[np.ndarray, np.ndarray]]
+    loss_label: str
+    held_out_tag: str
+    held_out_label: str
+
+
+def _thinned(steps: np.ndarray, values: np.ndarray, points: int = CURVE_POINTS) -> tuple[np.ndarray, np.ndarray]:
+    """(K,) steps and values → at most ``points`` means of consecutive entries of each."""
+    parts = max(1, min(len(steps), points))
+    return (
+        np.array([x.mean() for x in np.array_split(np.asarray(steps, dtype=np.float64), parts)]),
+        np.array([x.mean() for x in np.array_split(np.asarray(values, dtype=np.float64), parts)]),
+    )
+
+
+def plot_training_curves(curves: dict[str, TrainingCurves], path: str | Path) -> Path:
+    """Training loss (left axis, log scale) and held-out figure (right axis) over optimizer steps, one panel per run.
 
     Args:
-        curves: component name (``model``, ``policy``) → (optimizer step, training loss) of equal lengths.
+        curves: component name (``model``, ``policy``) → its scalars and axis labels.
         path: PNG to write.
 
     Returns:
         The path written.
     """
-    fig, axes = plt.subplots(1, len(curves), figsize=(5 * len(curves), 3.5), layout="constrained", squeeze=False)
-    for ax, (name, (steps, losses)) in zip(axes[0], curves.items(), strict=True):
-        ax.plot(steps, losses, lw=1.2)
+    fig, axes = plt.subplots(1, len(curves), figsize=(6 * len(curves), 3.8), layout="constrained", squeeze=False)
+    for ax, (name, curve) in zip(axes[0], curves.items(), strict=True):
+        steps, loss = _thinned(*curve.scalars["train/loss"])
+        ax.plot(steps, loss, lw=1.2, color="C0", label="training loss")
         ax.set_yscale("log")
-        ax.set_title(f"{name} training loss")
+        ax.set_title(f"{name} training")
         ax.set_xlabel("optimizer step")
+        ax.set_ylabel(curve.loss_label, color="C0")
         ax.grid(alpha=0.3)
+        if curve.held_out_tag in curve.scalars:
+            right = ax.twinx()
+            right.plot(*curve.scalars[curve.held_out_tag], "o-", lw=1.2, ms=3, color="C1", label="held out")
+            right.set_ylabel(curve.held_out_label, color="C1")
+            right.set_ylim(bottom=0)
     return _save(fig, path)
 
 

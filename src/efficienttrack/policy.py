@@ -35,12 +35,18 @@ from efficienttrack.dynamics import NORM_SAMPLES, ClosedLoopModel
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.nets import MLP, Standardizer, feature_width, relative_features, resolve_device
 from efficienttrack.records import EpisodeRecord
-from efficienttrack.training import TrainLoop, fingerprint, load_checkpoint, save_checkpoint
+from efficienttrack.training import TrainLoop, fingerprint, held_out_subset, load_checkpoint, save_checkpoint
 
 XE75_MAX_ADJUST = (0.15, 0.30, 0.40, 0.40)
 """Per-joint adjustment bound of the real XE75 deployment (boom, arm, bucket, swing), rad."""
 EVAL_CHUNK = 8192
 """Windows per batch in :func:`predicted_tracking_error`."""
+HELD_OUT_TAG = "held_out/tracking_error_deg"
+"""Scalar tag of the model-predicted tracking error on held-out episodes, logged during training (docs/logged-metrics.md)."""
+HELD_OUT_LABEL = "held-out model-predicted tracking error (°)"
+"""What :data:`HELD_OUT_TAG` is, for plot axes."""
+LOSS_LABEL = "L_track + k_smooth·L_reg (rad²)"
+"""What the policy's training loss is, for plot axes."""
 
 
 @dataclass(frozen=True)
@@ -76,6 +82,8 @@ class PolicyConfig:
     """Clip the gradient norm to this (None: no clipping)."""
     save_every: int = 200
     """Save the training state every this many steps when a checkpoint path is given."""
+    eval_every: int | None = None
+    """Optimizer steps between held-out evaluations when training logs (None: a tenth of the run)."""
 
     def __post_init__(self) -> None:
         """Validate the fields."""
@@ -97,6 +105,8 @@ class PolicyConfig:
             raise EfficientTrackError("PolicyConfig: need 0 < gamma ≤ 1, k_smooth ≥ 0, lr > 0, weight_decay ≥ 0")
         if self.grad_clip is not None and self.grad_clip <= 0:
             raise EfficientTrackError("PolicyConfig.grad_clip must be > 0 or None")
+        if self.eval_every is not None and self.eval_every < 1:
+            raise EfficientTrackError(f"PolicyConfig.eval_every must be ≥ 1 or None, got {self.eval_every}")
 
     @property
     def history_length(self) -> int:
@@ -301,6 +311,8 @@ def train_policy(
     seed: int = 0,
     progress: bool = True,
     checkpoint: str | Path | None = None,
+    log_dir: str | Path | None = None,
+    held_out: Sequence[EpisodeRecord] = (),
 ) -> PolicyTrainResult:
     """Train π_φ by multi-step backpropagation through the frozen model (Algorithm 1, TrainPolicy).
 
@@ -312,6 +324,10 @@ def train_policy(
         seed: seeds initialization and window sampling.
         progress: show a progress bar with the loss.
         checkpoint: training-state file, saved every ``cfg.save_every`` steps and resumed from when present.
+        log_dir: folder for the scalar log (``scalars.csv`` and TensorBoard events; see :class:`TrainLog`), or None.
+        held_out: episodes not trained on; with ``log_dir``, the h-step model-predicted tracking error of the
+            policy from their windows (:data:`HELD_OUT_TAG`, on at most
+            :data:`~efficienttrack.training.HELD_OUT_STEPS` recorded steps) is logged every ``cfg.eval_every`` steps.
 
     Returns:
         The policy, per-step losses, time, steps and window count.
@@ -331,7 +347,10 @@ def train_policy(
     gamma_i = cfg.gamma ** torch.arange(1, H + 1, device=device, dtype=torch.float32)
     optimizer = torch.optim.AdamW(pi_phi.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     inputs = fingerprint(records, seed, frozen=model)
-    loop = TrainLoop("policy", cfg, cfg.total_steps(len(starts)), pi_phi, optimizer, seed, checkpoint, progress, inputs)
+    subset = held_out_subset(held_out)
+    evaluate = (lambda: {HELD_OUT_TAG: predicted_tracking_error(g_theta, subset, pi_phi, H).mae_deg}) if subset else None
+    total = cfg.total_steps(len(starts))
+    loop = TrainLoop("policy", cfg, total, pi_phi, optimizer, seed, checkpoint, progress, inputs, log_dir, evaluate)
 
     for step in loop:
         window = data.window(starts[loop.sample(len(starts), cfg.batch_size).to(device)], horizon=0, desired=desired)

@@ -26,13 +26,13 @@ from collections.abc import Sequence
 
 import numpy as np
 import torch
-from rich.progress import Progress
 
 from efficienttrack import dataset
 from efficienttrack.episodes import Sent, batches, rollout
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.nets import resolve_device
 from efficienttrack.policy import seen_lengths
+from efficienttrack.progress import ProgressDisplay
 from efficienttrack.records import EpisodeRecord
 from efficienttrack.references import Reference
 from efficienttrack.systems.protocol import BatchedSystem
@@ -173,7 +173,7 @@ def track(
         policy: the adjustment policy, or None for the PD controller alone.
         references: the references (``.name``, ``.q`` (L_i, 4) rad of desired positions q*_0 … q*_{L_i − 1}).
         device: where the policy runs (its own device when None).
-        progress: show a progress bar.
+        progress: show progress (a bar on a terminal, plain lines otherwise).
         description: label of the progress bar.
 
     Returns:
@@ -182,7 +182,7 @@ def track(
     """
     records: list[EpisodeRecord] = []
     method = "pd" if policy is None else "efficienttrack"
-    with Progress(disable=not progress, transient=True) as bar:
+    with ProgressDisplay(progress) as bar:
         for part in batches(system, len(references)):
             runtime = Runtime(policy, device=device)
             with runtime:
