@@ -175,26 +175,32 @@ def collect_command(
 
 
 DeviceOpt = Annotated[str, typer.Option("--device", help="auto, cpu or cuda.")]
+PlotsOpt = Annotated[
+    int | None, typer.Option("--plots", help="Draw tracking plots of the first N test references (default: every one).")
+]
 TrainSeedOpt = Annotated[int, typer.Option("--seed", help="Seed of initialization and window sampling.")]
 
 
 @app.command("evaluate")
 def evaluate_command(
     refs: Annotated[Path, typer.Option("--refs", help="Folder of reference trajectories (.npy/.csv, rad).")],
-    out: Annotated[Path, typer.Option("--out", help="Output folder: records/ and metrics.json.")],
+    out: Annotated[Path, typer.Option("--out", help="Output folder: records/, metrics.json, plots/, run.log.")],
     system: SystemOpt = None,
     plant: PlantOpt = None,
     pd: PdOpt = "xe75",
     system_opt: SystemOpts = None,
-    policy: Annotated[Path | None, typer.Option("--policy", help="Policy checkpoint (policy.pt); PD alone without.")] = None,
+    policy: Annotated[
+        Path | None, typer.Option("--policy", help="Policy checkpoint (policy.pt) to compare with PD; PD alone without.")
+    ] = None,
     device: DeviceOpt = "auto",
+    plots: PlotsOpt = None,
 ) -> None:
-    """Algorithm 2: track the references with the adjustment policy (or the PD controller alone) and report metrics."""
+    """Algorithm 2: track the references with PD alone and with the adjustment policy; metrics and plots as `run`."""
     from efficienttrack.pipeline import evaluate
     from efficienttrack.references import load_references
 
     spec = _system_spec(system, plant, pd, system_opt)
-    evaluate(spec, load_references(refs), out, policy, device, Console(width=max(Console().width, 140)))
+    evaluate(spec, load_references(refs), out, policy, device, Console(width=max(Console().width, 140)), plots)
 
 
 ThreadsOpt = Annotated[
@@ -226,6 +232,7 @@ def run_command(
     seed: Annotated[int | None, typer.Option("--seed", help="Seed of collection noise and training.")] = None,
     device: Annotated[str | None, typer.Option("--device", help="auto, cpu or cuda.")] = None,
     threads: ThreadsOpt = 1,
+    plots: PlotsOpt = None,
 ) -> None:
     """The whole method: collect, train model and policy, evaluate PD alone vs EfficientTrack on the test references."""
     from efficienttrack.pipeline import run_pipeline
@@ -235,19 +242,20 @@ def run_command(
     spec = _system_spec(system, plant, pd, system_opt)
     cfg = _run_config(config, preset_name, seed, device)
     train, test = load_references(train_refs), load_references(test_refs)
-    run_pipeline(spec, train, test, out, cfg, Console(width=max(Console().width, 140)))
+    run_pipeline(spec, train, test, out, cfg, Console(width=max(Console().width, 140)), plots)
 
 
 @app.command("demo")
 def demo_command(
     out: Annotated[Path, typer.Option("--out", help="Output folder; rerunning resumes where it stopped.")] = Path("runs/demo"),
     threads: ThreadsOpt = 1,
+    plots: PlotsOpt = None,
 ) -> None:
     """The whole method on the built-in xe75 simulator with generated references (32 train / 8 test)."""
     from efficienttrack.pipeline import demo
 
     _set_threads(threads)
-    demo(out, console=Console(width=max(Console().width, 140)))
+    demo(out, console=Console(width=max(Console().width, 140)), max_plots=plots)
 
 
 DataOpt = Annotated[list[Path], typer.Option("--data", help="Episode files or folders (repeatable).")]
