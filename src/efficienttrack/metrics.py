@@ -208,8 +208,8 @@ def metrics_table(
     """
     table = Table(
         title=title,
-        caption="angles in °, ETD in cm; per-joint columns: MAE °; eps/steps: the episodes measured; "
-        "I.S./I.T.: training interaction steps / hours at 20 Hz",
+        caption="angles in °, ETD in cm; per joint: MAE °; eps/steps: the episodes measured; "
+        "I.S./I.T.: training interactions (steps, h at 20 Hz)",
     )
     table.add_column("method", overflow="fold", min_width=8)
     headers = (

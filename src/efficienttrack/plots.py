@@ -151,7 +151,7 @@ def plot_tracking_error(runs: dict[str, list[EpisodeRecord]], path: str | Path) 
         for joint, ax in enumerate(axes[:4]):
             ax.plot(t, mean[:, joint], lw=1.0, color=f"C{color}", label=f"{name} (per-episode MAE {per_episode[joint]:.2f}°)")
             ax.fill_between(t, low[:, joint], high[:, joint], color=f"C{color}", alpha=0.2, lw=0)
-        axes[4].step(t, running, where="post", color=f"C{color}", lw=1.0, label=name)
+        axes[4].step(t, running, where="post", color=f"C{color}", ls=("-", "--", ":", "-.")[color % 4], lw=1.0, label=name)
     for joint, ax in enumerate(axes[:4]):
         ax.set_ylabel(f"|e| {JOINT_NAMES[joint]} (°)")
         ax.grid(alpha=0.3)
