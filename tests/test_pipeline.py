@@ -213,6 +213,7 @@ def test_evaluate_pd_alone_writes_the_run_schema(tmp_path, refs):
         (["--system", "no_such_module:make", "--train-refs", "{refs}", "--test-refs", "{refs}"], "cannot import module"),
         (["--system", "xe75", "--plant", "xe75", "--train-refs", "{refs}", "--test-refs", "{refs}"], "not both"),
         (["--system", "xe75", "--train-refs", "{refs}", "--test-refs", "{refs}", "--preset", "huge"], "unknown, choose one"),
+        (["--system", "toy_system:make", "--train-refs", "{refs}", "--test-refs", "{refs}", "--plots", "-1"], "--plots -1"),
     ],
 )
 def test_cli_bad_inputs_exit_2(tmp_path, refs, args, message, monkeypatch, capsys):
