@@ -153,17 +153,24 @@ def test_compute_metrics_averages_per_episode():
         compute_metrics([offset_episode(3, 1.0)])
 
 
+def table_rows(table):
+    console = Console(record=True, width=200)
+    console.print(table)
+    lines = [line for line in console.export_text().splitlines() if line.count("│") > 5]
+    return {line.split("│")[1].strip(): [cell.strip() for cell in line.split("│")[2:-1]] for line in lines}
+
+
 def test_metrics_table_renders_each_method():
     a = compute_metrics([record_from(np.full((5, 4), 1.0), np.zeros((5, 4)))])
-    b = dict(a, mae_deg=0.6944, steps=17672)
-    console = Console(record=True, width=200)
-    console.print(metrics_table({"PD": a, "EfficientTrack": b}, title="XE75"))
-    text = console.export_text()
-    rows = {line.split("│")[1].strip(): line for line in text.splitlines() if line.count("│") > 5}
+    b = dict(a, mae_deg=0.6944, steps=3472, episodes=8)
+    rows = table_rows(metrics_table({"PD": a, "EfficientTrack": b}, title="XE75", training_steps={"EfficientTrack": 176720}))
     assert set(rows) == {"PD", "EfficientTrack"}
-    assert "0.69" in rows["EfficientTrack"] and "17672" in rows["EfficientTrack"]
-    assert f"{interaction_hours(17672):.2f}" == "0.25" and "0.25" in rows["EfficientTrack"]
-    assert "1.00" in rows["PD"]
+    # MAE … swing, then the test episodes and their steps, then the training interactions I.S. and I.T. (h)
+    assert rows["EfficientTrack"][0] == "0.69" and rows["EfficientTrack"][-4:] == ["8", "3472", "176720", "2.45"]
+    assert f"{interaction_hours(176720):.2f}" == "2.45"
+    assert rows["PD"][0] == "1.00" and rows["PD"][-4:] == ["1", "5", "–", "–"]  # PD is not trained
+    untrained = table_rows(metrics_table({"PD": a}, title="episodes"))  # the metrics command: no training interactions
+    assert untrained["PD"][-2:] == ["–", "–"]
 
 
 # ------------------------------------------------------------------------------------- published sets

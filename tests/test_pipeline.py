@@ -7,11 +7,12 @@ import numpy as np
 import pytest
 import torch
 
-from efficienttrack import cli, dynamics, policy
+from efficienttrack import __version__, cli, dynamics, policy
 from efficienttrack.config import PRESETS, RunConfig, from_dict, load_config
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.metrics import METRIC_KEYS
-from efficienttrack.pipeline import run_pipeline
+from efficienttrack.pipeline import evaluate, run_pipeline
+from efficienttrack.provenance import PROVENANCE_KEYS
 from efficienttrack.references import save_references
 from efficienttrack.systems.spec import SystemSpec
 from efficienttrack.training import read_scalars
@@ -62,15 +63,43 @@ def cli_main(monkeypatch, capsys, *args):
     return code, out, err
 
 
+RESULT_KEYS = {
+    "pd",
+    "efficienttrack",
+    "interaction_steps",
+    "interaction_hours",
+    "train_seconds",
+    "model",
+    "fallbacks",
+    "references",
+    "policy",
+    "system",
+    "config",
+    "provenance",
+}
+"""Top-level keys of metrics.json, the same for run and evaluate."""
+
+
 def test_run_writes_everything_and_beats_pd(finished_run):
     out, result = finished_run
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics == json.loads(json.dumps(result.metrics))
-    assert set(metrics) >= {"pd", "efficienttrack", "interaction_steps", "train_seconds", "model", "config"}
+    assert set(metrics) == RESULT_KEYS
     assert set(metrics["pd"]) == set(METRIC_KEYS) and set(metrics["efficienttrack"]) == set(METRIC_KEYS)
     assert set(metrics["model"]) == {"tr_mpe_deg", "te_mpe_deg"}
     assert metrics["interaction_steps"] == 6 * (79 + 69 + 89 + 74)
+    assert metrics["interaction_hours"] == pytest.approx(metrics["interaction_steps"] / 20 / 3600, abs=1e-4)
+    assert metrics["references"] == ["ref_04", "ref_05"]
     assert metrics["config"] == TOY_CFG.to_dict()
+    assert metrics["provenance"]["device"] == "cpu" and metrics["provenance"]["wall_seconds"] > 0
+    for name in ("metrics.json", "config.json", "run.json", "model.json", "policy.json"):
+        facts = json.loads((out / name).read_text())["provenance"]
+        assert tuple(facts) == PROVENANCE_KEYS, name
+        assert facts["version"] == __version__ and facts["torch"] == torch.__version__
+    assert load_config(out / "config.json") == TOY_CFG  # the provenance is a record, not a setting
+    log = (out / "run.log").read_text()
+    assert log.startswith("=== ") and " run (commit " in log.splitlines()[0]
+    assert "collected 24 episodes" in log and "EfficientTrack" in log and "1866" in log
     # the toy lag closes 40 % of the error per step; the learned adjustment (exact answer known) must remove most of it
     assert metrics["pd"]["mae_deg"] == pytest.approx(1.69, abs=0.01)
     assert metrics["efficienttrack"]["mae_deg"] < 0.5 * metrics["pd"]["mae_deg"]
@@ -96,10 +125,16 @@ def test_run_writes_everything_and_beats_pd(finished_run):
 def test_rerun_skips_finished_stages(finished_run, refs):
     out, first = finished_run
     stamp = {p: p.stat().st_mtime_ns for p in (out / "records").rglob("*.npz")}
-    again = run_pipeline(TOY, *refs, out, TOY_CFG)
+    log = (out / "run.log").read_text()
+    run_json = (out / "run.json").read_text()
+    again = run_pipeline(TOY, *refs, out, TOY_CFG, max_plots=1)
     assert set(again.skipped) == {"collect", "model", "policy", "evaluate_pd", "evaluate_efficienttrack"}
     assert again.metrics["efficienttrack"] == first.metrics["efficienttrack"]
     assert {p: p.stat().st_mtime_ns for p in (out / "records").rglob("*.npz")} == stamp
+    assert (out / "run.json").read_text() == run_json  # provenance of the run's first invocation, kept
+    appended = (out / "run.log").read_text()
+    assert appended.startswith(log) and appended.count("\n=== ") == log.count("\n=== ") + 1
+    assert "model trained (" in appended[len(log) :] and "earlier run" in appended[len(log) :]
     with pytest.raises(EfficientTrackError, match="other settings"):
         run_pipeline(TOY, *refs, out, replace(TOY_CFG, seed=1))
 
@@ -142,8 +177,19 @@ def test_cli_run_resumes_evaluate_and_collect(tmp_path, refs, finished_run, monk
     )  # fmt: skip
     assert code == 0, err
     evaluated = json.loads((tmp_path / "eval" / "metrics.json").read_text())
-    assert evaluated["metrics"] == metrics["efficienttrack"]
-    assert len(list((tmp_path / "eval" / "records").glob("*.npz"))) == 2
+    assert set(evaluated) == set(metrics) == RESULT_KEYS
+    assert evaluated["pd"] == metrics["pd"] and evaluated["efficienttrack"] == metrics["efficienttrack"]
+    assert evaluated["interaction_steps"] == metrics["interaction_steps"]  # read from the policy's run folder
+    assert evaluated["model"] is None and evaluated["config"] is None
+    assert tuple(evaluated["provenance"]) == PROVENANCE_KEYS
+    for method in ("pd", "efficienttrack"):
+        assert len(list((tmp_path / "eval" / "records" / method).glob("*.npz"))) == 2
+    assert {p.name for p in (tmp_path / "eval" / "plots").iterdir()} == {
+        "tracking_ref_04.png",
+        "tracking_ref_05.png",
+        "tracking_error.png",
+    }
+    assert "EfficientTrack" in (tmp_path / "eval" / "run.log").read_text()
     code, out, err = cli_main(
         monkeypatch, capsys, "collect", "--plant", "toy_system:make_plant", "--pd", "xe75", "--refs", tmp_path / "test",
         "--out", tmp_path / "col", "--passes", "2", "--noise-ratio", "1:1",
@@ -151,6 +197,18 @@ def test_cli_run_resumes_evaluate_and_collect(tmp_path, refs, finished_run, monk
     assert code == 0, err
     assert "collected 4 episodes, 286 interaction steps" in out
     assert sorted(p.name for p in (tmp_path / "col").iterdir()) == ["collect.json", "pass_000", "pass_001"]
+
+
+def test_evaluate_pd_alone_writes_the_run_schema(tmp_path, refs):
+    metrics = evaluate(TOY, refs[1], tmp_path, max_plots=1)
+    assert set(metrics) == RESULT_KEYS and json.loads((tmp_path / "metrics.json").read_text()) == metrics
+    assert metrics["pd"]["mae_deg"] == pytest.approx(1.69, abs=0.01)
+    assert metrics["efficienttrack"] is None and metrics["interaction_steps"] is None and metrics["policy"] is None
+    assert {p.name for p in (tmp_path / "plots").iterdir()} == {"tracking_ref_04.png", "tracking_error.png"}
+    log = (tmp_path / "run.log").read_text()
+    assert " evaluate (commit " in log.splitlines()[0] and "PD" in log
+    with pytest.raises(EfficientTrackError, match="--plots -1"):
+        evaluate(TOY, refs[1], tmp_path, max_plots=-1)
 
 
 @pytest.mark.parametrize(
@@ -163,6 +221,7 @@ def test_cli_run_resumes_evaluate_and_collect(tmp_path, refs, finished_run, monk
         (["--system", "no_such_module:make", "--train-refs", "{refs}", "--test-refs", "{refs}"], "cannot import module"),
         (["--system", "xe75", "--plant", "xe75", "--train-refs", "{refs}", "--test-refs", "{refs}"], "not both"),
         (["--system", "xe75", "--train-refs", "{refs}", "--test-refs", "{refs}", "--preset", "huge"], "unknown, choose one"),
+        (["--system", "toy_system:make", "--train-refs", "{refs}", "--test-refs", "{refs}", "--plots", "-1"], "--plots -1"),
     ],
 )
 def test_cli_bad_inputs_exit_2(tmp_path, refs, args, message, monkeypatch, capsys):

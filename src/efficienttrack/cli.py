@@ -252,31 +252,37 @@ def collect_command(
 
 
 DeviceOpt = Annotated[str, typer.Option("--device", help="auto, cpu or cuda.")]
+PlotsOpt = Annotated[
+    int | None, typer.Option("--plots", help="Draw tracking plots of the first N test references (default: every one).")
+]
 TrainSeedOpt = Annotated[int, typer.Option("--seed", help="Seed of initialization and window sampling.")]
 
 
 @app.command("evaluate")
 def evaluate_command(
     refs: Annotated[Path, typer.Option("--refs", help="Folder of reference trajectories (.npy/.csv, rad).")],
-    out: Annotated[Path, typer.Option("--out", help="Output folder: records/ and metrics.json.")],
+    out: Annotated[Path, typer.Option("--out", help="Output folder: records/, metrics.json, plots/, run.log.")],
     system: SystemOpt = None,
     plant: PlantOpt = None,
     pd: PdOpt = "xe75",
     system_opt: SystemOpts = None,
-    policy: Annotated[Path | None, typer.Option("--policy", help="Policy checkpoint (policy.pt); PD alone without.")] = None,
+    policy: Annotated[
+        Path | None, typer.Option("--policy", help="Policy checkpoint (policy.pt) to compare with PD; PD alone without.")
+    ] = None,
     device: DeviceOpt = "auto",
+    plots: PlotsOpt = None,
     force: Annotated[
         bool,
         typer.Option("--force", help="Write into a non-empty OUT: first delete an earlier evaluation's outputs there."),
     ] = False,
 ) -> None:
-    """Algorithm 2: track the references with the adjustment policy (or the PD controller alone) and report metrics."""
+    """Algorithm 2: track the references with PD alone and with the adjustment policy; metrics and plots as `run`."""
     from efficienttrack.pipeline import EVALUATE_OUTPUTS, evaluate
     from efficienttrack.references import load_references
 
     spec, references = _system_spec(system, plant, pd, system_opt), load_references(refs)
     prepare_output_folder(out, EVALUATE_OUTPUTS, force)
-    evaluate(spec, references, out, policy, device, wide_console())
+    evaluate(spec, references, out, policy, device, wide_console(), plots)
 
 
 ThreadsOpt = Annotated[
@@ -329,6 +335,7 @@ def run_command(
     seed: RunSeedOpt = None,
     device: RunDeviceOpt = None,
     threads: ThreadsOpt = 1,
+    plots: PlotsOpt = None,
     force: RunForceOpt = False,
 ) -> None:
     """The whole method: collect, train model and policy, evaluate PD alone vs EfficientTrack on the test references."""
@@ -340,7 +347,7 @@ def run_command(
     cfg = _run_config(config, preset_name, seed, device)
     train, test = load_references(train_refs), load_references(test_refs)
     _prepare_run_folder(out, RUN_OUTPUTS, force)
-    run_pipeline(spec, train, test, out, cfg, wide_console())
+    run_pipeline(spec, train, test, out, cfg, wide_console(), plots)
 
 
 @app.command("demo")
@@ -351,6 +358,7 @@ def demo_command(
     seed: RunSeedOpt = None,
     device: RunDeviceOpt = None,
     threads: ThreadsOpt = 1,
+    plots: PlotsOpt = None,
     force: RunForceOpt = False,
 ) -> None:
     """The whole method on the built-in xe75 simulator with generated references (32 train / 8 test)."""
@@ -359,7 +367,7 @@ def demo_command(
     _set_threads(threads)
     cfg = _run_config(config, preset_name, seed, device)
     _prepare_run_folder(out, DEMO_OUTPUTS, force)
-    demo(out, cfg, console=wide_console())
+    demo(out, cfg, console=wide_console(), max_plots=plots)
 
 
 DataOpt = Annotated[

@@ -132,7 +132,8 @@ def load_config(path: str | Path, base: RunConfig | None = None) -> RunConfig:
     """Read a RunConfig from YAML or ``.json`` (:func:`~efficienttrack.configfile.read_mapping_file`), checked field by field.
 
     Args:
-        path: the file; component sections (``collect``, ``model``, ``policy``) may list only some fields.
+        path: the file; component sections (``collect``, ``model``, ``policy``) may list only some fields; a
+            ``provenance`` entry (a run's ``config.json`` has one) is ignored.
         base: where fields not given come from (the ``cpu`` preset when None).
 
     Returns:
@@ -148,6 +149,8 @@ def load_config(path: str | Path, base: RunConfig | None = None) -> RunConfig:
         raise EfficientTrackError(f"{path}: expected a mapping of fields")
     merged = base.to_dict()
     for name, value in data.items():
+        if name == "provenance":  # a run's config.json records where it came from: a fact, not a setting
+            continue
         if isinstance(value, dict) and isinstance(merged.get(name), dict):
             merged[name] = {**merged[name], **value}
         else:

@@ -79,6 +79,19 @@ def position_error(q_hat: ArrayT, q: ArrayT) -> ArrayT:
     return abs(wrap(q_hat - q))
 
 
+def adjustment(q_ref: np.ndarray, q_des: np.ndarray) -> np.ndarray:
+    """Adjustment of every step: a_t = wrap(q_ref[t] − q_des[t]), the reference sent minus the desired one.
+
+    Args:
+        q_ref: (T, 4) rad, reference sent at step t (target of step t+1).
+        q_des: (T, 4) rad, desired position for step t+1.
+
+    Returns:
+        (T, 4) rad; zero for the PD controller alone.
+    """
+    return wrap(q_ref - q_des)
+
+
 def mae(e: np.ndarray) -> float:
     """Mean absolute error over steps and joints of ``e`` (S, 4) rad → rad."""
     return float(np.mean(np.abs(e)))
@@ -166,7 +179,7 @@ def compute_metrics(records: Sequence[EpisodeRecord]) -> dict[str, Any]:
         records: the episodes (at least one, each with T ≥ 4 steps for the 2nd-order smoothness).
 
     Returns:
-        ``{"episodes": int, "steps": int (Σ T, the interaction steps), "mae_deg", "rmse_deg",
+        ``{"episodes": int, "steps": int (Σ T, the steps of these episodes), "mae_deg", "rmse_deg",
         "fmae_deg", "smt1_deg", "smt2_deg": float °, "etd_mae_cm", "etd_fmae_cm": float cm,
         "per_joint_mae_deg": [4] ° (boom, arm, bucket, swing)}``.
     """
@@ -246,18 +259,30 @@ def interaction_hours(steps: int) -> float:
     return steps / CONTROL_RATE_HZ / 3600
 
 
-def metrics_table(rows: Mapping[str, Mapping[str, Any]], title: str) -> Table:
-    """A rich table with one row per method.
+def metrics_table(
+    rows: Mapping[str, Mapping[str, Any]], title: str, training_steps: Mapping[str, int | None] | None = None
+) -> Table:
+    """A rich table with one row per method, interactions counted as in the paper.
+
+    I.S. and I.T. are the interactions with the system used for *training* (collection), as in the
+    paper's tables; the evaluated test episodes and their steps have their own columns.
 
     Args:
-        rows: method name → the dict of :func:`compute_metrics`.
+        rows: method name → the dict of :func:`compute_metrics` (of the test episodes).
         title: table title.
+        training_steps: method name → interaction steps used to train it (None or absent: not known or
+            not trained, shown as "–"); None for no method.
 
     Returns:
         The table: MAE, RMSE, FMAE, 1st/2nd-order smoothness (oSMT) in °, ETD-MAE/FMAE in cm,
-        per-joint MAE in ° (boom, arm, bucket, swing), episodes, interaction steps I.S. and time I.T. in h.
+        per-joint MAE in ° (boom, arm, bucket, swing), test episodes and steps, training interaction
+        steps I.S. and time I.T. in h.
     """
-    table = Table(title=title, caption="angles in °, ETD in cm; per-joint columns: MAE °; I.T. in hours at 20 Hz")
+    table = Table(
+        title=title,
+        caption="angles in °, ETD in cm; per joint: MAE °; eps/steps: the episodes measured; "
+        "I.S./I.T.: training interactions (steps, h at 20 Hz)",
+    )
     table.add_column("method", overflow="fold", min_width=8)
     headers = (
         "MAE",
@@ -272,18 +297,21 @@ def metrics_table(rows: Mapping[str, Mapping[str, Any]], title: str) -> Table:
         "bucket",
         "swing",
         "eps",
+        "steps",
         "I.S.",
         "I.T.",
     )
     for header in headers:
         table.add_column(header, justify="right", no_wrap=True)
     for name, m in rows.items():
+        steps = (training_steps or {}).get(name)
         table.add_row(
             name,
             *(f"{m[key]:.2f}" for key in METRIC_KEYS[2:-1]),
             *(f"{v:.2f}" for v in m["per_joint_mae_deg"]),
             str(m["episodes"]),
             str(m["steps"]),
-            f"{interaction_hours(m['steps']):.2f}",
+            "–" if steps is None else str(steps),
+            "–" if steps is None else f"{interaction_hours(steps):.2f}",
         )
     return table

@@ -10,7 +10,9 @@ Output folder layout (everything written atomically)::
     OUT/logs/{model,policy}/        scalars.csv and TensorBoard events of each training (docs/logged-metrics.md)
     OUT/records/{pd,efficienttrack}/<reference>.npz
     OUT/stages/<stage>.json         written last by each finished stage (its facts: seconds, log folder)
-    OUT/metrics.json, OUT/plots/*.png
+    OUT/metrics.json                PD and EfficientTrack metrics, training interactions, provenance
+    OUT/plots/*.png                 tracking per test reference, tracking error over time, training curves
+    OUT/run.log                     what the console showed, plain text, a header line per invocation
 
 Held-out figures during training: the PD controller alone is run on the test references first (it is the
 baseline, and does not depend on training), and its records are the held-out episodes of both trainings:
@@ -23,10 +25,16 @@ the policy's training time (docs/logged-metrics.md).
 A rerun with the same run.json skips every finished stage; an interrupted stage resumes
 (collection at its first unwritten pass, training from its checkpoint). A rerun with other
 settings into the same folder is refused.
+
+:func:`evaluate` writes the same ``metrics.json`` schema (``efficienttrack`` null without a policy;
+``model``, ``config``, ``train_seconds`` null), records, tracking plots and ``run.log``.
+``config.json``, ``run.json`` and ``metrics.json`` carry a ``provenance`` entry
+(:func:`efficienttrack.provenance.provenance`); run.json's is left out when comparing a rerun.
 """
 
 from __future__ import annotations
 
+import io
 import json
 import time
 from collections.abc import Sequence
@@ -42,9 +50,10 @@ from efficienttrack.collect import collect
 from efficienttrack.config import DEMO, RunConfig
 from efficienttrack.cycles import generate_references
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import write_json
-from efficienttrack.metrics import compute_metrics, metrics_table, rounded
+from efficienttrack.fileio import atomic_write, write_json
+from efficienttrack.metrics import compute_metrics, interaction_hours, metrics_table, rounded
 from efficienttrack.nets import resolve_device
+from efficienttrack.provenance import provenance
 from efficienttrack.records import EpisodeRecord, load_named_records, save_records
 from efficienttrack.references import Reference, save_references
 from efficienttrack.runtime import track
@@ -52,10 +61,10 @@ from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.systems.spec import SystemSpec
 from efficienttrack.training import read_scalars
 
-PLOTTED_REFERENCES = 3
-"""Test references drawn in the tracking plots."""
 LOGS = "logs"
 """Folder of the training logs in ``OUT``: ``logs/model``, ``logs/policy``."""
+LOG_WIDTH = 160
+"""Characters per line of ``OUT/run.log`` (wide enough for the results table)."""
 DEMO_REFERENCES = 40
 """Loading cycles the demo generates (train + test)."""
 DEMO_TRAIN = 32
@@ -74,11 +83,13 @@ RUN_OUTPUTS = (
     "stages",
     "metrics.json",
     "plots",
+    "logs",
+    "run.log",
 )
 """What :func:`run_pipeline` writes in its folder (see the module docstring): a fresh start deletes these."""
 DEMO_OUTPUTS = (*RUN_OUTPUTS, "refs")
 """What :func:`demo` writes in its folder: the run's outputs and the generated references."""
-EVALUATE_OUTPUTS = ("records", "metrics.json", "plots")
+EVALUATE_OUTPUTS = ("records", "metrics.json", "plots", "run.log")
 """What :func:`evaluate` writes in its folder: a fresh evaluation deletes these."""
 
 
@@ -118,28 +129,121 @@ class _Stages:
         return facts
 
 
+class _RunLog:
+    """What a command prints: to the console, and appended as plain text to ``OUT/run.log`` (rewritten atomically)."""
+
+    def __init__(self, out: Path, console: Console | None) -> None:
+        self.console = console or Console()
+        self.path = out / "run.log"
+
+    def header(self, command: str) -> None:
+        """Start an invocation's part of the log (not shown on the console)."""
+        facts = provenance()
+        commit = facts["git_commit"] or "unknown"
+        self._append(f"=== {facts['created']} efficienttrack {facts['version']} {command} (commit {commit}) ===")
+
+    def print(self, renderable: Any) -> None:
+        """Show ``renderable`` (a string or a rich renderable) on the console and append it to the log."""
+        self.console.print(renderable)
+        self._append(renderable)
+
+    def _append(self, renderable: Any) -> None:
+        text = io.StringIO()
+        Console(file=text, width=LOG_WIDTH, color_system=None, highlight=False, soft_wrap=False).print(renderable)
+        lines = "".join(line.rstrip() + "\n" for line in text.getvalue().splitlines())
+        before = self.path.read_text() if self.path.exists() else ""
+        atomic_write(self.path, lambda f: f.write(before + lines), mode="w")
+
+
+def _check_plots(max_plots: int | None) -> None:
+    if max_plots is not None and max_plots < 0:
+        raise EfficientTrackError(f"--plots {max_plots}: expected a number of references ≥ 0")
+
+
 def _check_run(out: Path, identity: dict[str, Any]) -> None:
+    """Refuse a folder holding another run; write run.json (identity + provenance) for a new one."""
     path = out / "run.json"
     if path.exists():
-        if json.loads(path.read_text()) != identity:
+        found = {key: value for key, value in json.loads(path.read_text()).items() if key != "provenance"}
+        if found != identity:
             raise EfficientTrackError(
                 f"{path}: this folder holds a run with other settings, system or references; "
                 "use another --out, or --force to start afresh"
             )
     else:
-        write_json(path, identity)
+        write_json(path, {**identity, "provenance": provenance()})
+
+
+def _track(
+    name: str, out: Path, system: BatchedSystem, pi: torch.nn.Module | None, refs: Sequence[Reference], device
+) -> list[EpisodeRecord]:
+    """Track ``refs`` with ``pi`` (PD alone when None) and save the records to ``OUT/records/<name>``."""
+    records = track(system, pi, refs, device=device, description=f"evaluating {name}")
+    save_records(records, out / "records" / name)
+    return records
 
 
 def _evaluate(
     stages: _Stages, name: str, out: Path, system: BatchedSystem, pi: torch.nn.Module | None, refs: Sequence[Reference], device
 ) -> list[EpisodeRecord]:
-    folder = out / "records" / name
     if stages.done(f"evaluate_{name}") is not None:
-        return load_named_records(folder, [ref.name for ref in refs])
-    records = track(system, pi, refs, device=device, description=f"evaluating {name}")
-    save_records(records, folder)
+        return load_named_records(out / "records" / name, [ref.name for ref in refs])
+    records = _track(name, out, system, pi, refs, device)
     stages.finish(f"evaluate_{name}", {"episodes": len(records), "fallbacks": sum(r.meta["fallbacks"] for r in records)})
     return records
+
+
+def _metrics(
+    system: SystemSpec,
+    refs: Sequence[Reference],
+    pd_records: list[EpisodeRecord],
+    et_records: list[EpisodeRecord] | None,
+    *,
+    interaction_steps: int | None,
+    train_seconds: float | None,
+    model: dict[str, float] | None,
+    policy_path: str | None,
+    config: dict[str, Any] | None,
+    device: torch.device | None,
+    wall_seconds: float,
+) -> dict[str, Any]:
+    """The one ``metrics.json`` schema of :func:`run_pipeline` and :func:`evaluate` (see their Returns)."""
+    return {
+        "pd": rounded(compute_metrics(pd_records)),
+        "efficienttrack": None if et_records is None else rounded(compute_metrics(et_records)),
+        "interaction_steps": interaction_steps,
+        "interaction_hours": None if interaction_steps is None else round(interaction_hours(interaction_steps), 4),
+        "train_seconds": train_seconds,
+        "model": model,
+        "fallbacks": None if et_records is None else sum(r.meta["fallbacks"] for r in et_records),
+        "references": [ref.name for ref in refs],
+        "policy": policy_path,
+        "system": system.to_dict(),
+        "config": config,
+        "provenance": provenance(device, wall_seconds),
+    }
+
+
+def _publish(
+    out: Path,
+    log: _RunLog,
+    metrics: dict[str, Any],
+    refs: Sequence[Reference],
+    pd_records: list[EpisodeRecord],
+    et_records: list[EpisodeRecord] | None,
+    max_plots: int | None,
+    title: str,
+) -> None:
+    """Write ``metrics.json``, the tracking plots (every reference, or the first ``max_plots``) and print the table."""
+    write_json(out / "metrics.json", metrics)
+    runs = {"PD": pd_records} if et_records is None else {"PD": pd_records, "EfficientTrack": et_records}
+    for i, ref in enumerate(refs[:max_plots]):
+        plots.plot_tracking(
+            {name: records[i] for name, records in runs.items()}, out / "plots" / f"tracking_{ref.name}.png", ref.name
+        )
+    plots.plot_tracking_error(runs, out / "plots" / "tracking_error.png")
+    rows = {"PD": metrics["pd"]} if et_records is None else {"PD": metrics["pd"], "EfficientTrack": metrics["efficienttrack"]}
+    log.print(metrics_table(rows, title=f"{title} ({out})", training_steps={"EfficientTrack": metrics["interaction_steps"]}))
 
 
 def run_pipeline(
@@ -149,6 +253,8 @@ def run_pipeline(
     out: str | Path,
     cfg: RunConfig,
     console: Console | None = None,
+    max_plots: int | None = None,
+    command: str = "run",
 ) -> RunResult:
     """The whole method on one system: Algorithm 1, model and policy training, Algorithm 2 vs PD.
 
@@ -158,17 +264,25 @@ def run_pipeline(
         test_refs: held-out references for evaluation.
         out: output folder (see the module docstring); a rerun resumes here.
         cfg: the run's settings.
-        console: where to print progress notes and the table (a fresh rich console when None).
+        console: where to print progress notes and the table (a fresh rich console when None); the same
+            text is appended to ``OUT/run.log``.
+        max_plots: draw the tracking plots of the first ``max_plots`` test references (None: every one).
+        command: the command named in this invocation's header line of ``OUT/run.log``.
 
     Returns:
-        The folder, the metrics written to ``OUT/metrics.json`` and the skipped stages.
+        The folder, the metrics written to ``OUT/metrics.json`` and the skipped stages. The metrics are
+        ``{"pd", "efficienttrack": compute_metrics' dicts of the test episodes, "interaction_steps" and
+        "interaction_hours": training interactions (all collected steps), "train_seconds", "model":
+        {"tr_mpe_deg", "te_mpe_deg"}, "fallbacks": guard fallbacks, "references": test reference names,
+        "policy": the policy checkpoint, "system", "config", "provenance"}``.
 
     Raises:
-        EfficientTrackError: bad system spec, no references, or ``out`` holding another run.
+        EfficientTrackError: bad system spec, no references, a negative ``max_plots``, or ``out`` holding another run.
     """
-    console = console or Console()
+    start = time.perf_counter()
     if not train_refs or not test_refs:
         raise EfficientTrackError("run: needs at least one training and one test reference")
+    _check_plots(max_plots)
     out = Path(out)
     env = system.open()
     identity = {
@@ -177,15 +291,17 @@ def run_pipeline(
         "train_references": {ref.name: len(ref.q) for ref in train_refs},
         "test_references": {ref.name: len(ref.q) for ref in test_refs},
     }
-    _check_run(out, identity)
-    cfg.save(out / "config.json")
-    stages = _Stages(out)
     device = resolve_device(cfg.device)
+    _check_run(out, identity)
+    write_json(out / "config.json", {**cfg.to_dict(), "provenance": provenance(device)})
+    log = _RunLog(out, console)
+    log.header(command)
+    stages = _Stages(out)
 
     # Algorithm 1: collection (resumes pass by pass)
     collected = collect(env, train_refs, cfg.collect, out / "records" / "train")
     facts = stages.done("collect") or stages.finish("collect", {"interaction_steps": collected.interaction_steps})
-    console.print(f"collected {len(collected.records)} episodes, {facts['interaction_steps']} interaction steps")
+    log.print(f"collected {len(collected.records)} episodes, {facts['interaction_steps']} interaction steps")
 
     # the PD controller alone on the test references: the baseline, and the held-out episodes of both trainings
     pd_records = _evaluate(stages, "pd", out, env, None, test_refs, device)
@@ -205,7 +321,7 @@ def run_pipeline(
         dynamics.save_model(trained.model, out / "model.pt")
         model_facts = stages.finish("model", {"seconds": trained.seconds, "log": f"{LOGS}/model"})
     g_theta = dynamics.load_model(out / "model.pt").to(device)
-    console.print(f"model trained ({model_facts['seconds']:.0f} s{', earlier run' if 'model' in stages.skipped else ''})")
+    log.print(f"model trained ({model_facts['seconds']:.0f} s{', earlier run' if 'model' in stages.skipped else ''})")
 
     # adjustment policy π_φ
     policy_facts = stages.done("policy")
@@ -223,30 +339,28 @@ def run_pipeline(
         policy.save_policy(trained_pi.policy, out / "policy.pt")
         policy_facts = stages.finish("policy", {"seconds": trained_pi.seconds, "log": f"{LOGS}/policy"})
     pi_phi = policy.load_policy(out / "policy.pt").to(device)
-    console.print(f"policy trained ({policy_facts['seconds']:.0f} s{', earlier run' if 'policy' in stages.skipped else ''})")
+    log.print(f"policy trained ({policy_facts['seconds']:.0f} s{', earlier run' if 'policy' in stages.skipped else ''})")
 
     # Algorithm 2 on the held-out references
     et_records = _evaluate(stages, "efficienttrack", out, env, pi_phi, test_refs, device)
 
     # report
-    metrics = {
-        "pd": rounded(compute_metrics(pd_records)),
-        "efficienttrack": rounded(compute_metrics(et_records)),
-        "interaction_steps": facts["interaction_steps"],
-        "train_seconds": round(model_facts["seconds"] + policy_facts["seconds"], 2),
-        "model": {
+    metrics = _metrics(
+        system,
+        test_refs,
+        pd_records,
+        et_records,
+        interaction_steps=facts["interaction_steps"],
+        train_seconds=round(model_facts["seconds"] + policy_facts["seconds"], 2),
+        model={
             "tr_mpe_deg": round(float(dynamics.model_error(g_theta, collected.records).mpe_deg), 4),
             "te_mpe_deg": round(float(dynamics.model_error(g_theta, et_records).mpe_deg), 4),
         },
-        "fallbacks": sum(r.meta["fallbacks"] for r in et_records),
-        "system": system.to_dict(),
-        "config": cfg.to_dict(),
-    }
-    write_json(out / "metrics.json", metrics)
-    plot_dir = out / "plots"
-    for ref, pd_rec, et_rec in list(zip(test_refs, pd_records, et_records, strict=True))[:PLOTTED_REFERENCES]:
-        plots.plot_tracking({"PD": pd_rec, "EfficientTrack": et_rec}, plot_dir / f"tracking_{ref.name}.png", title=ref.name)
-    plots.plot_tracking_error({"PD": pd_records, "EfficientTrack": et_records}, plot_dir / "tracking_error.png")
+        policy_path=str(out / "policy.pt"),
+        config=cfg.to_dict(),
+        device=device,
+        wall_seconds=time.perf_counter() - start,
+    )
     curves = {
         name: plots.TrainingCurves(read_scalars(out / facts["log"]), *labels)
         for name, facts, labels in (
@@ -254,9 +368,19 @@ def run_pipeline(
             ("policy", policy_facts, (policy.LOSS_LABEL, policy.HELD_OUT_TAG, policy.HELD_OUT_LABEL)),
         )
     }
-    plots.plot_training_curves(curves, plot_dir / "training_curves.png")
-    console.print(metrics_table({"PD": metrics["pd"], "EfficientTrack": metrics["efficienttrack"]}, title=f"test ({out})"))
+    plots.plot_training_curves(curves, out / "plots" / "training_curves.png")
+    _publish(out, log, metrics, test_refs, pd_records, et_records, max_plots, "test")
     return RunResult(out=out, metrics=metrics, skipped=tuple(stages.skipped))
+
+
+def _training_interactions(policy_path: Path) -> int | None:
+    """Interaction steps collected to train the policy at ``policy_path``, when it lies in a run folder; else None."""
+    facts = policy_path.parent / "stages" / "collect.json"
+    try:
+        steps = json.loads(facts.read_text()).get("interaction_steps")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return steps if isinstance(steps, int) and not isinstance(steps, bool) else None
 
 
 def evaluate(
@@ -266,43 +390,67 @@ def evaluate(
     policy_path: str | Path | None = None,
     device: str = "auto",
     console: Console | None = None,
+    max_plots: int | None = None,
 ) -> dict[str, Any]:
-    """Algorithm 2 (or the PD controller alone without a policy) on references; records and metrics to ``out``.
+    """The PD controller alone and, given a policy, Algorithm 2 on the same references; written like a run's results.
+
+    Writes ``OUT/records/{pd,efficienttrack}/<reference>.npz``, ``OUT/metrics.json`` (the schema of
+    :func:`run_pipeline`), ``OUT/plots/`` (tracking per reference, tracking error over time) and
+    appends to ``OUT/run.log``.
 
     Args:
         system: how to build the closed-loop system.
         refs: the references to track.
-        out: folder for ``records/<reference>.npz`` and ``metrics.json``.
+        out: the output folder.
         policy_path: a policy checkpoint (``policy.pt``) or None for the PD controller alone.
         device: torch device for the policy (``auto``, ``cpu``, ``cuda``).
-        console: where to print the table.
+        console: where to print the table (the same text goes to ``OUT/run.log``).
+        max_plots: draw the tracking plots of the first ``max_plots`` references (None: every one).
 
     Returns:
-        The content of ``metrics.json`` ({"method", "metrics", "fallbacks", "system", "policy"}).
+        The content of ``metrics.json``: as :func:`run_pipeline`'s, with ``efficienttrack`` and ``fallbacks``
+        null without a policy, ``model``, ``config`` and ``train_seconds`` null, and ``interaction_steps`` /
+        ``interaction_hours`` those of the run the policy comes from when it lies in a run folder (else null).
+
+    Raises:
+        EfficientTrackError: no references, a missing policy file, a bad device or a negative ``max_plots``.
     """
-    console = console or Console()
+    start = time.perf_counter()
+    if not refs:
+        raise EfficientTrackError("evaluate: needs at least one reference")
+    _check_plots(max_plots)
+    out = Path(out)
     env = system.open()
-    pi = None
+    pi, torch_device = None, None
     if policy_path is not None:
         if not Path(policy_path).is_file():
             raise EfficientTrackError(f"--policy {policy_path}: no such file")
-        pi = policy.load_policy(policy_path).to(resolve_device(device))
-    records = track(env, pi, refs, description="evaluating")
-    save_records(records, Path(out) / "records")
-    method = "PD" if pi is None else "EfficientTrack"
-    result = {
-        "method": method,
-        "metrics": rounded(compute_metrics(records)),
-        "fallbacks": sum(r.meta["fallbacks"] for r in records),
-        "system": system.to_dict(),
-        "policy": None if policy_path is None else str(policy_path),
-    }
-    write_json(Path(out) / "metrics.json", result)
-    console.print(metrics_table({method: result["metrics"]}, title=f"evaluation ({out})"))
-    return result
+        torch_device = resolve_device(device)
+        pi = policy.load_policy(policy_path).to(torch_device)
+    log = _RunLog(out, console)
+    log.header("evaluate")
+    pd_records = _track("pd", out, env, None, refs, None)
+    et_records = None if pi is None else _track("efficienttrack", out, env, pi, refs, torch_device)
+    metrics = _metrics(
+        system,
+        refs,
+        pd_records,
+        et_records,
+        interaction_steps=None if policy_path is None else _training_interactions(Path(policy_path)),
+        train_seconds=None,
+        model=None,
+        policy_path=None if policy_path is None else str(policy_path),
+        config=None,
+        device=torch_device,
+        wall_seconds=time.perf_counter() - start,
+    )
+    _publish(out, log, metrics, refs, pd_records, et_records, max_plots, "evaluation")
+    return metrics
 
 
-def demo(out: str | Path = "runs/demo", cfg: RunConfig | None = None, console: Console | None = None) -> RunResult:
+def demo(
+    out: str | Path = "runs/demo", cfg: RunConfig | None = None, console: Console | None = None, max_plots: int | None = None
+) -> RunResult:
     """The whole method on the built-in ``xe75`` simulator with generated references.
 
     Draws ``DEMO_REFERENCES`` loading cycles (fixed seed), trains on the first ``DEMO_TRAIN`` and
@@ -311,20 +459,20 @@ def demo(out: str | Path = "runs/demo", cfg: RunConfig | None = None, console: C
     Args:
         out: output folder (resumable like :func:`run_pipeline`).
         cfg: the run's settings; ``config.DEMO`` when None.
-        console: where to print.
+        console: where to print (the same text goes to ``OUT/run.log``).
+        max_plots: draw the tracking plots of the first ``max_plots`` test references (None: every one).
 
     Returns:
         The result of :func:`run_pipeline`.
     """
-    console = console or Console()
     refs = generate_references(DEMO_REFERENCES, seed=DEMO_SEED)
     train, test = refs[:DEMO_TRAIN], refs[DEMO_TRAIN:]
     save_references(train, Path(out) / "refs" / "train")
     save_references(test, Path(out) / "refs" / "test")
     start = time.perf_counter()
-    result = run_pipeline(SystemSpec(), train, test, out, cfg or DEMO, console)
+    result = run_pipeline(SystemSpec(), train, test, out, cfg or DEMO, console, max_plots, command="demo")
     ratio = result.metrics["efficienttrack"]["mae_deg"] / result.metrics["pd"]["mae_deg"]
-    console.print(
+    _RunLog(Path(out), console).print(
         f"EfficientTrack MAE = {ratio:.2f} × PD MAE; wall time {time.perf_counter() - start:.0f} s; outputs in {out}"
     )
     return result

@@ -17,7 +17,7 @@ import numpy as np
 
 from efficienttrack.fileio import atomic_write
 from efficienttrack.joints import DT, JOINT_NAMES
-from efficienttrack.metrics import tracking_error
+from efficienttrack.metrics import adjustment, mae, tracking_error
 from efficienttrack.records import EpisodeRecord
 from efficienttrack.references import Reference
 
@@ -55,10 +55,15 @@ def _save(fig: plt.Figure, path: str | Path) -> Path:
 
 
 def plot_tracking(runs: dict[str, EpisodeRecord], path: str | Path, title: str = "") -> Path:
-    """Desired and achieved joint positions of one reference under several methods, one subplot per joint.
+    """Desired and achieved joint positions of one reference under several methods, and the adjustments.
+
+    One subplot per joint (desired dashed, then each method), and a last one with each adjusting method's
+    adjustment ``wrap(q_ref − q*)`` per joint (PD alone sends q_ref = q*: nothing to draw). The title
+    gives each method's MAE on this reference. Desired positions and adjustments are drawn at the step
+    they are the target of (``q_des[t]`` and ``q_ref[t]`` at t+1).
 
     Args:
-        runs: method name → its record of the same reference (``q`` (T, 4) rad, ``q_des`` (T, 4) rad);
+        runs: method name → its record of the same reference (``q``, ``q_ref``, ``q_des`` (T, 4) rad);
             the desired curve is taken from the first.
         path: PNG to write.
         title: figure title (e.g. the reference name).
@@ -68,23 +73,34 @@ def plot_tracking(runs: dict[str, EpisodeRecord], path: str | Path, title: str =
     """
     first = next(iter(runs.values()))
     t_next = first.t + (first.t[1] - first.t[0])  # q_des[t] is the target of step t+1
-    traces = {name: (record.t, record.q) for name, record in runs.items()}
-    return _plot_joint_traces(t_next, first.q_des, traces, path, title)
+    errors = ", ".join(f"{name} {np.degrees(mae(tracking_error(r.q, r.q_des))):.2f}°" for name, r in runs.items())
+    fig, axes = plt.subplots(5, 1, figsize=(10, 11), sharex=True, layout="constrained")
+    _draw_joint_traces(axes[:4], t_next, first.q_des, {name: (record.t, record.q) for name, record in runs.items()})
+    adjusted = {name: adjustment(r.q_ref, r.q_des) for name, r in runs.items()}
+    adjusted = {name: a for name, a in adjusted.items() if np.any(a)}
+    for (name, a), style in zip(adjusted.items(), ("-", "--", ":", "-."), strict=False):
+        for joint, joint_name in enumerate(JOINT_NAMES):
+            axes[4].plot(t_next, np.degrees(a[:, joint]), style, color=f"C{joint}", lw=1.0, label=f"{name} {joint_name}")
+    if adjusted:
+        axes[4].legend(loc="upper right", fontsize=7, ncol=len(JOINT_NAMES))
+    else:
+        axes[4].text(0.5, 0.5, "no adjustment (q_ref = q*)", transform=axes[4].transAxes, ha="center", va="center")
+    axes[4].set_ylabel("q_ref − q* (°)")
+    axes[4].grid(alpha=0.3)
+    axes[0].set_title(f"{title} — MAE {errors}" if title else f"MAE {errors}")
+    axes[-1].set_xlabel("time (s)")
+    return _save(fig, path)
 
 
-def _plot_joint_traces(
-    t_des: np.ndarray, q_des: np.ndarray, traces: dict[str, tuple[np.ndarray, np.ndarray]], path: str | Path, title: str
-) -> Path:
-    """One subplot per joint, in degrees: desired positions dashed, then each named trace.
+def _draw_joint_traces(axes, t_des: np.ndarray, q_des: np.ndarray, traces: dict[str, tuple[np.ndarray, np.ndarray]]) -> None:
+    """On one axis per joint, in degrees: desired positions dashed, then each named trace.
 
     Args:
+        axes: 4 matplotlib axes (boom, arm, bucket, swing).
         t_des: (T,) s, times of the desired positions.
         q_des: (T, 4) rad, desired positions.
         traces: label → (t (T,) s, q (T, 4) rad).
-        path: PNG to write.
-        title: figure title.
     """
-    fig, axes = plt.subplots(4, 1, figsize=(10, 9), sharex=True, layout="constrained")
     for joint, (name, ax) in enumerate(zip(JOINT_NAMES, axes, strict=True)):
         ax.plot(t_des, np.degrees(q_des[:, joint]), "k--", lw=1.0, label="desired")
         for label, (t, q) in traces.items():
@@ -92,16 +108,31 @@ def _plot_joint_traces(
         ax.set_ylabel(f"{name} (°)")
         ax.grid(alpha=0.3)
     axes[0].legend(loc="upper right", fontsize=8)
-    axes[0].set_title(title)
-    axes[-1].set_xlabel("time (s)")
-    return _save(fig, path)
+
+
+def padded_errors(records: list[EpisodeRecord]) -> np.ndarray:
+    """Absolute tracking errors of episodes of different lengths, side by side, NaN after each episode's end.
+
+    Args:
+        records: E episodes, episode i with T_i steps.
+
+    Returns:
+        (E, S, 4) rad, ``|wrap(q[t+1] − q_des[t])|`` of episode i at step t, NaN for t ≥ T_i − 1; S = max T_i − 1.
+    """
+    errors = [np.abs(tracking_error(record.q, record.q_des)) for record in records]
+    lengths = np.array([len(e) for e in errors])
+    padded = np.full((len(errors), lengths.max(), 4), np.nan)
+    padded[np.arange(lengths.max()) < lengths[:, None]] = np.concatenate(errors)
+    return padded
 
 
 def plot_tracking_error(runs: dict[str, list[EpisodeRecord]], path: str | Path) -> Path:
-    """Absolute tracking error over time per joint, averaged over episodes, for several methods.
+    """Absolute tracking error over time per joint, across episodes, for several methods.
 
-    The error of step t is ``|wrap(q[t+1] − q_des[t])|`` (°); episodes of different lengths are
-    averaged over the episodes still running.
+    The error of step t is ``|wrap(q[t+1] − q_des[t])|`` (°). The line at each time is the mean over the
+    episodes still running then, the band their 25–75 % range, and a last subplot counts those episodes.
+    ``metrics.json`` averages differently (each episode over its own steps first, then over episodes):
+    the legend gives that figure per joint.
 
     Args:
         runs: method name → its records (one per test reference).
@@ -110,23 +141,31 @@ def plot_tracking_error(runs: dict[str, list[EpisodeRecord]], path: str | Path) 
     Returns:
         The path written.
     """
-    fig, axes = plt.subplots(4, 1, figsize=(10, 9), sharex=True, layout="constrained")
-    for name, records in runs.items():
-        steps = max(len(r) for r in records) - 1
-        total, count = np.zeros((steps, 4)), np.zeros((steps, 1))
-        for record in records:  # one accumulation per episode
-            e = np.degrees(np.abs(tracking_error(record.q, record.q_des)))
-            total[: len(e)] += e
-            count[: len(e)] += 1
-        mean = total / np.maximum(count, 1)
-        t = np.arange(1, steps + 1) * (records[0].t[1] - records[0].t[0])
-        for joint, ax in enumerate(axes):
-            ax.plot(t, mean[:, joint], lw=1.0, label=f"{name} (time mean {mean[:, joint].mean():.2f}°)")
-    for joint, ax in enumerate(axes):
+    fig, axes = plt.subplots(5, 1, figsize=(10, 11), sharex=True, layout="constrained")
+    for color, (name, records) in enumerate(runs.items()):
+        e = np.degrees(padded_errors(records))  # (E, S, 4)
+        running = np.sum(~np.isnan(e[:, :, 0]), axis=0)
+        mean = np.nanmean(e, axis=0)
+        low, high = np.nanpercentile(e, [25, 75], axis=0)
+        per_episode = np.mean(np.nanmean(e, axis=1), axis=0)  # as metrics.json's per_joint_mae_deg
+        t = np.arange(1, e.shape[1] + 1) * (records[0].t[1] - records[0].t[0])
+        for joint, ax in enumerate(axes[:4]):
+            ax.plot(t, mean[:, joint], lw=1.0, color=f"C{color}", label=f"{name} (per-episode MAE {per_episode[joint]:.2f}°)")
+            ax.fill_between(t, low[:, joint], high[:, joint], color=f"C{color}", alpha=0.2, lw=0)
+        axes[4].step(t, running, where="post", color=f"C{color}", ls=("-", "--", ":", "-.")[color % 4], lw=1.0, label=name)
+    for joint, ax in enumerate(axes[:4]):
         ax.set_ylabel(f"|e| {JOINT_NAMES[joint]} (°)")
         ax.grid(alpha=0.3)
         ax.legend(loc="upper right", fontsize=8)
-    axes[0].set_title("tracking error over time (mean over test references)")
+    axes[4].set_ylabel("episodes running")
+    axes[4].set_ylim(bottom=0)
+    axes[4].grid(alpha=0.3)
+    axes[4].legend(loc="upper right", fontsize=8)
+    axes[0].set_title(
+        "tracking error over time: mean over the episodes still running (band: 25–75 % of them)\n"
+        "legend: each episode averaged over its steps, then over episodes (as metrics.json)",
+        fontsize=10,
+    )
     axes[-1].set_xlabel("time (s)")
     return _save(fig, path)
 
@@ -204,4 +243,8 @@ def plot_sim_vs_real(
         The path written.
     """
     t = np.arange(len(q_real)) * dt
-    return _plot_joint_traces(t[1:], q_des[:-1], {"real": (t, q_real), "simulated": (t, q_sim)}, path, title)
+    fig, axes = plt.subplots(4, 1, figsize=(10, 9), sharex=True, layout="constrained")
+    _draw_joint_traces(axes, t[1:], q_des[:-1], {"real": (t, q_real), "simulated": (t, q_sim)})
+    axes[0].set_title(title)
+    axes[-1].set_xlabel("time (s)")
+    return _save(fig, path)

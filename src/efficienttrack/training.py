@@ -24,6 +24,7 @@ from torch import nn
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import atomic_write, write_json
 from efficienttrack.progress import ProgressDisplay
+from efficienttrack.provenance import provenance
 from efficienttrack.records import EpisodeRecord
 
 
@@ -60,6 +61,9 @@ def config_path(path: str | Path) -> Path:
 def save_checkpoint(module: nn.Module, kind: str, config: Any, path: str | Path) -> Path:
     """Write ``module``'s state_dict (``torch.save``) and its config as JSON next to it, both atomically.
 
+    The JSON holds ``kind``, ``config``, ``weights_sha256`` and ``provenance`` (:func:`~efficienttrack.provenance.provenance`,
+    with the device the module lies on).
+
     Args:
         module: the network (its buffers, e.g. feature scaling, are part of the state_dict).
         kind: what it is (``"closed_loop_model"``, ``"adjustment_policy"``), checked on load.
@@ -70,9 +74,16 @@ def save_checkpoint(module: nn.Module, kind: str, config: Any, path: str | Path)
         The checkpoint path.
     """
     path = Path(path)
-    state = {name: tensor.detach().cpu() for name, tensor in module.state_dict().items()}
+    tensors = module.state_dict()
+    state = {name: tensor.detach().cpu() for name, tensor in tensors.items()}
     atomic_write(path, lambda f: torch.save(state, f))
-    meta = {"kind": kind, "config": dataclasses.asdict(config), "weights_sha256": _file_sha256(path)}
+    device = next(iter(tensors.values())).device if tensors else None
+    meta = {
+        "kind": kind,
+        "config": dataclasses.asdict(config),
+        "weights_sha256": _file_sha256(path),
+        "provenance": provenance(device),
+    }
     write_json(config_path(path), meta)
     return path
 

@@ -1,0 +1,44 @@
+import shutil
+import subprocess
+
+import pytest
+import torch
+
+from efficienttrack import __version__, provenance
+from efficienttrack.provenance import PROVENANCE_KEYS, describe_device, git_commit
+
+
+def test_provenance_has_every_key():
+    facts = provenance.provenance("cpu", 12.3456)
+    assert tuple(facts) == PROVENANCE_KEYS
+    assert facts["version"] == __version__ and facts["torch"] == torch.__version__
+    assert facts["device"] == "cpu" and facts["wall_seconds"] == 12.35
+    assert facts["created"].endswith("+00:00") and facts["created"][:2] == "20"
+    assert provenance.provenance()["device"] is None and provenance.provenance()["wall_seconds"] is None
+    assert describe_device(torch.device("cpu")) == "cpu" and describe_device(None) is None
+
+
+def test_git_commit_is_null_outside_a_checkout(tmp_path, monkeypatch):
+    assert git_commit(tmp_path) is None
+    assert git_commit(tmp_path / "missing") is None
+    assert git_commit() is not None or not (provenance.PACKAGE_DIR.parents[1] / ".git").exists()
+    monkeypatch.setattr(provenance, "PACKAGE_DIR", tmp_path)  # the package installed outside any checkout
+    assert provenance.provenance()["git_commit"] is None
+    monkeypatch.setenv("PATH", str(tmp_path))  # no git binary at all
+    assert git_commit(tmp_path) is None
+
+
+@pytest.mark.skipif(shutil.which("git") is None, reason="no git binary")
+def test_git_commit_of_a_tracked_folder_only(tmp_path):
+    def git(*args):
+        return subprocess.run(["git", "-C", str(tmp_path), *args], capture_output=True, text=True, check=True).stdout.strip()
+
+    git("init", "-q")
+    (tmp_path / "pkg").mkdir()
+    (tmp_path / "pkg" / "mod.py").write_text("x = 1\n")
+    (tmp_path / "venv").mkdir()
+    (tmp_path / "venv" / "installed.py").write_text("x = 1\n")
+    git("add", "pkg")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "pkg")
+    assert git_commit(tmp_path / "pkg") == git("rev-parse", "HEAD")
+    assert git_commit(tmp_path / "venv") is None  # inside the checkout, but not part of it
