@@ -20,7 +20,6 @@ Implementation choices (numbered, referenced in the docs):
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -32,13 +31,12 @@ import torch
 from torch import nn
 
 from efficienttrack.angles import wrap
-from efficienttrack.configfile import config_from_dict
 from efficienttrack.dataset import Sequences, push
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.metrics import position_error
 from efficienttrack.nets import MLP, Standardizer, feature_width, relative_features, resolve_device
 from efficienttrack.records import EpisodeRecord
-from efficienttrack.training import TrainLoop, fingerprint, held_out_subset, load_checkpoint, save_checkpoint
+from efficienttrack.training import TrainingSchedule, TrainLoop, fingerprint, held_out_subset, load_checkpoint, save_checkpoint
 
 NORM_SAMPLES = 65536
 """Windows used to fit the feature and output scaling."""
@@ -53,8 +51,8 @@ LOSS_LABEL = "multi-step loss (1/h) Σᵢ ‖(ô − o)/σ_Δ‖²"
 
 
 @dataclass(frozen=True)
-class ModelConfig:
-    """Size and training settings of the closed-loop dynamics model."""
+class ModelConfig(TrainingSchedule):
+    """Size and training settings of the closed-loop dynamics model (the schedule's fields: :class:`TrainingSchedule`)."""
 
     hidden: int = 128
     """Units per hidden layer (paper 512)."""
@@ -66,40 +64,17 @@ class ModelConfig:
     history: int | None = None
     """Length of the histories o_H, q^r_H the model sees (:attr:`history_length`); None: h (the paper). Shorter
     generalizes better on the XE75."""
-    batch_size: int = 256
-    """Windows per optimizer step (paper 2048)."""
-    lr: float = 1e-3
-    """Adam learning rate (paper 1e-5)."""
     weight_decay: float = 0.003
     """w: decoupled weight decay (paper 0.003)."""
     steps: int | None = 4000
     """Optimizer steps; None to use ``epochs``."""
-    epochs: int | None = None
-    """Passes over the windows (paper 2000), used when ``steps`` is None."""
-    cosine_decay: bool = True
-    """Decay the learning rate to 0 along a cosine over the run (paper: constant)."""
-    grad_clip: float | None = 1.0
-    """Clip the gradient norm to this (None: no clipping)."""
-    save_every: int = 200
-    """Save the training state every this many steps when a checkpoint path is given."""
-    eval_every: int | None = None
-    """Optimizer steps between held-out evaluations when training logs (None: a tenth of the run)."""
 
     def __post_init__(self) -> None:
         """Validate the fields."""
-        for name in ("hidden", "layers", "horizon", "batch_size", "save_every", "history_length"):
+        super().__post_init__()
+        for name in ("hidden", "layers", "horizon", "history_length"):
             if getattr(self, name) < 1:
                 raise EfficientTrackError(f"ModelConfig.{name} must be ≥ 1, got {getattr(self, name)}")
-        if (self.steps is None) == (self.epochs is None):
-            raise EfficientTrackError("ModelConfig: set exactly one of steps and epochs")
-        if (self.steps is not None and self.steps < 1) or (self.epochs is not None and self.epochs < 1):
-            raise EfficientTrackError("ModelConfig: steps/epochs must be ≥ 1")
-        if not (math.isfinite(self.lr) and math.isfinite(self.weight_decay)) or self.lr <= 0 or self.weight_decay < 0:
-            raise EfficientTrackError("ModelConfig: lr must be > 0, weight_decay ≥ 0")
-        if self.grad_clip is not None and self.grad_clip <= 0:
-            raise EfficientTrackError("ModelConfig.grad_clip must be > 0 or None")
-        if self.eval_every is not None and self.eval_every < 1:
-            raise EfficientTrackError(f"ModelConfig.eval_every must be ≥ 1 or None, got {self.eval_every}")
 
     @property
     def history_length(self) -> int:
@@ -115,22 +90,6 @@ class ModelConfig:
     def in_dim(self) -> int:
         """Network input features: :func:`~efficienttrack.nets.feature_width` of the history and one target q^r_{t+1}."""
         return feature_width(self.history_length, 1)
-
-    def total_steps(self, windows: int) -> int:
-        """Optimizer steps of a run on ``windows`` training windows."""
-        if self.steps is not None:
-            return self.steps
-        return int(self.epochs) * math.ceil(windows / self.batch_size)
-
-    @classmethod
-    def from_dict(cls, data: dict, source: str = "model config") -> ModelConfig:
-        """Build from a JSON/YAML mapping, validated field by field (``source`` names it in errors).
-
-        Args:
-            data: field name → value, as read from a JSON/YAML config.
-            source: where ``data`` came from, named in error messages.
-        """
-        return config_from_dict(cls, data, source)
 
 
 MODEL_PRESETS: dict[str, ModelConfig] = {
@@ -374,10 +333,4 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> ClosedLo
         path: the ``.pt`` file written by :func:`save_model`; its JSON config must lie next to it.
         device: where to put the model (``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or a torch device).
     """
-    fields, state = load_checkpoint(path, "closed_loop_model")
-    model = ClosedLoopModel(ModelConfig.from_dict(fields, f"{path} config"))
-    try:
-        model.load_state_dict(state)
-    except RuntimeError as exc:
-        raise EfficientTrackError(f"{path}: weights do not match its config ({str(exc).splitlines()[0]})") from exc
-    return model.to(resolve_device(device)).eval()
+    return load_checkpoint(path, "closed_loop_model", ModelConfig, ClosedLoopModel, device)

@@ -37,8 +37,9 @@ from __future__ import annotations
 import io
 import json
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -193,6 +194,41 @@ def _evaluate(
     return records
 
 
+def _train_stage(
+    stages: _Stages,
+    name: str,
+    out: Path,
+    log: _RunLog,
+    train: Callable[..., Any],
+    save: Callable[[torch.nn.Module, Path], Path],
+    load: Callable[[Path], torch.nn.Module],
+    device: torch.device,
+) -> tuple[torch.nn.Module, dict[str, Any]]:
+    """One resumable training stage: train (from ``OUT/checkpoints/<name>.ckpt``), save ``OUT/<name>.pt``, load it back.
+
+    Args:
+        stages: the run's finished-stage markers; a finished stage is loaded, not trained again.
+        name: ``model`` or ``policy``: the checkpoint, log folder (``OUT/logs/<name>``) and stage are named after it.
+        out: the run folder.
+        log: where to note that the stage is done.
+        train: the trainer with everything but ``checkpoint`` and ``log_dir`` bound; returns a result whose first
+            field is the network and which has ``seconds``.
+        save: writes the network to a path.
+        load: reads it back.
+        device: where the loaded network goes.
+
+    Returns:
+        The trained network (eval mode, on ``device``) and the stage's facts (``seconds``, ``log``).
+    """
+    facts = stages.done(name)
+    if facts is None:
+        result = train(checkpoint=out / "checkpoints" / f"{name}.ckpt", log_dir=out / LOGS / name)
+        save(result[0], out / f"{name}.pt")
+        facts = stages.finish(name, {"seconds": result.seconds, "log": f"{LOGS}/{name}"})
+    log.print(f"{name} trained ({facts['seconds']:.0f} s{', earlier run' if name in stages.skipped else ''})")
+    return load(out / f"{name}.pt").to(device), facts
+
+
 def _metrics(
     system: SystemSpec,
     refs: Sequence[Reference],
@@ -306,40 +342,12 @@ def run_pipeline(
     # the PD controller alone on the test references: the baseline, and the held-out episodes of both trainings
     pd_records = _evaluate(stages, "pd", out, env, None, test_refs, device)
 
-    # closed-loop dynamics model g_θ
-    model_facts = stages.done("model")
-    if model_facts is None:
-        trained = dynamics.train_model(
-            cfg.model,
-            collected.records,
-            device=device,
-            seed=cfg.seed,
-            checkpoint=out / "checkpoints" / "model.ckpt",
-            log_dir=out / LOGS / "model",
-            held_out=pd_records,
-        )
-        dynamics.save_model(trained.model, out / "model.pt")
-        model_facts = stages.finish("model", {"seconds": trained.seconds, "log": f"{LOGS}/model"})
-    g_theta = dynamics.load_model(out / "model.pt").to(device)
-    log.print(f"model trained ({model_facts['seconds']:.0f} s{', earlier run' if 'model' in stages.skipped else ''})")
-
-    # adjustment policy π_φ
-    policy_facts = stages.done("policy")
-    if policy_facts is None:
-        trained_pi = policy.train_policy(
-            cfg.policy,
-            g_theta,
-            collected.records,
-            device=device,
-            seed=cfg.seed,
-            checkpoint=out / "checkpoints" / "policy.ckpt",
-            log_dir=out / LOGS / "policy",
-            held_out=pd_records,
-        )
-        policy.save_policy(trained_pi.policy, out / "policy.pt")
-        policy_facts = stages.finish("policy", {"seconds": trained_pi.seconds, "log": f"{LOGS}/policy"})
-    pi_phi = policy.load_policy(out / "policy.pt").to(device)
-    log.print(f"policy trained ({policy_facts['seconds']:.0f} s{', earlier run' if 'policy' in stages.skipped else ''})")
+    # closed-loop dynamics model g_θ, then the adjustment policy π_φ trained through it
+    common = {"device": device, "seed": cfg.seed, "held_out": pd_records}
+    trainer = partial(dynamics.train_model, cfg.model, collected.records, **common)
+    g_theta, model_facts = _train_stage(stages, "model", out, log, trainer, dynamics.save_model, dynamics.load_model, device)
+    trainer = partial(policy.train_policy, cfg.policy, g_theta, collected.records, **common)
+    pi_phi, policy_facts = _train_stage(stages, "policy", out, log, trainer, policy.save_policy, policy.load_policy, device)
 
     # Algorithm 2 on the held-out references
     et_records = _evaluate(stages, "efficienttrack", out, env, pi_phi, test_refs, device)

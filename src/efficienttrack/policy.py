@@ -29,13 +29,12 @@ import torch
 from torch import nn
 
 from efficienttrack.angles import wrap
-from efficienttrack.configfile import config_from_dict
 from efficienttrack.dataset import Sequences, push
 from efficienttrack.dynamics import NORM_SAMPLES, ClosedLoopModel
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.nets import MLP, Standardizer, feature_width, relative_features, resolve_device
 from efficienttrack.records import EpisodeRecord
-from efficienttrack.training import TrainLoop, fingerprint, held_out_subset, load_checkpoint, save_checkpoint
+from efficienttrack.training import TrainingSchedule, TrainLoop, fingerprint, held_out_subset, load_checkpoint, save_checkpoint
 
 XE75_MAX_ADJUST = (0.15, 0.30, 0.40, 0.40)
 """Per-joint adjustment bound of the real XE75 deployment (boom, arm, bucket, swing), rad."""
@@ -50,8 +49,8 @@ LOSS_LABEL = "L_track + k_smooth·L_reg (rad²)"
 
 
 @dataclass(frozen=True)
-class PolicyConfig:
-    """Size and training settings of the adjustment policy."""
+class PolicyConfig(TrainingSchedule):
+    """Size, loss and training settings of the adjustment policy (the schedule's fields: :class:`TrainingSchedule`)."""
 
     hidden: int = 128
     """Units per hidden layer (paper 512)."""
@@ -66,28 +65,11 @@ class PolicyConfig:
     """k_smooth: weight of the action-smoothness regularizer (paper 1.0)."""
     max_adjust: tuple[float, ...] = XE75_MAX_ADJUST
     """(4,) rad, bound of |a| per joint (boom, arm, bucket, swing)."""
-    batch_size: int = 256
-    """Windows per optimizer step (paper 2048)."""
-    lr: float = 1e-3
-    """Adam learning rate (paper 1e-5)."""
-    weight_decay: float = 0.0
-    """Decoupled weight decay of φ (the paper uses none for the policy)."""
-    steps: int | None = 1500
-    """Optimizer steps; None to use ``epochs``."""
-    epochs: int | None = None
-    """Passes over the windows (paper 2000), used when ``steps`` is None."""
-    cosine_decay: bool = True
-    """Decay the learning rate to 0 along a cosine over the run (paper: constant)."""
-    grad_clip: float | None = 1.0
-    """Clip the gradient norm to this (None: no clipping)."""
-    save_every: int = 200
-    """Save the training state every this many steps when a checkpoint path is given."""
-    eval_every: int | None = None
-    """Optimizer steps between held-out evaluations when training logs (None: a tenth of the run)."""
 
     def __post_init__(self) -> None:
         """Validate the fields."""
-        for name in ("hidden", "layers", "batch_size", "save_every"):
+        super().__post_init__()
+        for name in ("hidden", "layers"):
             if getattr(self, name) < 1:
                 raise EfficientTrackError(f"PolicyConfig.{name} must be ≥ 1, got {getattr(self, name)}")
         if self.horizon < 2:
@@ -96,17 +78,8 @@ class PolicyConfig:
             )
         if len(self.max_adjust) != 4 or not all(math.isfinite(b) and b > 0 for b in self.max_adjust):
             raise EfficientTrackError(f"PolicyConfig.max_adjust must be 4 positive bounds (rad), got {self.max_adjust}")
-        if (self.steps is None) == (self.epochs is None):
-            raise EfficientTrackError("PolicyConfig: set exactly one of steps and epochs")
-        if (self.steps is not None and self.steps < 1) or (self.epochs is not None and self.epochs < 1):
-            raise EfficientTrackError("PolicyConfig: steps/epochs must be ≥ 1")
-        finite = all(math.isfinite(v) for v in (self.gamma, self.k_smooth, self.lr, self.weight_decay))
-        if not finite or not 0 < self.gamma <= 1 or self.k_smooth < 0 or self.lr <= 0 or self.weight_decay < 0:
-            raise EfficientTrackError("PolicyConfig: need 0 < gamma ≤ 1, k_smooth ≥ 0, lr > 0, weight_decay ≥ 0")
-        if self.grad_clip is not None and self.grad_clip <= 0:
-            raise EfficientTrackError("PolicyConfig.grad_clip must be > 0 or None")
-        if self.eval_every is not None and self.eval_every < 1:
-            raise EfficientTrackError(f"PolicyConfig.eval_every must be ≥ 1 or None, got {self.eval_every}")
+        if not (math.isfinite(self.gamma) and math.isfinite(self.k_smooth)) or not 0 < self.gamma <= 1 or self.k_smooth < 0:
+            raise EfficientTrackError(f"PolicyConfig: need 0 < gamma ≤ 1, k_smooth ≥ 0, got {self.gamma}, {self.k_smooth}")
 
     @property
     def history_length(self) -> int:
@@ -127,22 +100,6 @@ class PolicyConfig:
     def in_dim(self) -> int:
         """Network input features: :func:`~efficienttrack.nets.feature_width` of the history and the F targets."""
         return feature_width(self.history_length, self.future_length)
-
-    def total_steps(self, windows: int) -> int:
-        """Optimizer steps of a run on ``windows`` training windows."""
-        if self.steps is not None:
-            return self.steps
-        return int(self.epochs) * math.ceil(windows / self.batch_size)
-
-    @classmethod
-    def from_dict(cls, data: dict, source: str = "policy config") -> PolicyConfig:
-        """Build from a JSON/YAML mapping, validated field by field (``source`` names it in errors).
-
-        Args:
-            data: field name → value, as read from a JSON/YAML config.
-            source: where ``data`` came from, named in error messages.
-        """
-        return config_from_dict(cls, data, source)
 
 
 POLICY_PRESETS: dict[str, PolicyConfig] = {
@@ -440,10 +397,4 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu") -> Adjustm
         path: the ``.pt`` file written by :func:`save_policy`; its JSON config must lie next to it.
         device: where to put the policy (``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or a torch device).
     """
-    fields, state = load_checkpoint(path, "adjustment_policy")
-    policy = AdjustmentPolicy(PolicyConfig.from_dict(fields, f"{path} config"))
-    try:
-        policy.load_state_dict(state)
-    except RuntimeError as exc:
-        raise EfficientTrackError(f"{path}: weights do not match its config ({str(exc).splitlines()[0]})") from exc
-    return policy.to(resolve_device(device)).eval()
+    return load_checkpoint(path, "adjustment_policy", PolicyConfig, AdjustmentPolicy, device)

@@ -14,18 +14,84 @@ import json
 import math
 import pickle
 from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Self, TypeVar
 
 import numpy as np
 import torch
 from torch import nn
 
+from efficienttrack.configfile import config_from_dict
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import atomic_write, write_json
+from efficienttrack.nets import resolve_device
 from efficienttrack.progress import ProgressDisplay
 from efficienttrack.provenance import provenance
 from efficienttrack.records import EpisodeRecord
+
+NetworkT = TypeVar("NetworkT", bound=nn.Module)
+
+
+@dataclass(frozen=True)
+class TrainingSchedule:
+    """The optimizer and schedule settings that the model's and the policy's configs share (their base class).
+
+    A config class derives from this one and adds its network and loss fields; it may give a field here another
+    default by declaring it again.
+    """
+
+    batch_size: int = 256
+    """Windows per optimizer step (paper 2048)."""
+    lr: float = 1e-3
+    """Adam learning rate (paper 1e-5)."""
+    weight_decay: float = 0.0
+    """Decoupled weight decay w (AdamW: θ ← θ − lr·w·θ each step; the paper: 0.003 for g_θ, none for π_φ)."""
+    steps: int | None = 1500
+    """Optimizer steps; None to use ``epochs``."""
+    epochs: int | None = None
+    """Passes over the windows (paper 2000), used when ``steps`` is None."""
+    cosine_decay: bool = True
+    """Decay the learning rate to 0 along a cosine over the run (paper: constant)."""
+    grad_clip: float | None = 1.0
+    """Clip the gradient norm to this (None: no clipping)."""
+    save_every: int = 200
+    """Save the training state every this many steps when a checkpoint path is given."""
+    eval_every: int | None = None
+    """Optimizer steps between held-out evaluations when training logs (None: a tenth of the run)."""
+
+    def __post_init__(self) -> None:
+        """Validate the schedule's fields (EfficientTrackError naming the config class and the field)."""
+        name = type(self).__name__
+        for field in ("batch_size", "save_every"):
+            if getattr(self, field) < 1:
+                raise EfficientTrackError(f"{name}.{field} must be ≥ 1, got {getattr(self, field)}")
+        if (self.steps is None) == (self.epochs is None):
+            raise EfficientTrackError(f"{name}: set exactly one of steps and epochs")
+        if (self.steps is not None and self.steps < 1) or (self.epochs is not None and self.epochs < 1):
+            raise EfficientTrackError(f"{name}: steps/epochs must be ≥ 1")
+        if not (math.isfinite(self.lr) and math.isfinite(self.weight_decay)) or self.lr <= 0 or self.weight_decay < 0:
+            raise EfficientTrackError(f"{name}: lr must be > 0, weight_decay ≥ 0, got {self.lr} and {self.weight_decay}")
+        if self.grad_clip is not None and not self.grad_clip > 0:
+            raise EfficientTrackError(f"{name}.grad_clip must be > 0 or None, got {self.grad_clip}")
+        if self.eval_every is not None and self.eval_every < 1:
+            raise EfficientTrackError(f"{name}.eval_every must be ≥ 1 or None, got {self.eval_every}")
+
+    def total_steps(self, windows: int) -> int:
+        """Optimizer steps of a run on ``windows`` training windows (``steps``, or ``epochs`` passes over them)."""
+        if self.steps is not None:
+            return self.steps
+        return int(self.epochs) * math.ceil(windows / self.batch_size)
+
+    @classmethod
+    def from_dict(cls, data: dict, source: str | None = None) -> Self:
+        """Build the config from a JSON/YAML mapping, validated field by field.
+
+        Args:
+            data: field name → value, as read from a JSON/YAML config; missing fields keep their defaults.
+            source: where ``data`` came from, named in error messages (the class name when None).
+        """
+        return config_from_dict(cls, data, source or cls.__name__)
 
 
 def fingerprint(records: Sequence[EpisodeRecord], seed: int, frozen: nn.Module | None = None) -> str:
@@ -92,19 +158,24 @@ def _file_sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def load_checkpoint(path: str | Path, kind: str) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+def load_checkpoint(
+    path: str | Path, kind: str, config: type[TrainingSchedule], network: Callable[[Any], NetworkT], device: str | torch.device
+) -> NetworkT:
     """Read a checkpoint written by :func:`save_checkpoint`: tensors only (``weights_only=True``), never code.
 
     Args:
         path: the checkpoint file; its JSON config must lie next to it.
         kind: the expected kind.
+        config: the config class the JSON config is validated as, field by field.
+        network: builds the network from its config (the module class).
+        device: where to put the network (``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or a torch device).
 
     Returns:
-        (config fields as a dict, state_dict) — the caller builds its config and module from them.
+        The network with the saved weights, in eval mode on ``device``.
 
     Raises:
-        EfficientTrackError: missing files, a config of another kind, or a file that is not a plain state_dict
-            (e.g. a pickle holding code).
+        EfficientTrackError: missing files, a config of another kind or with bad fields, a file that is not a plain
+            state_dict (e.g. a pickle holding code), or weights that do not match the config.
     """
     path = Path(path)
     cfg_file = config_path(path)
@@ -124,7 +195,12 @@ def load_checkpoint(path: str | Path, kind: str) -> tuple[dict[str, Any], dict[s
         raise EfficientTrackError(f"{path}: not a state_dict (expected a dict of named tensors)")
     if meta.get("weights_sha256") not in (None, _file_sha256(path)):
         raise EfficientTrackError(f"{cfg_file}: written for other weights than {path} (an interrupted save?); save both again")
-    return meta["config"], state
+    module = network(config.from_dict(meta["config"], f"{path} config"))
+    try:
+        module.load_state_dict(state)
+    except RuntimeError as exc:
+        raise EfficientTrackError(f"{path}: weights do not match its config ({str(exc).splitlines()[0]})") from exc
+    return module.to(resolve_device(device)).eval()
 
 
 def load_tensors(path: str | Path) -> dict[str, Any]:
