@@ -163,7 +163,7 @@ def metrics_command(
         for name, result in rows.items():
             typer.echo(json.dumps({"path": name, **rounded(result)}))
     else:
-        wide_console(max(map(len, rows))).print(metrics_table(rows, title="Tracking metrics"))
+        wide_console(max(map(len, rows))).print(metrics_table(rows, title="Tracking metrics", label="path"))
 
 
 @app.command("convert")

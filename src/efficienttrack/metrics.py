@@ -260,7 +260,10 @@ def interaction_hours(steps: int) -> float:
 
 
 def metrics_table(
-    rows: Mapping[str, Mapping[str, Any]], title: str, training_steps: Mapping[str, int | None] | None = None
+    rows: Mapping[str, Mapping[str, Any]],
+    title: str,
+    training_steps: Mapping[str, int | None] | None = None,
+    label: str = "method",
 ) -> Table:
     """A rich table with one row per method, interactions counted as in the paper.
 
@@ -272,6 +275,7 @@ def metrics_table(
         title: table title.
         training_steps: method name → interaction steps used to train it (None or absent: not known or
             not trained, shown as "–"); None for no method.
+        label: heading of the first column, what the rows are (``method``, ``path``).
 
     Returns:
         The table: MAE, RMSE, FMAE, 1st/2nd-order smoothness (oSMT) in °, ETD-MAE/FMAE in cm,
@@ -283,7 +287,7 @@ def metrics_table(
         caption="angles in °, ETD in cm; per joint: MAE °; eps/steps: the episodes measured; "
         "I.S./I.T.: training interactions (steps, h at 20 Hz)",
     )
-    table.add_column("method", overflow="fold", min_width=8)
+    table.add_column(label, overflow="fold", min_width=8)
     headers = (
         "MAE",
         "RMSE",
