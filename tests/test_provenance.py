@@ -1,3 +1,4 @@
+import json
 import shutil
 import subprocess
 
@@ -5,7 +6,8 @@ import pytest
 import torch
 
 from efficienttrack import __version__, provenance
-from efficienttrack.provenance import PROVENANCE_KEYS, describe_device, git_commit
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.provenance import PROVENANCE_KEYS, claim_folder, describe_device, git_commit
 
 
 def test_provenance_has_every_key():
@@ -42,3 +44,16 @@ def test_git_commit_of_a_tracked_folder_only(tmp_path):
     git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "pkg")
     assert git_commit(tmp_path / "pkg") == git("rev-parse", "HEAD")
     assert git_commit(tmp_path / "venv") is None  # inside the checkout, but not part of it
+
+
+def test_claim_folder_writes_identity_with_provenance_and_refuses_other_work(tmp_path):
+    path = tmp_path / "run.json"
+    claim_folder(path, {"seed": 1}, "other work")
+    written = json.loads(path.read_text())
+    assert written["seed"] == 1 and set(written["provenance"]) == set(PROVENANCE_KEYS)
+    claim_folder(path, {"seed": 1}, "other work")  # the same work resumes: provenance is not compared
+    with pytest.raises(EfficientTrackError, match="run.json: other work"):
+        claim_folder(path, {"seed": 2}, "other work")
+    path.write_text("{not json")
+    with pytest.raises(EfficientTrackError, match="unreadable"):
+        claim_folder(path, {"seed": 1}, "other work")

@@ -27,8 +27,8 @@ import numpy as np
 
 from efficienttrack.episodes import Sent, batches, rollout
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import write_json
 from efficienttrack.progress import ProgressDisplay
+from efficienttrack.provenance import claim_folder
 from efficienttrack.records import EpisodeRecord, load_named_records, load_records, save_records
 from efficienttrack.references import Reference
 from efficienttrack.systems.protocol import BatchedSystem
@@ -245,12 +245,7 @@ def collect(
     if folder is not None:
         manifest = {"config": asdict(cfg), "references": names, "steps": [len(ref.q) - 1 for ref in references]}
         manifest = json.loads(json.dumps(manifest))  # tuples as lists, as read back
-        path = folder / "collect.json"
-        if path.exists():
-            if json.loads(path.read_text()) != manifest:
-                raise EfficientTrackError(f"{path}: this folder holds a collection with other settings or references")
-        else:
-            write_json(path, manifest)
+        claim_folder(folder / "collect.json", manifest, "this folder holds a collection with other settings or references")
     records: list[EpisodeRecord] = []
     resumed = 0
     with ProgressDisplay(progress) as bar:

@@ -54,7 +54,7 @@ from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import atomic_write, write_json
 from efficienttrack.metrics import compute_metrics, interaction_hours, metrics_table, rounded
 from efficienttrack.nets import resolve_device
-from efficienttrack.provenance import provenance
+from efficienttrack.provenance import claim_folder, provenance
 from efficienttrack.records import EpisodeRecord, load_named_records, save_records
 from efficienttrack.references import Reference, save_references
 from efficienttrack.runtime import track
@@ -159,20 +159,6 @@ class _RunLog:
 def _check_plots(max_plots: int | None) -> None:
     if max_plots is not None and max_plots < 0:
         raise EfficientTrackError(f"--plots {max_plots}: expected a number of references ≥ 0")
-
-
-def _check_run(out: Path, identity: dict[str, Any]) -> None:
-    """Refuse a folder holding another run; write run.json (identity + provenance) for a new one."""
-    path = out / "run.json"
-    if path.exists():
-        found = {key: value for key, value in json.loads(path.read_text()).items() if key != "provenance"}
-        if found != identity:
-            raise EfficientTrackError(
-                f"{path}: this folder holds a run with other settings, system or references; "
-                "use another --out, or --force to start afresh"
-            )
-    else:
-        write_json(path, {**identity, "provenance": provenance()})
 
 
 def _track(
@@ -328,7 +314,11 @@ def run_pipeline(
         "test_references": {ref.name: len(ref.q) for ref in test_refs},
     }
     device = resolve_device(cfg.device)
-    _check_run(out, identity)
+    claim_folder(
+        out / "run.json",
+        identity,
+        "this folder holds a run with other settings, system or references; use another --out, or --force to start afresh",
+    )
     write_json(out / "config.json", {**cfg.to_dict(), "provenance": provenance(device)})
     log = _RunLog(out, console)
     log.header(command)

@@ -7,6 +7,7 @@ figure can be traced to the code and the machine that made it.
 
 from __future__ import annotations
 
+import json
 import subprocess
 from datetime import UTC, datetime
 from pathlib import Path
@@ -15,6 +16,8 @@ from typing import Any
 import torch
 
 import efficienttrack
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.fileio import write_json
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 """The package's source folder: its git commit is the one recorded."""
@@ -92,3 +95,31 @@ def provenance(device: str | torch.device | None = None, wall_seconds: float | N
         "created": datetime.now(UTC).isoformat(timespec="seconds"),
         "wall_seconds": None if wall_seconds is None else round(float(wall_seconds), 2),
     }
+
+
+def claim_folder(path: str | Path, identity: dict[str, Any], refusal: str) -> None:
+    """Write the identity file of a folder's work, or check that the one there describes the same work.
+
+    Resumable commands (``collect``, ``run``) keep what they are in a JSON file (``collect.json``,
+    ``run.json``): a new folder gets ``identity`` plus this invocation's ``provenance``; a folder that holds
+    one already must hold the same identity (its provenance is not compared), so that a rerun resumes its own
+    work and never mixes in another's.
+
+    Args:
+        path: the identity file.
+        identity: JSON-serializable facts the work is defined by (settings, system, references).
+        refusal: the error message when the folder holds other work (the path is put in front).
+
+    Raises:
+        EfficientTrackError: the file describes other work, or cannot be read.
+    """
+    path = Path(path)
+    if not path.exists():
+        write_json(path, {**identity, "provenance": provenance()})
+        return
+    try:
+        found = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise EfficientTrackError(f"{path}: unreadable ({exc}); {refusal}") from exc
+    if not isinstance(found, dict) or {key: value for key, value in found.items() if key != "provenance"} != identity:
+        raise EfficientTrackError(f"{path}: {refusal}")
