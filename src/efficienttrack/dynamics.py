@@ -36,7 +36,15 @@ from efficienttrack.errors import EfficientTrackError
 from efficienttrack.metrics import position_error
 from efficienttrack.nets import MLP, Standardizer, feature_width, relative_features, resolve_device
 from efficienttrack.records import EpisodeRecord
-from efficienttrack.training import TrainingSchedule, TrainLoop, fingerprint, held_out_subset, load_checkpoint, save_checkpoint
+from efficienttrack.training import (
+    TrainingSchedule,
+    TrainLoop,
+    fingerprint,
+    held_out_subset,
+    load_checkpoint,
+    save_checkpoint,
+    warm_start,
+)
 
 NORM_SAMPLES = 65536
 """Windows used to fit the feature and output scaling."""
@@ -216,6 +224,7 @@ def train_model(
     checkpoint: str | Path | None = None,
     log_dir: str | Path | None = None,
     held_out: Sequence[EpisodeRecord] = (),
+    init: ClosedLoopModel | None = None,
 ) -> ModelTrainResult:
     """Train g_θ by multi-step backpropagation through ``cfg.rollout_length``-step rollouts (Algorithm 1, TrainModel).
 
@@ -230,6 +239,8 @@ def train_model(
         log_dir: folder for the scalar log (``scalars.csv`` and TensorBoard events; see :class:`TrainLog`), or None.
         held_out: episodes not trained on; with ``log_dir``, their 20-step MPE (:data:`HELD_OUT_TAG`, on at most
             :data:`~efficienttrack.training.HELD_OUT_STEPS` recorded steps) is logged every ``cfg.eval_every`` steps.
+        init: a trained g_θ to start from (a warm start, e.g. the previous round's), with its feature and output
+            scaling; None starts from a fresh initialization scaled on ``records``.
 
     Returns:
         The model, per-step losses, time, steps and window count.
@@ -241,11 +252,14 @@ def train_model(
     data = Sequences(records, history=cfg.history_length, future=H, device=device)
     starts = data.starts(H)
     g_theta = ClosedLoopModel(cfg).to(device)
-    sample = data.window(starts[torch.randperm(len(starts))[:NORM_SAMPLES].to(device)], horizon=1)
-    g_theta.fit_scaling(sample.obs_hist, sample.qref_hist, sample.qref_future[:, 0], sample.obs_future[:, 0])
+    if init is not None:
+        warm_start(g_theta, init, "initial model")
+    else:
+        sample = data.window(starts[torch.randperm(len(starts))[:NORM_SAMPLES].to(device)], horizon=1)
+        g_theta.fit_scaling(sample.obs_hist, sample.qref_hist, sample.qref_future[:, 0], sample.obs_future[:, 0])
     sigma = g_theta.delta_scale
     optimizer = torch.optim.AdamW(g_theta.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    inputs = fingerprint(records, seed)
+    inputs = fingerprint(records, seed, init)
     subset = held_out_subset(held_out)
     evaluate = (lambda: {HELD_OUT_TAG: model_error(g_theta, subset).mpe_deg}) if subset else None
     total = cfg.total_steps(len(starts))

@@ -34,7 +34,15 @@ from efficienttrack.dynamics import NORM_SAMPLES, ClosedLoopModel
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.nets import MLP, Standardizer, feature_width, relative_features, resolve_device
 from efficienttrack.records import EpisodeRecord
-from efficienttrack.training import TrainingSchedule, TrainLoop, fingerprint, held_out_subset, load_checkpoint, save_checkpoint
+from efficienttrack.training import (
+    TrainingSchedule,
+    TrainLoop,
+    fingerprint,
+    held_out_subset,
+    load_checkpoint,
+    save_checkpoint,
+    warm_start,
+)
 
 XE75_MAX_ADJUST = (0.15, 0.30, 0.40, 0.40)
 """Per-joint adjustment bound of the real XE75 deployment (boom, arm, bucket, swing), rad."""
@@ -270,6 +278,7 @@ def train_policy(
     checkpoint: str | Path | None = None,
     log_dir: str | Path | None = None,
     held_out: Sequence[EpisodeRecord] = (),
+    init: AdjustmentPolicy | None = None,
 ) -> PolicyTrainResult:
     """Train π_φ by multi-step backpropagation through the frozen model (Algorithm 1, TrainPolicy).
 
@@ -286,6 +295,9 @@ def train_policy(
             policy from their windows (:data:`HELD_OUT_TAG`, on at most
             :data:`~efficienttrack.training.HELD_OUT_STEPS` recorded steps) is logged every ``cfg.eval_every`` steps.
 
+        init: a trained π_φ to start from (a warm start, e.g. the previous round's), with its feature scaling;
+            None starts at a = 0 (a zero last layer) scaled on ``records``.
+
     Returns:
         The policy, per-step losses, time, steps and window count.
     """
@@ -299,11 +311,14 @@ def train_policy(
     g_theta.load_state_dict(model.state_dict())
     g_theta.eval().requires_grad_(False)
     pi_phi = AdjustmentPolicy(cfg).to(device)
-    sample = data.window(starts[torch.randperm(len(starts))[:NORM_SAMPLES].to(device)], horizon=0, desired=F)
-    pi_phi.fit_scaling(sample.obs_hist, sample.qref_hist, sample.qdes_future)
+    if init is not None:
+        warm_start(pi_phi, init, "initial policy")
+    else:
+        sample = data.window(starts[torch.randperm(len(starts))[:NORM_SAMPLES].to(device)], horizon=0, desired=F)
+        pi_phi.fit_scaling(sample.obs_hist, sample.qref_hist, sample.qdes_future)
     gamma_i = cfg.gamma ** torch.arange(1, H + 1, device=device, dtype=torch.float32)
     optimizer = torch.optim.AdamW(pi_phi.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    inputs = fingerprint(records, seed, frozen=model)
+    inputs = fingerprint(records, seed, model, init)
     subset = held_out_subset(held_out)
     evaluate = (lambda: {HELD_OUT_TAG: predicted_tracking_error(g_theta, subset, pi_phi, H).mae_deg}) if subset else None
     total = cfg.total_steps(len(starts))

@@ -94,13 +94,14 @@ class TrainingSchedule:
         return config_from_dict(cls, data, source or cls.__name__)
 
 
-def fingerprint(records: Sequence[EpisodeRecord], seed: int, frozen: nn.Module | None = None) -> str:
-    """SHA-256 identity of a training run's inputs: the records' arrays, the seed and a frozen network.
+def fingerprint(records: Sequence[EpisodeRecord], seed: int, *networks: nn.Module | None) -> str:
+    """SHA-256 identity of a training run's inputs: the records' arrays, the seed and the networks it starts from.
 
     Args:
         records: the training episodes (``q``, ``qd``, ``q_ref``, ``q_des`` are hashed).
         seed: the run's seed.
-        frozen: a network the run trains through (the model, for a policy), or None.
+        *networks: networks the run depends on, in a fixed order: one it trains through (the model, for a
+            policy) and the weights it starts from (a warm start); None for one that is absent.
 
     Returns:
         The hex digest.
@@ -109,11 +110,36 @@ def fingerprint(records: Sequence[EpisodeRecord], seed: int, frozen: nn.Module |
     for record in records:
         for array in (record.q, record.qd, record.q_ref, record.q_des):
             digest.update(np.ascontiguousarray(array).tobytes())
-    if frozen is not None:
-        for name, tensor in frozen.state_dict().items():
+    for network in networks:
+        digest.update(b"network" if network is not None else b"none")
+        for name, tensor in (network.state_dict() if network is not None else {}).items():
             digest.update(name.encode())
             digest.update(tensor.detach().cpu().numpy().tobytes())
     return digest.hexdigest()
+
+
+def warm_start(network: NetworkT, init: nn.Module, what: str) -> NetworkT:
+    """Load ``init``'s weights and feature scaling into ``network`` (same config sizes): a round's warm start.
+
+    The scaling buffers come along with the weights they were trained with; a warm-started network is not
+    rescaled on the new data.
+
+    Args:
+        network: the freshly built network (its config decides the sizes).
+        init: the trained network to start from.
+        what: how to name ``init`` in errors (e.g. ``--init-model``).
+
+    Returns:
+        ``network``, holding ``init``'s state.
+
+    Raises:
+        EfficientTrackError: ``init`` has other sizes than ``network``'s config.
+    """
+    try:
+        network.load_state_dict(init.state_dict())
+    except RuntimeError as exc:
+        raise EfficientTrackError(f"{what}: its sizes do not match the config trained ({str(exc).splitlines()[0]})") from exc
+    return network
 
 
 def config_path(path: str | Path) -> Path:
