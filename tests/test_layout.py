@@ -16,7 +16,7 @@ LAYERS = (
     ("learning", {"dataset", "nets", "training", "dynamics", "policy"}),
     ("deployment", {"runtime", "learned_system"}),
     ("reports", {"plots"}),
-    ("orchestration", {"config", "pipeline", "cli"}),
+    ("orchestration", {"config", "stages", "rounds", "pipeline", "cli"}),
 )
 """Layers from the bottom up: a module may import its own layer and the ones below."""
 

@@ -34,10 +34,9 @@ settings into the same folder is refused.
 
 from __future__ import annotations
 
-import io
 import json
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -51,21 +50,16 @@ from efficienttrack.collect import collect
 from efficienttrack.config import DEMO, RunConfig
 from efficienttrack.cycles import generate_references
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import atomic_write, write_json
+from efficienttrack.fileio import write_json
 from efficienttrack.metrics import compute_metrics, interaction_hours, metrics_table, rounded
 from efficienttrack.nets import resolve_device
 from efficienttrack.provenance import claim_folder, provenance
-from efficienttrack.records import EpisodeRecord, load_named_records, save_records
+from efficienttrack.records import EpisodeRecord
 from efficienttrack.references import Reference, save_references
-from efficienttrack.runtime import track
-from efficienttrack.systems.protocol import BatchedSystem
+from efficienttrack.stages import RunLog, Stages, evaluate_stage, track_and_save, train_stage
 from efficienttrack.systems.spec import SystemSpec
 from efficienttrack.training import read_scalars
 
-LOGS = "logs"
-"""Folder of the training logs in ``OUT``: ``logs/model``, ``logs/policy``."""
-LOG_WIDTH = 160
-"""Characters per line of ``OUT/run.log`` (wide enough for the results table)."""
 DEMO_REFERENCES = 40
 """Loading cycles the demo generates (train + test)."""
 DEMO_TRAIN = 32
@@ -109,110 +103,9 @@ class RunResult:
     skipped: tuple[str, ...]
 
 
-class _Stages:
-    """Finished-stage markers in ``OUT/stages``: a stage is done when its marker exists."""
-
-    def __init__(self, out: Path) -> None:
-        self.folder = out / "stages"
-        self.skipped: list[str] = []
-
-    def done(self, name: str) -> dict[str, Any] | None:
-        """The facts of finished stage ``name`` (noted as skipped), or None when it has not finished."""
-        path = self.folder / f"{name}.json"
-        if not path.exists():
-            return None
-        self.skipped.append(name)
-        return json.loads(path.read_text())
-
-    def finish(self, name: str, facts: dict[str, Any]) -> dict[str, Any]:
-        """Mark stage ``name`` finished with its ``facts`` (JSON-serializable); returns the facts."""
-        write_json(self.folder / f"{name}.json", facts)
-        return facts
-
-
-class _RunLog:
-    """What a command prints: to the console, and appended as plain text to ``OUT/run.log`` (rewritten atomically)."""
-
-    def __init__(self, out: Path, console: Console | None) -> None:
-        self.console = console or Console()
-        self.path = out / "run.log"
-
-    def header(self, command: str) -> None:
-        """Start an invocation's part of the log (not shown on the console)."""
-        facts = provenance()
-        commit = facts["git_commit"] or "unknown"
-        self._append(f"=== {facts['created']} efficienttrack {facts['version']} {command} (commit {commit}) ===")
-
-    def print(self, renderable: Any) -> None:
-        """Show ``renderable`` (a string or a rich renderable) on the console and append it to the log."""
-        self.console.print(renderable)
-        self._append(renderable)
-
-    def _append(self, renderable: Any) -> None:
-        text = io.StringIO()
-        Console(file=text, width=LOG_WIDTH, color_system=None, highlight=False, soft_wrap=False).print(renderable)
-        lines = "".join(line.rstrip() + "\n" for line in text.getvalue().splitlines())
-        before = self.path.read_text() if self.path.exists() else ""
-        atomic_write(self.path, lambda f: f.write(before + lines), mode="w")
-
-
 def _check_plots(max_plots: int | None) -> None:
     if max_plots is not None and max_plots < 0:
         raise EfficientTrackError(f"--plots {max_plots}: expected a number of references ≥ 0")
-
-
-def _track(
-    name: str, out: Path, system: BatchedSystem, pi: torch.nn.Module | None, refs: Sequence[Reference], device
-) -> list[EpisodeRecord]:
-    """Track ``refs`` with ``pi`` (PD alone when None) and save the records to ``OUT/records/<name>``."""
-    records = track(system, pi, refs, device=device, description=f"evaluating {name}")
-    save_records(records, out / "records" / name)
-    return records
-
-
-def _evaluate(
-    stages: _Stages, name: str, out: Path, system: BatchedSystem, pi: torch.nn.Module | None, refs: Sequence[Reference], device
-) -> list[EpisodeRecord]:
-    if stages.done(f"evaluate_{name}") is not None:
-        return load_named_records(out / "records" / name, [ref.name for ref in refs])
-    records = _track(name, out, system, pi, refs, device)
-    stages.finish(f"evaluate_{name}", {"episodes": len(records), "fallbacks": sum(r.meta["fallbacks"] for r in records)})
-    return records
-
-
-def _train_stage(
-    stages: _Stages,
-    name: str,
-    out: Path,
-    log: _RunLog,
-    train: Callable[..., Any],
-    save: Callable[[torch.nn.Module, Path], Path],
-    load: Callable[[Path], torch.nn.Module],
-    device: torch.device,
-) -> tuple[torch.nn.Module, dict[str, Any]]:
-    """One resumable training stage: train (from ``OUT/checkpoints/<name>.ckpt``), save ``OUT/<name>.pt``, load it back.
-
-    Args:
-        stages: the run's finished-stage markers; a finished stage is loaded, not trained again.
-        name: ``model`` or ``policy``: the checkpoint, log folder (``OUT/logs/<name>``) and stage are named after it.
-        out: the run folder.
-        log: where to note that the stage is done.
-        train: the trainer with everything but ``checkpoint`` and ``log_dir`` bound; returns a result whose first
-            field is the network and which has ``seconds``.
-        save: writes the network to a path.
-        load: reads it back.
-        device: where the loaded network goes.
-
-    Returns:
-        The trained network (eval mode, on ``device``) and the stage's facts (``seconds``, ``log``).
-    """
-    facts = stages.done(name)
-    if facts is None:
-        result = train(checkpoint=out / "checkpoints" / f"{name}.ckpt", log_dir=out / LOGS / name)
-        save(result[0], out / f"{name}.pt")
-        facts = stages.finish(name, {"seconds": result.seconds, "log": f"{LOGS}/{name}"})
-    log.print(f"{name} trained ({facts['seconds']:.0f} s{', earlier run' if name in stages.skipped else ''})")
-    return load(out / f"{name}.pt").to(device), facts
 
 
 def _metrics(
@@ -248,7 +141,7 @@ def _metrics(
 
 def _publish(
     out: Path,
-    log: _RunLog,
+    log: RunLog,
     metrics: dict[str, Any],
     refs: Sequence[Reference],
     pd_records: list[EpisodeRecord],
@@ -320,9 +213,9 @@ def run_pipeline(
         "this folder holds a run with other settings, system or references; use another --out, or --force to start afresh",
     )
     write_json(out / "config.json", {**cfg.to_dict(), "provenance": provenance(device)})
-    log = _RunLog(out, console)
+    log = RunLog(out, console)
     log.header(command)
-    stages = _Stages(out)
+    stages = Stages(out)
 
     # Algorithm 1: collection (resumes pass by pass)
     collected = collect(env, train_refs, cfg.collect, out / "records" / "train")
@@ -330,17 +223,17 @@ def run_pipeline(
     log.print(f"collected {len(collected.records)} episodes, {facts['interaction_steps']} interaction steps")
 
     # the PD controller alone on the test references: the baseline, and the held-out episodes of both trainings
-    pd_records = _evaluate(stages, "pd", out, env, None, test_refs, device)
+    pd_records = evaluate_stage(stages, "pd", out, env, None, test_refs, device)
 
     # closed-loop dynamics model g_θ, then the adjustment policy π_φ trained through it
     common = {"device": device, "seed": cfg.seed, "held_out": pd_records}
     trainer = partial(dynamics.train_model, cfg.model, collected.records, **common)
-    g_theta, model_facts = _train_stage(stages, "model", out, log, trainer, dynamics.save_model, dynamics.load_model, device)
+    g_theta, model_facts = train_stage(stages, "model", out, log, trainer, dynamics.save_model, dynamics.load_model, device)
     trainer = partial(policy.train_policy, cfg.policy, g_theta, collected.records, **common)
-    pi_phi, policy_facts = _train_stage(stages, "policy", out, log, trainer, policy.save_policy, policy.load_policy, device)
+    pi_phi, policy_facts = train_stage(stages, "policy", out, log, trainer, policy.save_policy, policy.load_policy, device)
 
     # Algorithm 2 on the held-out references
-    et_records = _evaluate(stages, "efficienttrack", out, env, pi_phi, test_refs, device)
+    et_records = evaluate_stage(stages, "efficienttrack", out, env, pi_phi, test_refs, device)
 
     # report
     metrics = _metrics(
@@ -425,10 +318,10 @@ def evaluate(
             raise EfficientTrackError(f"--policy {policy_path}: no such file")
         torch_device = resolve_device(device)
         pi = policy.load_policy(policy_path).to(torch_device)
-    log = _RunLog(out, console)
+    log = RunLog(out, console)
     log.header("evaluate")
-    pd_records = _track("pd", out, env, None, refs, None)
-    et_records = None if pi is None else _track("efficienttrack", out, env, pi, refs, torch_device)
+    pd_records = track_and_save("pd", out, env, None, refs, None)
+    et_records = None if pi is None else track_and_save("efficienttrack", out, env, pi, refs, torch_device)
     metrics = _metrics(
         system,
         refs,
@@ -470,7 +363,7 @@ def demo(
     start = time.perf_counter()
     result = run_pipeline(SystemSpec(), train, test, out, cfg or DEMO, console, max_plots, command="demo")
     ratio = result.metrics["efficienttrack"]["mae_deg"] / result.metrics["pd"]["mae_deg"]
-    _RunLog(Path(out), console).print(
+    RunLog(Path(out), console).print(
         f"EfficientTrack MAE = {ratio:.2f} × PD MAE; wall time {time.perf_counter() - start:.0f} s; outputs in {out}"
     )
     return result
