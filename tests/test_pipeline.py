@@ -14,34 +14,13 @@ from efficienttrack.metrics import METRIC_KEYS
 from efficienttrack.pipeline import evaluate, run_pipeline
 from efficienttrack.provenance import PROVENANCE_KEYS
 from efficienttrack.references import save_references
-from efficienttrack.systems.spec import SystemSpec
 from efficienttrack.training import read_scalars
-from toy_system import sine_refs
-
-TOY = SystemSpec(system="toy_system:make")
-TINY = PRESETS["tiny"]
-TOY_CFG = replace(
-    TINY,
-    device="cpu",
-    collect=replace(TINY.collect, passes=6),
-    model=replace(TINY.model, steps=300),
-    policy=replace(TINY.policy, steps=300),
-)
-"""The tiny preset with a little more data and training: ~5 s on one core."""
-
-
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # tiny networks: threading only costs, and the test machine is shared
-    yield
-    torch.set_num_threads(threads)
+from toy_system import TOY, TOY_CFG, toy_split
 
 
 @pytest.fixture(scope="module")
 def refs():
-    refs = sine_refs([80, 70, 90, 75, 85, 60], seed=4)
-    return refs[:4], refs[4:]
+    return toy_split()
 
 
 @pytest.fixture(scope="module")
@@ -75,6 +54,7 @@ RESULT_KEYS = {
     "policy",
     "system",
     "config",
+    "rounds",
     "provenance",
 }
 """Top-level keys of metrics.json, the same for run and evaluate."""

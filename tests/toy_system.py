@@ -8,9 +8,13 @@ so PD-like tracking of a moving reference lags behind by ``v·(1 − k)/k`` for 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
+from efficienttrack.config import PRESETS
 from efficienttrack.references import Reference
+from efficienttrack.systems.spec import SystemSpec
 
 
 class LagSystem:
@@ -79,3 +83,22 @@ class IntegratorPlant:
 def make_plant() -> IntegratorPlant:
     """Build the toy plant (the ``module:callable`` entry point for ``--plant``)."""
     return IntegratorPlant()
+
+
+TOY = SystemSpec(system="toy_system:make")
+"""This module's system, as a run names it."""
+TINY = PRESETS["tiny"]
+TOY_CFG = replace(
+    TINY,
+    device="cpu",
+    collect=replace(TINY.collect, passes=6),
+    model=replace(TINY.model, steps=300),
+    policy=replace(TINY.policy, steps=300),
+)
+"""The tiny preset with a little more data and training: ~5 s on one core."""
+
+
+def toy_split() -> tuple[list[Reference], list[Reference]]:
+    """Four training and two test references for the toy runs."""
+    refs = sine_refs([80, 70, 90, 75, 85, 60], seed=4)
+    return refs[:4], refs[4:]

@@ -212,11 +212,28 @@ def _system_spec(system: str | None, plant: str | None, pd: str, options: list[s
     return SystemSpec(system=system, plant=plant, pd=pd, options=tuple(parse_options(options).items()))
 
 
-def _run_config(config: Path | None, preset_name: str, seed: int | None, device: str | None):
+def _run_config(
+    config: Path | None,
+    preset_name: str,
+    seed: int | None,
+    device: str | None,
+    rounds: int | None = None,
+    round_data: str | None = None,
+):
     from efficienttrack.config import load_config, preset, with_overrides
 
-    base = preset(preset_name)
-    return with_overrides(load_config(config, base) if config is not None else base, seed=seed, device=device)
+    base = load_config(config, preset(preset_name)) if config is not None else preset(preset_name)
+    return with_overrides(base, seed=seed, device=device, rounds=rounds, round_data=round_data)
+
+
+RoundsOpt = Annotated[
+    int | None,
+    typer.Option("--rounds", help="Continual-learning rounds (default: the config's, 1): deploy, record, retrain, repeat."),
+]
+RoundDataOpt = Annotated[
+    str | None,
+    typer.Option("--round-data", help="What later rounds train on: all (every episode so far) or new (default: all)."),
+]
 
 
 COLLECT = CollectConfig()
@@ -334,6 +351,8 @@ def run_command(
     config: ConfigOpt = None,
     seed: RunSeedOpt = None,
     device: RunDeviceOpt = None,
+    rounds: RoundsOpt = None,
+    round_data: RoundDataOpt = None,
     threads: ThreadsOpt = 1,
     plots: PlotsOpt = None,
     force: RunForceOpt = False,
@@ -344,7 +363,7 @@ def run_command(
 
     _set_threads(threads)
     spec = _system_spec(system, plant, pd, system_opt)
-    cfg = _run_config(config, preset_name, seed, device)
+    cfg = _run_config(config, preset_name, seed, device, rounds, round_data)
     train, test = load_references(train_refs), load_references(test_refs)
     _prepare_run_folder(out, RUN_OUTPUTS, force)
     run_pipeline(spec, train, test, out, cfg, wide_console(), plots)
@@ -357,6 +376,8 @@ def demo_command(
     config: ConfigOpt = None,
     seed: RunSeedOpt = None,
     device: RunDeviceOpt = None,
+    rounds: RoundsOpt = None,
+    round_data: RoundDataOpt = None,
     threads: ThreadsOpt = 1,
     plots: PlotsOpt = None,
     force: RunForceOpt = False,
@@ -365,7 +386,7 @@ def demo_command(
     from efficienttrack.pipeline import DEMO_OUTPUTS, demo
 
     _set_threads(threads)
-    cfg = _run_config(config, preset_name, seed, device)
+    cfg = _run_config(config, preset_name, seed, device, rounds, round_data)
     _prepare_run_folder(out, DEMO_OUTPUTS, force)
     demo(out, cfg, console=wide_console(), max_plots=plots)
 

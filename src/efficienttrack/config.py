@@ -24,6 +24,9 @@ from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import atomic_write, write_json
 from efficienttrack.policy import POLICY_PRESETS, PolicyConfig
 
+ROUND_DATA = ("all", "new")
+"""What a later round may train on: every episode so far, or only its own deployment pass."""
+
 
 @dataclass(frozen=True)
 class RunConfig:
@@ -39,6 +42,19 @@ class RunConfig:
     """Seed of model and policy training."""
     device: str = "auto"
     """Torch device: ``auto`` (CUDA when available), ``cpu`` or ``cuda``."""
+    rounds: int = 1
+    """Continual-learning rounds: round 1 is Algorithm 1; each later round deploys the previous policy on the
+    training references (one pass, no noise) and trains model and policy on, starting from the previous ones."""
+    round_data: str = "all"
+    """What a later round trains on: ``all`` (every episode recorded so far) or ``new`` (its own deployment
+    pass only, as the paper does)."""
+
+    def __post_init__(self) -> None:
+        """Validate the run-level fields (EfficientTrackError naming the field)."""
+        if not isinstance(self.rounds, int) or isinstance(self.rounds, bool) or self.rounds < 1:
+            raise EfficientTrackError(f"RunConfig.rounds must be an integer ≥ 1, got {self.rounds!r}")
+        if self.round_data not in ROUND_DATA:
+            raise EfficientTrackError(f"RunConfig.round_data must be one of {', '.join(ROUND_DATA)}, got {self.round_data!r}")
 
     def to_dict(self) -> dict[str, Any]:
         """JSON/YAML-serializable form (tuples become lists)."""
@@ -100,8 +116,8 @@ def from_dict(data: Any, source: str = "config") -> RunConfig:
     """Build a RunConfig from a plain mapping, every component validated field by field.
 
     Args:
-        data: ``{"collect": {...}, "model": {...}, "policy": {...}, "seed": int, "device": str}``; missing
-            fields keep their defaults.
+        data: ``{"collect": {...}, "model": {...}, "policy": {...}, "seed": int, "device": str, "rounds": int,
+            "round_data": str}``; missing fields keep their defaults.
         source: how to name the data in errors (the file).
 
     Returns:
@@ -125,7 +141,13 @@ def from_dict(data: Any, source: str = "config") -> RunConfig:
         if data["device"] not in ("auto", "cpu", "cuda"):
             raise EfficientTrackError(f"{source}: field 'device' must be auto, cpu or cuda, got {data['device']!r}")
         values["device"] = data["device"]
-    return RunConfig(**values)
+    for name in ("rounds", "round_data"):
+        if name in data:
+            values[name] = data[name]
+    try:
+        return RunConfig(**values)
+    except EfficientTrackError as exc:
+        raise EfficientTrackError(f"{source}: {exc}") from exc
 
 
 def load_config(path: str | Path, base: RunConfig | None = None) -> RunConfig:
@@ -158,13 +180,21 @@ def load_config(path: str | Path, base: RunConfig | None = None) -> RunConfig:
     return from_dict(merged, str(path))
 
 
-def with_overrides(cfg: RunConfig, seed: int | None = None, device: str | None = None) -> RunConfig:
+def with_overrides(
+    cfg: RunConfig,
+    seed: int | None = None,
+    device: str | None = None,
+    rounds: int | None = None,
+    round_data: str | None = None,
+) -> RunConfig:
     """``cfg`` with the command-line overrides applied.
 
     Args:
         cfg: the config.
         seed: new seed of training and of collection noise, or None to keep.
         device: new device, or None to keep.
+        rounds: new number of rounds, or None to keep.
+        round_data: what later rounds train on (``all`` or ``new``), or None to keep.
 
     Returns:
         The new config.
@@ -175,4 +205,8 @@ def with_overrides(cfg: RunConfig, seed: int | None = None, device: str | None =
         changes["collect"] = replace(cfg.collect, seed=seed)
     if device is not None:
         changes["device"] = device
+    if rounds is not None:
+        changes["rounds"] = rounds
+    if round_data is not None:
+        changes["round_data"] = round_data
     return replace(cfg, **changes)

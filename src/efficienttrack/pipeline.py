@@ -13,6 +13,8 @@ Output folder layout (everything written atomically)::
     OUT/metrics.json                PD and EfficientTrack metrics, training interactions, provenance
     OUT/plots/*.png                 tracking per test reference, tracking error over time, training curves
     OUT/run.log                     what the console showed, plain text, a header line per invocation
+    OUT/rounds/<k>/                 round k ≥ 2 of a run with ``rounds`` > 1 (:mod:`efficienttrack.rounds`)
+    OUT/rounds.csv, rounds.md       the rounds table (the paper's Table IV columns); OUT/plots/rounds.png
 
 Held-out figures during training: the PD controller alone is run on the test references first (it is the
 baseline, and does not depend on training), and its records are the held-out episodes of both trainings:
@@ -56,6 +58,7 @@ from efficienttrack.nets import resolve_device
 from efficienttrack.provenance import claim_folder, provenance
 from efficienttrack.records import EpisodeRecord
 from efficienttrack.references import Reference, save_references
+from efficienttrack.rounds import RoundState, next_round, round_summary, rounds_rows, rounds_table, write_rounds
 from efficienttrack.stages import RunLog, Stages, evaluate_stage, track_and_save, train_stage
 from efficienttrack.systems.spec import SystemSpec
 from efficienttrack.training import read_scalars
@@ -80,6 +83,9 @@ RUN_OUTPUTS = (
     "plots",
     "logs",
     "run.log",
+    "rounds",
+    "rounds.csv",
+    "rounds.md",
 )
 """What :func:`run_pipeline` writes in its folder (see the module docstring): a fresh start deletes these."""
 DEMO_OUTPUTS = (*RUN_OUTPUTS, "refs")
@@ -135,6 +141,7 @@ def _metrics(
         "policy": policy_path,
         "system": system.to_dict(),
         "config": config,
+        "rounds": None,
         "provenance": provenance(device, wall_seconds),
     }
 
@@ -185,11 +192,12 @@ def run_pipeline(
         command: the command named in this invocation's header line of ``OUT/run.log``.
 
     Returns:
-        The folder, the metrics written to ``OUT/metrics.json`` and the skipped stages. The metrics are
-        ``{"pd", "efficienttrack": compute_metrics' dicts of the test episodes, "interaction_steps" and
-        "interaction_hours": training interactions (all collected steps), "train_seconds", "model":
-        {"tr_mpe_deg", "te_mpe_deg"}, "fallbacks": guard fallbacks, "references": test reference names,
-        "policy": the policy checkpoint, "system", "config", "provenance"}``.
+        The folder, the metrics written to ``OUT/metrics.json`` and the skipped stages of round 1. The metrics
+        are those of the last round: ``{"pd", "efficienttrack": compute_metrics' dicts of the test episodes,
+        "interaction_steps" and "interaction_hours": training interactions of every round so far, "train_seconds",
+        "model": {"tr_mpe_deg", "te_mpe_deg"}, "fallbacks": guard fallbacks, "references": test reference names,
+        "policy": the policy checkpoint, "system", "config", "rounds": one entry per round
+        (:func:`efficienttrack.rounds.round_summary`), "provenance"}``.
 
     Raises:
         EfficientTrackError: bad system spec, no references, a negative ``max_plots``, or ``out`` holding another run.
@@ -234,33 +242,48 @@ def run_pipeline(
 
     # Algorithm 2 on the held-out references
     et_records = evaluate_stage(stages, "efficienttrack", out, env, pi_phi, test_refs, device)
+    seconds = model_facts["seconds"] + policy_facts["seconds"]
+    summary = round_summary(1, facts["interaction_steps"], et_records, g_theta, collected.records, seconds)
+    state = RoundState(
+        g_theta, pi_phi, collected.records, facts["interaction_steps"], et_records, summary, out,
+        {"model": model_facts, "policy": policy_facts},
+    )  # fmt: skip
+    summaries = [summary]
 
-    # report
+    # continual learning: deploy, record, retrain from the previous weights, evaluate
+    for k in range(2, cfg.rounds + 1):
+        state = next_round(k, state, cfg, env, train_refs, test_refs, pd_records, out, log, device)
+        summaries.append(state.summary)
+
+    # report (the last round's policy)
     metrics = _metrics(
         system,
         test_refs,
         pd_records,
-        et_records,
-        interaction_steps=facts["interaction_steps"],
-        train_seconds=round(model_facts["seconds"] + policy_facts["seconds"], 2),
-        model={
-            "tr_mpe_deg": round(float(dynamics.model_error(g_theta, collected.records).mpe_deg), 4),
-            "te_mpe_deg": round(float(dynamics.model_error(g_theta, et_records).mpe_deg), 4),
-        },
-        policy_path=str(out / "policy.pt"),
+        state.test_records,
+        interaction_steps=state.interaction_steps,
+        train_seconds=round(sum(entry["train_seconds"] for entry in summaries), 2),
+        model=state.summary["model"],
+        policy_path=str(state.folder / "policy.pt"),
         config=cfg.to_dict(),
         device=device,
         wall_seconds=time.perf_counter() - start,
     )
+    metrics["rounds"] = summaries
     curves = {
-        name: plots.TrainingCurves(read_scalars(out / facts["log"]), *labels)
-        for name, facts, labels in (
-            ("model", model_facts, (dynamics.LOSS_LABEL, dynamics.HELD_OUT_TAG, dynamics.HELD_OUT_LABEL)),
-            ("policy", policy_facts, (policy.LOSS_LABEL, policy.HELD_OUT_TAG, policy.HELD_OUT_LABEL)),
+        name: plots.TrainingCurves(read_scalars(state.folder / state.facts[name]["log"]), *labels)
+        for name, labels in (
+            ("model", (dynamics.LOSS_LABEL, dynamics.HELD_OUT_TAG, dynamics.HELD_OUT_LABEL)),
+            ("policy", (policy.LOSS_LABEL, policy.HELD_OUT_TAG, policy.HELD_OUT_LABEL)),
         )
     }
     plots.plot_training_curves(curves, out / "plots" / "training_curves.png")
-    _publish(out, log, metrics, test_refs, pd_records, et_records, max_plots, "test")
+    _publish(out, log, metrics, test_refs, pd_records, state.test_records, max_plots, "test")
+    if cfg.rounds > 1:
+        rows = rounds_rows(metrics["pd"], summaries)
+        write_rounds(rows, out)
+        plots.plot_rounds(rows, out / "plots" / "rounds.png")
+        log.print(rounds_table(rows, title=f"rounds ({out})"))
     return RunResult(out=out, metrics=metrics, skipped=tuple(stages.skipped))
 
 

@@ -10,7 +10,7 @@ import matplotlib
 matplotlib.use("Agg")
 
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import matplotlib.pyplot as plt
 import numpy as np
@@ -223,6 +223,42 @@ def plot_training_curves(curves: dict[str, TrainingCurves], path: str | Path) ->
             right.plot(*curve.scalars[curve.held_out_tag], "o-", lw=1.2, ms=3, color="C1", label="held out")
             right.set_ylabel(curve.held_out_label, color="C1")
             right.set_ylim(bottom=0)
+    return _save(fig, path)
+
+
+def plot_rounds(rows: list[dict[str, Any]], path: str | Path) -> Path:
+    """Test MAE per continual-learning round, against the PD controller alone, and the model's errors.
+
+    Args:
+        rows: the rounds table (:func:`efficienttrack.rounds.rounds_rows`): the PD row first, then one per round,
+            with ``mae_deg``, ``interaction_hours``, ``tr_mpe_deg`` and ``te_mpe_deg``.
+        path: PNG to write.
+
+    Returns:
+        The path written.
+    """
+    pd, rounds = rows[0], rows[1:]
+    k = np.arange(1, len(rounds) + 1)
+    mae = np.array([row["mae_deg"] for row in rounds])
+    fig, (left, right) = plt.subplots(1, 2, figsize=(11, 3.8), layout="constrained")
+    left.plot(k, mae, "o-", label="EfficientTrack")
+    left.axhline(pd["mae_deg"], color="k", ls="--", lw=1, label=f"PD alone ({pd['mae_deg']:.2f}°)")
+    for x, y, row in zip(k, mae, rounds, strict=True):
+        left.annotate(f"{y:.2f}° ({y / pd['mae_deg']:.2f}× PD)\n{row['interaction_hours']:.2f} h", (x, y), fontsize=8,
+                      textcoords="offset points", xytext=(4, 6))  # fmt: skip
+    left.set_ylim(bottom=0)
+    left.set_ylabel("test MAE (°)")
+    left.set_title("tracking error per round")
+    right.plot(k, [row["tr_mpe_deg"] for row in rounds], "o-", label="Tr.MPE (training data)")
+    right.plot(k, [row["te_mpe_deg"] for row in rounds], "o-", label="Te.MPE (the round's test runs)")
+    right.set_ylim(bottom=0)
+    right.set_ylabel("20-step model error (°)")
+    right.set_title("closed-loop model per round")
+    for ax in (left, right):
+        ax.set_xticks(k)
+        ax.set_xlabel("round")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
     return _save(fig, path)
 
 

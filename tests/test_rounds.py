@@ -1,0 +1,93 @@
+import csv
+import json
+from dataclasses import replace
+
+import pytest
+
+from efficienttrack.config import RunConfig, from_dict
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.pipeline import run_pipeline
+from efficienttrack.rounds import rounds_rows, write_rounds
+from efficienttrack.training import read_scalars
+from toy_system import TOY, TOY_CFG, toy_split
+
+
+@pytest.fixture(scope="module")
+def refs():
+    return toy_split()
+
+
+@pytest.fixture(scope="module")
+def two_rounds(tmp_path_factory, refs):
+    out = tmp_path_factory.mktemp("rounds")
+    return out, run_pipeline(TOY, *refs, out, replace(TOY_CFG, rounds=2))
+
+
+def test_rounds_add_a_deployment_pass_and_report_every_round(two_rounds, refs):
+    out, result = two_rounds
+    train, _ = refs
+    rounds = result.metrics["rounds"]
+    assert [entry["round"] for entry in rounds] == [1, 2]
+    deployed = sum(len(ref.q) - 1 for ref in train)  # one pass over the training references, no noise
+    assert rounds[1]["interaction_steps"] == rounds[0]["interaction_steps"] + deployed
+    assert result.metrics["interaction_steps"] == rounds[1]["interaction_steps"]
+    assert result.metrics["efficienttrack"] == rounds[1]["efficienttrack"]
+    assert result.metrics["policy"] == str(out / "rounds" / "2" / "policy.pt")
+    assert json.loads((out / "metrics.json").read_text())["rounds"] == rounds
+    assert len(list((out / "rounds" / "2" / "records" / "deploy").glob("*.npz"))) == len(train)
+    assert (out / "plots" / "rounds.png").is_file()
+    table = list(csv.DictReader((out / "rounds.csv").open()))
+    assert [row["method"] for row in table] == ["PD", "Round 1", "Round 2"] and table[0]["interaction_steps"] == ""
+    assert "| Round 2 |" in (out / "rounds.md").read_text()
+
+
+def test_a_later_round_starts_from_the_previous_weights(two_rounds):
+    out, _ = two_rounds
+    first = read_scalars(out / "logs" / "model")["train/loss"][1]
+    warm = read_scalars(out / "rounds" / "2" / "logs" / "model")["train/loss"][1]
+    assert warm[0] < 0.2 * first[0]  # a fresh model starts far off; a warm one near where round 1 ended
+
+
+def test_rerun_resumes_every_round(two_rounds, refs):
+    out, result = two_rounds
+    again = run_pipeline(TOY, *refs, out, replace(TOY_CFG, rounds=2))
+    assert again.metrics["rounds"] == result.metrics["rounds"]
+    assert set(again.skipped) >= {"collect", "model", "policy", "evaluate_efficienttrack"}
+
+
+def test_round_data_new_trains_on_the_deployment_pass_only(tmp_path, refs):
+    result = run_pipeline(TOY, *refs, tmp_path, replace(TOY_CFG, rounds=2, round_data="new"))
+    all_data = result.metrics["config"]["round_data"]
+    assert all_data == "new" and len(result.metrics["rounds"]) == 2
+
+
+def test_round_settings_are_validated():
+    with pytest.raises(EfficientTrackError, match="rounds must be an integer ≥ 1"):
+        RunConfig(rounds=0)
+    with pytest.raises(EfficientTrackError, match="cfg.yaml: RunConfig.round_data must be one of all, new"):
+        from_dict({"round_data": "old"}, "cfg.yaml")
+
+
+def test_rounds_table_rows_and_files(tmp_path):
+    pd = {
+        "mae_deg": 4.0,
+        "rmse_deg": 5.0,
+        "fmae_deg": 3.0,
+        "smt1_deg": 0.5,
+        "smt2_deg": 0.1,
+        "etd_mae_cm": 70.0,
+        "etd_fmae_cm": 30.0,
+    }
+    entry = {
+        "round": 1,
+        "interaction_steps": 72000,
+        "interaction_hours": 1.0,
+        "efficienttrack": {**pd, "mae_deg": 1.0},
+        "model": {"tr_mpe_deg": 0.2, "te_mpe_deg": 0.4},
+    }
+    rows = rounds_rows(pd, [entry])
+    assert rows[0]["interaction_steps"] is None and rows[1]["mae_deg"] == 1.0 and rows[1]["te_mpe_deg"] == 0.4
+    csv_path, md_path = write_rounds(rows, tmp_path)
+    lines = md_path.read_text().splitlines()
+    assert lines[2].startswith("| PD | – | – |") and lines[3].startswith("| Round 1 | 72000 | 1.00 |")
+    assert next(csv.DictReader(csv_path.open()))["method"] == "PD"
