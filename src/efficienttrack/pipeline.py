@@ -58,7 +58,7 @@ from efficienttrack.nets import resolve_device
 from efficienttrack.provenance import claim_folder, provenance
 from efficienttrack.records import EpisodeRecord
 from efficienttrack.references import Reference, save_references
-from efficienttrack.rounds import RoundState, next_round, round_summary, rounds_rows, rounds_table, write_rounds
+from efficienttrack.rounds import RoundState, run_round, round_summary, rounds_rows, rounds_table, write_rounds
 from efficienttrack.stages import RunLog, Stages, evaluate_stage, track_and_save, train_stage
 from efficienttrack.systems.spec import SystemSpec
 from efficienttrack.training import read_scalars
@@ -252,7 +252,7 @@ def run_pipeline(
 
     # continual learning: deploy, record, retrain from the previous weights, evaluate
     for k in range(2, cfg.rounds + 1):
-        state = next_round(k, state, cfg, env, train_refs, test_refs, pd_records, out, log, device)
+        state = run_round(k, state, cfg, env, train_refs, test_refs, pd_records, out, log, device)
         summaries.append(state.summary)
 
     # report (the last round's policy)

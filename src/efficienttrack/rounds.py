@@ -115,7 +115,7 @@ def round_summary(
     }
 
 
-def next_round(
+def run_round(
     k: int,
     previous: RoundState,
     cfg: RunConfig,
