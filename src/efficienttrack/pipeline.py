@@ -58,7 +58,7 @@ from efficienttrack.nets import resolve_device
 from efficienttrack.provenance import claim_folder, provenance
 from efficienttrack.records import EpisodeRecord
 from efficienttrack.references import Reference, save_references
-from efficienttrack.rounds import RoundState, run_round, round_summary, rounds_rows, rounds_table, write_rounds
+from efficienttrack.rounds import RoundState, round_summary, rounds_rows, rounds_table, run_round, write_rounds
 from efficienttrack.stages import RunLog, Stages, evaluate_stage, track_and_save, train_stage
 from efficienttrack.systems.spec import SystemSpec
 from efficienttrack.training import read_scalars
