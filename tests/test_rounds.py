@@ -1,5 +1,6 @@
 import csv
 import json
+import shutil
 from dataclasses import replace
 
 import pytest
@@ -53,6 +54,15 @@ def test_rerun_resumes_every_round(two_rounds, refs):
     again = run_pipeline(TOY, *refs, out, replace(TOY_CFG, rounds=2))
     assert again.metrics["rounds"] == result.metrics["rounds"]
     assert set(again.skipped) >= {"collect", "model", "policy", "evaluate_efficienttrack"}
+
+
+def test_more_rounds_extend_a_finished_run(two_rounds, refs, tmp_path):
+    out, result = two_rounds
+    extended = tmp_path / "extended"
+    shutil.copytree(out, extended)
+    three = run_pipeline(TOY, *refs, extended, replace(TOY_CFG, rounds=3))
+    assert three.metrics["rounds"][:2] == result.metrics["rounds"] and three.metrics["rounds"][2]["round"] == 3
+    assert set(three.skipped) >= {"collect", "model", "policy"}
 
 
 def test_round_data_new_trains_on_the_deployment_pass_only(tmp_path, refs):

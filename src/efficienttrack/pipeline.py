@@ -26,7 +26,8 @@ the policy's training time (docs/logged-metrics.md).
 
 A rerun with the same run.json skips every finished stage; an interrupted stage resumes
 (collection at its first unwritten pass, training from its checkpoint). A rerun with other
-settings into the same folder is refused.
+settings into the same folder is refused, except for the number of rounds: a rerun with more
+rounds adds them to the finished ones.
 
 :func:`evaluate` writes the same ``metrics.json`` schema (``efficienttrack`` null without a policy;
 ``model``, ``config``, ``train_seconds`` null), records, tracking plots and ``run.log``.
@@ -209,7 +210,7 @@ def run_pipeline(
     out = Path(out)
     env = system.open()
     identity = {
-        "config": cfg.to_dict(),
+        "config": {key: value for key, value in cfg.to_dict().items() if key != "rounds"},  # more rounds extend a run
         "system": system.to_dict(),
         "train_references": {ref.name: len(ref.q) for ref in train_refs},
         "test_references": {ref.name: len(ref.q) for ref in test_refs},
