@@ -256,6 +256,7 @@ def plot_rounds(rows: list[dict[str, Any]], path: str | Path) -> Path:
     right.set_title("closed-loop model per round")
     for ax in (left, right):
         ax.set_xticks(k)
+        ax.set_xlim(0.7, len(rounds) + 0.7)  # room for the last round's note
         ax.set_xlabel("round")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
