@@ -151,7 +151,7 @@ def test_round_on_a_toy_system_lowers_its_tracking_error(tmp_path):
     report = json.loads((out / ROUND_JSON).read_text())
     assert report["new_episodes"] == 6 and report["old_episodes"] == 0 and report["policy_steps"] == 150
     assert report["predicted_after_deg"] < report["predicted_before_deg"]
-    assert report["provenance"]["version"] and report["inputs"]["policy"] == str(tmp_path / "policy1.pt")
+    assert report["provenance"]["version"] and report["inputs"]["policy"] == str((tmp_path / "policy1.pt").resolve())
 
     def mae(policy):
         return compute_metrics(track(system, policy, test_refs, progress=False))["mae_deg"]

@@ -577,11 +577,11 @@ def round_command(
     if force or not interrupted:
         prepare_output_folder(out, ROUND_OUTPUTS, force)
     inputs = {
-        "model": str(model),
-        "policy": str(policy),
-        "data": [str(p) for p in data],
-        "old_data": [str(p) for p in old_data or []],
-        "held_out": [str(p) for p in held_out or []],
+        "model": str(model.resolve()),
+        "policy": str(policy.resolve()),
+        "data": [str(p.resolve()) for p in data],
+        "old_data": [str(p.resolve()) for p in old_data or []],
+        "held_out": [str(p.resolve()) for p in held_out or []],
         "preset": preset_name,
         "seed": seed,
     }
