@@ -35,12 +35,12 @@ def records():
 
 @pytest.fixture(scope="module")
 def model(records):
-    return train_model(MODEL_PRESETS["tiny"], records, "cpu", progress=False).model
+    return train_model(dataclasses.replace(MODEL_PRESETS["tiny"], steps=150), records, "cpu", progress=False).model
 
 
 @pytest.fixture(scope="module")
 def policy(model, records):
-    return train_policy(POLICY_PRESETS["tiny"], model, records, "cpu", progress=False).policy
+    return train_policy(dataclasses.replace(POLICY_PRESETS["tiny"], steps=100), model, records, "cpu", progress=False).policy
 
 
 def assert_same_state(a: torch.nn.Module, b: torch.nn.Module, atol: float) -> None:
@@ -113,9 +113,10 @@ def test_cli_init_model_and_init_policy(model, policy, records, tmp_path):
 
 
 def test_next_round_library_reports_and_refuses_no_data(model, policy, records):
-    result = next_round(model, policy, records[:2], records[2:], device="cpu", progress=False, held_out=records[2:])
+    schedule = dataclasses.replace(MODEL_PRESETS["tiny"], steps=60)
+    result = next_round(model, policy, records[:2], records[2:], schedule, device="cpu", progress=False, held_out=records[2:])
     report = result.report
-    assert (report.new_episodes, report.old_episodes, report.model_steps) == (2, 2, MODEL_PRESETS["tiny"].steps)
+    assert (report.new_episodes, report.old_episodes, report.model_steps) == (2, 2, 60)
     assert report.model_mpe_after_deg < report.model_mpe_before_deg * 1.5
     assert report.held_out_mpe_after_deg is not None
     assert report.recorded_mae_deg == pytest.approx(compute_metrics(records[:2])["mae_deg"])
@@ -145,7 +146,9 @@ def test_round_on_a_toy_system_lowers_its_tracking_error(tmp_path):
         "--data",
         tmp_path / "round1_logs",
     )
-    result = invoke(*args, "--out", out, "--preset", "tiny", "--steps-policy", "150", "--device", "cpu")
+    result = invoke(
+        *args, "--out", out, "--preset", "tiny", "--steps-model", "150", "--steps-policy", "150", "--device", "cpu"
+    )
     assert result.exit_code == 0, result.output
     assert "model 20-step MPE on the new episodes" in result.output
     report = json.loads((out / ROUND_JSON).read_text())
@@ -159,7 +162,7 @@ def test_round_on_a_toy_system_lowers_its_tracking_error(tmp_path):
     before, after = mae(policy1), mae(load_policy(out / "policy.pt"))
     assert after < 0.7 * before, (before, after)
     # a finished round is refused without --force, and redone with it
-    again = invoke(*args, "--out", out, "--preset", "tiny", "--steps-policy", "150", "--device", "cpu")
+    again = invoke(*args, "--out", out, "--preset", "tiny", "--steps-model", "150", "--steps-policy", "150", "--device", "cpu")
     assert isinstance(again.exception, EfficientTrackError) and "--force" in str(again.exception)
     forced = invoke(*args, "--out", out, "--preset", "tiny", "--steps-model", "2", "--steps-policy", "2", "--force")
     assert forced.exit_code == 0, forced.output
@@ -168,7 +171,8 @@ def test_round_on_a_toy_system_lowers_its_tracking_error(tmp_path):
 
 def test_interrupted_round_resumes(model, policy, records, tmp_path):
     out = tmp_path / "round"
-    next_round(model, policy, records, device="cpu", progress=False, out_dir=out)
+    schedules = dataclasses.replace(MODEL_PRESETS["tiny"], steps=40), dataclasses.replace(POLICY_PRESETS["tiny"], steps=40)
+    next_round(model, policy, records, (), *schedules, device="cpu", progress=False, out_dir=out)
     finished = load_policy(out / "policy.pt")
     (out / ROUND_JSON).unlink()
     (out / "policy.pt").unlink()
@@ -177,7 +181,7 @@ def test_interrupted_round_resumes(model, policy, records, tmp_path):
     save_policy(policy, tmp_path / "p.pt")
     result = invoke(
         "round", "--model", tmp_path / "m.pt", "--policy", tmp_path / "p.pt", "--data", tmp_path / "data", "--out", out,
-        "--preset", "tiny", "--device", "cpu",
+        "--preset", "tiny", "--steps-model", "40", "--steps-policy", "40", "--device", "cpu",
     )  # fmt: skip
     assert result.exit_code == 0, result.output
     assert_same_state(load_policy(out / "policy.pt"), finished, atol=0)
