@@ -7,7 +7,7 @@ import pytest
 
 from efficienttrack.config import RunConfig, from_dict
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.pipeline import run_pipeline
+from efficienttrack.pipeline import evaluate, run_pipeline
 from efficienttrack.rounds import rounds_rows, write_rounds
 from efficienttrack.training import read_scalars
 from toy_system import TOY, TOY_CFG, toy_split
@@ -40,6 +40,12 @@ def test_rounds_add_a_deployment_pass_and_report_every_round(two_rounds, refs):
     table = list(csv.DictReader((out / "rounds.csv").open()))
     assert [row["method"] for row in table] == ["PD", "Round 1", "Round 2"] and table[0]["interaction_steps"] == ""
     assert "| Round 2 |" in (out / "rounds.md").read_text()
+
+
+def test_evaluate_reads_the_training_interactions_of_a_later_round(two_rounds, refs, tmp_path):
+    out, result = two_rounds
+    metrics = evaluate(TOY, refs[1], tmp_path / "eval", out / "rounds" / "2" / "policy.pt", device="cpu")
+    assert metrics["interaction_steps"] == result.metrics["rounds"][1]["interaction_steps"]
 
 
 def test_a_later_round_starts_from_the_previous_weights(two_rounds):

@@ -59,7 +59,15 @@ from efficienttrack.nets import resolve_device
 from efficienttrack.provenance import claim_folder, provenance
 from efficienttrack.records import EpisodeRecord
 from efficienttrack.references import Reference, save_references
-from efficienttrack.rounds import RoundState, round_summary, rounds_rows, rounds_table, run_round, write_rounds
+from efficienttrack.rounds import (
+    INTERACTIONS_STAGE,
+    RoundState,
+    round_summary,
+    rounds_rows,
+    rounds_table,
+    run_round,
+    write_rounds,
+)
 from efficienttrack.stages import RunLog, Stages, evaluate_stage, track_and_save, train_stage
 from efficienttrack.systems.spec import SystemSpec
 from efficienttrack.training import read_scalars
@@ -289,13 +297,18 @@ def run_pipeline(
 
 
 def _training_interactions(policy_path: Path) -> int | None:
-    """Interaction steps collected to train the policy at ``policy_path``, when it lies in a run folder; else None."""
-    facts = policy_path.parent / "stages" / "collect.json"
-    try:
-        steps = json.loads(facts.read_text()).get("interaction_steps")
-    except (OSError, ValueError, AttributeError):
-        return None
-    return steps if isinstance(steps, int) and not isinstance(steps, bool) else None
+    """Interaction steps used to train the policy at ``policy_path``, when it lies in a run or round folder; else None.
+
+    A run folder notes them in ``stages/collect.json``, a later round's folder in ``stages/interactions.json``.
+    """
+    for stage in ("collect", INTERACTIONS_STAGE):
+        try:
+            steps = json.loads((policy_path.parent / "stages" / f"{stage}.json").read_text()).get("interaction_steps")
+        except (OSError, ValueError, AttributeError):
+            continue
+        if isinstance(steps, int) and not isinstance(steps, bool):
+            return steps
+    return None
 
 
 def evaluate(
