@@ -6,12 +6,13 @@ Files get the permissions a plain ``open()`` would give them (``0o666`` less the
 
 from __future__ import annotations
 
+import csv
 import fnmatch
 import json
 import os
 import shutil
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import IO, Any
 
@@ -80,6 +81,21 @@ def write_json(path: str | Path, data: Any) -> Path:
         The destination path.
     """
     return atomic_write(path, lambda f: json.dump(data, f, indent=2, sort_keys=False), mode="w")
+
+
+def write_csv(path: str | Path, header: Sequence[str], rows: Iterable[Sequence[Any]]) -> Path:
+    """Write a table as CSV atomically: the header line, then one line per row (None written as an empty cell).
+
+    Args:
+        path: destination; parent folders are created.
+        header: the column names.
+        rows: the rows, each with one value per column.
+
+    Returns:
+        The destination path.
+    """
+    lines = [list(header), *([("" if value is None else value) for value in row] for row in rows)]
+    return atomic_write(path, lambda f: csv.writer(f, lineterminator="\n").writerows(lines), mode="w")
 
 
 def prepare_output_folder(folder: str | Path, owned: Sequence[str], force: bool = False, option: str = "--out") -> list[Path]:

@@ -15,8 +15,6 @@ metres inside; the report (:func:`compute_metrics`) is in degrees and centimetre
 
 from __future__ import annotations
 
-import csv
-import io
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
@@ -27,7 +25,7 @@ from rich.table import Table
 
 from efficienttrack.angles import wrap
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import atomic_write
+from efficienttrack.fileio import write_csv
 from efficienttrack.joints import CONTROL_RATE_HZ, JOINT_NAMES
 from efficienttrack.kinematics import tip_position
 from efficienttrack.records import EpisodeRecord, load_record, record_files
@@ -238,12 +236,8 @@ def write_metrics_csv(rows: Mapping[str, Mapping[str, Any]], path: str | Path) -
         The path written.
     """
     header = ["path", *METRIC_KEYS[:-1], *(f"mae_deg_{joint}" for joint in JOINT_NAMES)]
-    text = io.StringIO()
-    writer = csv.writer(text, lineterminator="\n")
-    writer.writerow(header)
-    for name, m in rows.items():
-        writer.writerow([name, *(m[key] for key in METRIC_KEYS[:-1]), *m["per_joint_mae_deg"]])
-    return atomic_write(path, lambda f: f.write(text.getvalue()), mode="w")
+    lines = ([name, *(m[key] for key in METRIC_KEYS[:-1]), *m["per_joint_mae_deg"]] for name, m in rows.items())
+    return write_csv(path, header, lines)
 
 
 def rounded(metrics: Mapping[str, Any], decimals: int = 4) -> dict[str, Any]:

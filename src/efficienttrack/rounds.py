@@ -17,8 +17,6 @@ The rounds table has the columns of the paper's Table IV: interactions used for 
 
 from __future__ import annotations
 
-import csv
-import io
 from collections.abc import Callable, Sequence
 from functools import partial
 from pathlib import Path
@@ -30,7 +28,7 @@ from rich.table import Table
 from efficienttrack import dynamics, policy
 from efficienttrack.config import RunConfig
 from efficienttrack.dynamics import ClosedLoopModel
-from efficienttrack.fileio import atomic_write
+from efficienttrack.fileio import atomic_write, write_csv
 from efficienttrack.metrics import compute_metrics, interaction_hours, rounded
 from efficienttrack.policy import AdjustmentPolicy
 from efficienttrack.records import EpisodeRecord
@@ -220,15 +218,12 @@ def write_rounds(rows: Sequence[dict[str, Any]], folder: Path) -> tuple[Path, Pa
     Returns:
         The CSV and Markdown paths.
     """
-    text = io.StringIO()
-    writer = csv.DictWriter(text, fieldnames=["method", *(key for _, key, _ in TABLE_COLUMNS)], lineterminator="\n")
-    writer.writeheader()
-    writer.writerows({key: "" if value is None else value for key, value in row.items()} for row in rows)
+    keys = ["method", *(key for _, key, _ in TABLE_COLUMNS)]
+    csv_path = write_csv(folder / "rounds.csv", keys, ([row[key] for key in keys] for row in rows))
     headings = ["method", *(heading for heading, _, _ in TABLE_COLUMNS)]
     lines = ["| " + " | ".join(headings) + " |", "|---" + "|---:" * len(TABLE_COLUMNS) + "|"]
     lines += [
         "| " + " | ".join([row["method"], *(_cell(row[key], fmt) for _, key, fmt in TABLE_COLUMNS)]) + " |" for row in rows
     ]
-    csv_path = atomic_write(folder / "rounds.csv", lambda f: f.write(text.getvalue()), mode="w")
     md_path = atomic_write(folder / "rounds.md", lambda f: f.write("\n".join(lines) + "\n"), mode="w")
     return csv_path, md_path
