@@ -4,7 +4,9 @@ import shutil
 from dataclasses import replace
 
 import pytest
+from typer.testing import CliRunner
 
+from efficienttrack.cli import app
 from efficienttrack.config import RunConfig, from_dict
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.pipeline import evaluate, run_pipeline
@@ -107,3 +109,12 @@ def test_rounds_table_rows_and_files(tmp_path):
     lines = md_path.read_text().splitlines()
     assert lines[2].startswith("| PD | – | – |") and lines[3].startswith("| Round 1 | 72000 | 1.00 |")
     assert next(csv.DictReader(csv_path.open()))["method"] == "PD"
+
+
+def test_cli_round_options_name_themselves_in_errors(tmp_path):
+    runner = CliRunner()
+    result = runner.invoke(app, ["demo", "--out", str(tmp_path / "d"), "--round-data", "old"])
+    assert result.exit_code != 0 and "--round-data 'old': expected one of all, new" in str(result.exception)
+    result = runner.invoke(app, ["demo", "--out", str(tmp_path / "d"), "--rounds", "0"])
+    assert result.exit_code == 2 and "--rounds" in result.output
+    assert not (tmp_path / "d").exists()

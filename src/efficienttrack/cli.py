@@ -15,6 +15,7 @@ from rich.console import Console
 
 import efficienttrack
 from efficienttrack.collect import CollectConfig
+from efficienttrack.config import ROUND_DATA
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import prepare_output_folder
 from efficienttrack.metrics import metrics_by_path, metrics_table, rounded, write_metrics_csv
@@ -222,17 +223,24 @@ def _run_config(
 ):
     from efficienttrack.config import load_config, preset, with_overrides
 
+    if round_data is not None and round_data not in ROUND_DATA:
+        raise EfficientTrackError(f"--round-data '{round_data}': expected one of {', '.join(ROUND_DATA)}")
     base = load_config(config, preset(preset_name)) if config is not None else preset(preset_name)
     return with_overrides(base, seed=seed, device=device, rounds=rounds, round_data=round_data)
 
 
 RoundsOpt = Annotated[
     int | None,
-    typer.Option("--rounds", help="Continual-learning rounds (default: the config's, 1): deploy, record, retrain, repeat."),
+    typer.Option(
+        "--rounds", min=1, help="Continual-learning rounds (default: the config's, 1): deploy, record, retrain, repeat."
+    ),
 ]
 RoundDataOpt = Annotated[
     str | None,
-    typer.Option("--round-data", help="What later rounds train on: all (every episode so far) or new (default: all)."),
+    typer.Option(
+        "--round-data",
+        help="What later rounds train on: all (every episode so far) or new (default: all).",
+    ),
 ]
 
 
