@@ -32,8 +32,7 @@ def test_noise_clipped_sigma_bounded_and_clean_passes_exact(refs):
         else:
             assert sigma == 0.0
             assert np.all(d == 0.0)
-    noisy = [r.meta["noisy"] for r in result.records[::3]]
-    assert noisy == [False, True, True, True]
+    assert sum(r.meta["noisy"] for r in result.records) == 9  # 3:1 over 12 episodes
 
 
 def test_noise_distribution_is_clipped_gaussian():
@@ -49,11 +48,24 @@ def test_noise_distribution_is_clipped_gaussian():
 
 
 @pytest.mark.parametrize(
-    ("ratio", "passes", "noisy"), [((9, 2), 11, 9), ((9, 2), 10, 8), ((1, 1), 4, 2), ((1, 0), 3, 3), ((0, 1), 3, 0)]
+    ("ratio", "passes", "references", "noisy"),
+    [
+        ((9, 2), 1, 40, 33),
+        ((9, 2), 11, 40, 360),
+        ((9, 2), 10, 32, 262),
+        ((1, 1), 4, 3, 6),
+        ((1, 0), 3, 5, 15),
+        ((0, 1), 3, 5, 0),
+    ],
 )
-def test_pass_ratio(ratio, passes, noisy):
-    schedule = CollectConfig(noise_ratio=ratio, passes=passes).noisy_passes
-    assert len(schedule) == passes and sum(schedule) == noisy
+def test_episode_ratio_kept_by_every_number_of_passes(ratio, passes, references, noisy):
+    cfg = CollectConfig(noise_ratio=ratio, passes=passes, seed=4)
+    masks = np.array([cfg.noisy_episodes(k, references) for k in range(passes)])
+    assert masks.shape == (passes, references) and masks.sum() == noisy
+    share = ratio[0] / sum(ratio)
+    assert np.all(np.abs(np.cumsum(masks.sum(axis=1)) - np.arange(1, passes + 1) * references * share) <= 0.5 + 1e-9)
+    if 0 < noisy < passes * references and passes > 1:  # the noisy references differ from pass to pass
+        assert len({tuple(m) for m in masks}) > 1
 
 
 def test_interaction_steps_time_and_commands(refs):
@@ -135,8 +147,8 @@ def test_unbatched_machine_flushes_every_episode_and_resumes_mid_pass(tmp_path, 
 
 
 def test_too_few_passes_for_any_noise_warn(refs):
-    with pytest.warns(UserWarning, match="give no noisy pass"):
-        collect(BatchedSystem(make()), refs, CollectConfig(passes=1), progress=False)
+    with pytest.warns(UserWarning, match="give no noisy episode"):
+        collect(BatchedSystem(make()), refs[:1], CollectConfig(passes=1, noise_ratio=(1, 3)), progress=False)
 
 
 @pytest.mark.parametrize(

@@ -7,7 +7,7 @@ import pytest
 from typer.testing import CliRunner
 
 from efficienttrack.cli import app
-from efficienttrack.config import RunConfig, from_dict
+from efficienttrack.config import RunConfig, from_dict, preset
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.pipeline import evaluate, run_pipeline
 from efficienttrack.rounds import rounds_rows, write_rounds
@@ -50,11 +50,14 @@ def test_evaluate_reads_the_training_interactions_of_a_later_round(two_rounds, r
     assert metrics["interaction_steps"] == result.metrics["rounds"][1]["interaction_steps"]
 
 
-def test_a_later_round_starts_from_the_previous_weights(two_rounds):
+def test_a_later_round_starts_from_the_previous_weights_and_trains_the_warm_budget(two_rounds):
     out, _ = two_rounds
-    first = read_scalars(out / "logs" / "model")["train/loss"][1]
-    warm = read_scalars(out / "rounds" / "2" / "logs" / "model")["train/loss"][1]
-    assert warm[0] < 0.2 * first[0]  # a fresh model starts far off; a warm one near where round 1 ended
+    first = read_scalars(out / "logs" / "model")["train/loss"]
+    warm = read_scalars(out / "rounds" / "2" / "logs" / "model")["train/loss"]
+    assert warm[1][0] < 0.2 * first[1][0]  # a fresh model starts far off; a warm one near where round 1 ended
+    assert len(first[0]) == TOY_CFG.model.steps and len(warm[0]) == round(TOY_CFG.warm_budget * TOY_CFG.model.steps)
+    warm_policy = read_scalars(out / "rounds" / "2" / "logs" / "policy")["train/loss"]
+    assert len(warm_policy[0]) == round(TOY_CFG.warm_budget * TOY_CFG.policy.steps)
 
 
 def test_rerun_resumes_every_round(two_rounds, refs):
@@ -84,6 +87,16 @@ def test_round_settings_are_validated():
         RunConfig(rounds=0)
     with pytest.raises(EfficientTrackError, match="cfg.yaml: RunConfig.round_data must be one of all, new"):
         from_dict({"round_data": "old"}, "cfg.yaml")
+    for budget in (0, -0.5, float("nan"), "half", True):
+        with pytest.raises(EfficientTrackError, match="cfg.yaml: RunConfig.warm_budget must be a number > 0"):
+            from_dict({"warm_budget": budget}, "cfg.yaml")
+
+
+def test_fastset_is_one_collection_pass_then_three_rounds():
+    fastset = preset("fastset")
+    assert fastset.collect.passes == 1 and fastset.rounds == 3
+    assert fastset.model == preset("cpu").model and fastset.policy == preset("cpu").policy
+    assert int(fastset.collect.noisy_episodes(0, 40).sum()) == 33  # the paper's 40 references: 33 noisy and 7 clean at 9:2
 
 
 def test_rounds_table_rows_and_files(tmp_path):

@@ -124,3 +124,11 @@ def test_config_checks_eval_every_and_old_configs_load():
         policy.PolicyConfig(eval_every=0)
     old = {k: v for k, v in dataclasses.asdict(dynamics.MODEL_PRESETS["tiny"]).items() if k != "eval_every"}
     assert dynamics.ModelConfig.from_dict(old).eval_every is None
+
+
+def test_a_schedule_scales_its_steps_or_epochs_and_keeps_the_rest():
+    cfg = dynamics.ModelConfig(steps=1000, lr=3e-4)
+    assert cfg.scaled(0.5) == dataclasses.replace(cfg, steps=500)
+    assert dynamics.ModelConfig(steps=None, epochs=3).scaled(0.1).epochs == 1  # at least one
+    with pytest.raises(EfficientTrackError, match="scaled by a share > 0"):
+        cfg.scaled(0)

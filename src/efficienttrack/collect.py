@@ -2,9 +2,10 @@
 
 For every reference q*_{0:L−1}, the machine is reset to q*_0 and at each step t the reference
 ``q^r_{t+1} = q*_{t+1} + d_t`` is sent, with ``d_t = clip(n_t, −σ, σ)``, ``n_t ~ N(0, σ²)`` per joint,
-and ``σ ~ U(0, σ_max)`` drawn once per episode. A pass runs every reference once; a pass is either
-noisy or clean (d = 0), and the noisy:clean mix follows ``noise_ratio`` (the paper's best is
-9:2). Interaction steps (I.S.) are the steps the machine was driven.
+and ``σ ~ U(0, σ_max)`` drawn once per episode. A pass runs every reference once. Each episode is either
+noisy or clean (d = 0), and the noisy:clean mix follows ``noise_ratio`` (the paper's best is 9:2) over
+the episodes, so that any number of passes keeps it: a single pass over 40 references gives 33 noisy and
+7 clean episodes (the paper's fastset). Interaction steps (I.S.) are the steps the machine was driven.
 
 Every episode is flushed to ``out/.pass_<k>.partial/`` as soon as it (or its batch) has run, and
 the folder becomes ``out/pass_<k>/`` when the pass is complete: an interrupted collection resumes
@@ -33,6 +34,9 @@ from efficienttrack.records import EpisodeRecord, load_named_records, load_recor
 from efficienttrack.references import Reference
 from efficienttrack.systems.protocol import BatchedSystem
 
+NOISE_MIX = "episode"
+"""How ``collect.json`` names the noise mixing (noisy or clean per episode); folders mixed per pass are refused."""
+
 
 @dataclass(frozen=True)
 class CollectConfig:
@@ -41,7 +45,7 @@ class CollectConfig:
     sigma_max: float = 0.05
     """Upper bound σ_max of the per-episode noise level σ ~ U(0, σ_max), rad."""
     noise_ratio: tuple[float, float] = (9.0, 2.0)
-    """Noisy passes : clean passes, as relative weights (the paper's best mix is 9:2)."""
+    """Noisy episodes : clean episodes, as relative weights (the paper's best mix is 9:2)."""
     passes: int = 10
     """Passes over the reference set (the paper: 10 passes over 40 references = 176,720 steps)."""
     seed: int = 0
@@ -83,13 +87,27 @@ class CollectConfig:
         """``noise_ratio`` as ``noisy:clean`` (``9:2``), read back exactly by :meth:`parse_noise_ratio`."""
         return ":".join(str(float(w)).removesuffix(".0") for w in self.noise_ratio)
 
-    @property
-    def noisy_passes(self) -> tuple[bool, ...]:
-        """For each pass, whether it is noisy: the ratio spread evenly over the passes (clean first)."""
+    def noisy_episodes(self, pass_index: int, references: int) -> np.ndarray:
+        """Which episodes of pass k are noisy: the ratio spread evenly over all episodes, seeded choice within a pass.
+
+        Pass k gets ``⌊(k+1)·n·s⌉ − ⌊k·n·s⌉`` noisy episodes (n references, s = noisy share), so every
+        prefix of passes keeps the ratio; which references they are is a permutation seeded by (seed, pass).
+
+        Args:
+            pass_index: k, the pass.
+            references: n, the references in a pass.
+
+        Returns:
+            (n,) bool, True where the episode of reference i is noisy.
+        """
         noisy, clean = self.noise_ratio
         share = noisy / (noisy + clean)
-        done = np.floor(np.arange(self.passes + 1) * share + 1e-9)
-        return tuple(bool(x) for x in np.diff(done) > 0)
+        done = np.floor(np.array([pass_index, pass_index + 1]) * references * share + 0.5 + 1e-9)  # rounded half up
+        count = int(done[1] - done[0])
+        chosen = np.random.default_rng([self.seed, pass_index, references]).permutation(references)[:count]
+        mask = np.zeros(references, dtype=bool)
+        mask[chosen] = True
+        return mask
 
 
 class CollectResult(NamedTuple):
@@ -172,7 +190,7 @@ def run_pass(
         system: the closed-loop system.
         references: the references (``.name``, ``.q`` (L_i, 4) rad).
         cfg: collection settings.
-        pass_index: k, which decides noisy/clean (``cfg.noisy_passes[k]``) and seeds the noise.
+        pass_index: k, which decides the noisy episodes (``cfg.noisy_episodes``) and seeds the noise.
         progress: progress display for the steps, or None.
         finished: episodes of this pass already recorded, by reference name; they are not run again.
         on_done: called with the records of every group of episodes as soon as it has run (to flush them).
@@ -180,7 +198,7 @@ def run_pass(
     Returns:
         One record per reference; meta = {name, sigma, pass, noisy}; ``q_ref`` = sent, ``q_des`` = desired.
     """
-    noisy = cfg.noisy_passes[pass_index]
+    noisy = cfg.noisy_episodes(pass_index, len(references))
     finished = finished or {}
     todo = [i for i, ref in enumerate(references) if ref.name not in finished]
     new: dict[str, EpisodeRecord] = {}
@@ -189,12 +207,12 @@ def run_pass(
         arrays = [references[i].q for i in indices]
         noise = np.zeros((max(len(q) for q in arrays) - 1, len(indices), 4))
         sigmas = np.zeros(len(indices))
-        if noisy:
-            for j, i in enumerate(indices):  # per-episode generators keep batching and resuming reproducible
+        for j, i in enumerate(indices):  # per-episode generators keep batching and resuming reproducible
+            if noisy[i]:
                 sigmas[j], noise[: len(arrays[j]) - 1, j] = episode_noise(cfg, pass_index, i, len(arrays[j]) - 1)
         records = rollout(system, arrays, NoiseDriver(noise), 1, progress, f"pass {pass_index + 1}")
         for record, i, sigma in zip(records, indices, sigmas, strict=True):
-            record.meta = {"name": references[i].name, "sigma": float(sigma), "pass": pass_index, "noisy": noisy}
+            record.meta = {"name": references[i].name, "sigma": float(sigma), "pass": pass_index, "noisy": bool(noisy[i])}
             new[references[i].name] = record
         if on_done is not None:
             on_done(records)
@@ -234,16 +252,17 @@ def collect(
     """
     if not references:
         raise EfficientTrackError("collect: no references given")
-    if cfg.noise_ratio[0] > 0 and not any(cfg.noisy_passes):
+    if cfg.noise_ratio[0] > 0 and not any(cfg.noisy_episodes(k, len(references)).any() for k in range(cfg.passes)):
         warnings.warn(
-            f"collect: {cfg.passes} pass(es) at noisy:clean {cfg.noise_ratio[0]:g}:{cfg.noise_ratio[1]:g} give no noisy pass; "
-            "the model will see no noise (use more passes)",
+            f"collect: {cfg.passes} pass(es) over {len(references)} reference(s) at noisy:clean "
+            f"{cfg.noise_ratio_text} give no noisy episode; the model will see no noise (use more passes)",
             stacklevel=2,
         )
     names = [ref.name for ref in references]
     folder = Path(out) if out is not None else None
     if folder is not None:
-        manifest = {"config": asdict(cfg), "references": names, "steps": [len(ref.q) - 1 for ref in references]}
+        steps = [len(ref.q) - 1 for ref in references]
+        manifest = {"config": asdict(cfg), "noise_mix": NOISE_MIX, "references": names, "steps": steps}
         manifest = json.loads(json.dumps(manifest))  # tuples as lists, as read back
         claim_folder(folder / "collect.json", manifest, "this folder holds a collection with other settings or references")
     records: list[EpisodeRecord] = []

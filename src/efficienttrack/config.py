@@ -2,7 +2,8 @@
 
 ``RunConfig`` composes the component configs: :class:`~efficienttrack.collect.CollectConfig`,
 ``ModelConfig`` (``efficienttrack.dynamics``) and ``PolicyConfig`` (``efficienttrack.policy``).
-Presets: ``paper`` (the paper's settings), ``cpu`` (a laptop-sized run), ``tiny`` (seconds; tests).
+Presets: ``paper`` (the paper's settings), ``cpu`` (a laptop-sized run), ``fastset`` (the paper's fastset: one
+collection pass, then three rounds, at the ``cpu`` sizes), ``tiny`` (seconds; tests).
 Configs are read from YAML (a safe loader that also reads ``1e-5`` as a number) or JSON and checked field by field against
 the dataclass types; unknown or mistyped fields are errors naming the file and the field.
 """
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -48,6 +50,9 @@ class RunConfig:
     round_data: str = "all"
     """What a later round trains on: ``all`` (every episode recorded so far) or ``new`` (its own deployment
     pass only, as the paper does)."""
+    warm_budget: float = 0.5
+    """Optimizer steps (or epochs) of a later round's trainings, as a share of round 1's: they start from the
+    previous round's networks and need fewer."""
 
     def __post_init__(self) -> None:
         """Validate the run-level fields (EfficientTrackError naming the field)."""
@@ -55,6 +60,9 @@ class RunConfig:
             raise EfficientTrackError(f"RunConfig.rounds must be an integer ≥ 1, got {self.rounds!r}")
         if self.round_data not in ROUND_DATA:
             raise EfficientTrackError(f"RunConfig.round_data must be one of {', '.join(ROUND_DATA)}, got {self.round_data!r}")
+        budget = self.warm_budget
+        if not isinstance(budget, (int, float)) or isinstance(budget, bool) or not (math.isfinite(budget) and budget > 0):
+            raise EfficientTrackError(f"RunConfig.warm_budget must be a number > 0, got {budget!r}")
 
     def to_dict(self) -> dict[str, Any]:
         """JSON/YAML-serializable form (tuples become lists)."""
@@ -86,6 +94,12 @@ PRESETS: dict[str, RunConfig] = {
         model=MODEL_PRESETS["cpu"],
         policy=POLICY_PRESETS["cpu"],
     ),
+    "fastset": RunConfig(
+        collect=CollectConfig(passes=1),
+        model=MODEL_PRESETS["cpu"],
+        policy=POLICY_PRESETS["cpu"],
+        rounds=3,
+    ),
     "tiny": RunConfig(
         collect=CollectConfig(passes=3),
         model=MODEL_PRESETS["tiny"],
@@ -102,7 +116,7 @@ def preset(name: str) -> RunConfig:
     """The named preset; EfficientTrackError for other names.
 
     Args:
-        name: ``paper``, ``cpu`` or ``tiny``.
+        name: ``paper``, ``cpu``, ``fastset`` or ``tiny``.
 
     Returns:
         The preset's RunConfig.
@@ -117,7 +131,7 @@ def from_dict(data: Any, source: str = "config") -> RunConfig:
 
     Args:
         data: ``{"collect": {...}, "model": {...}, "policy": {...}, "seed": int, "device": str, "rounds": int,
-            "round_data": str}``; missing fields keep their defaults.
+            "round_data": str, "warm_budget": float}``; missing fields keep their defaults.
         source: how to name the data in errors (the file).
 
     Returns:
@@ -141,7 +155,7 @@ def from_dict(data: Any, source: str = "config") -> RunConfig:
         if data["device"] not in ("auto", "cpu", "cuda"):
             raise EfficientTrackError(f"{source}: field 'device' must be auto, cpu or cuda, got {data['device']!r}")
         values["device"] = data["device"]
-    for name in ("rounds", "round_data"):
+    for name in ("rounds", "round_data", "warm_budget"):
         if name in data:
             values[name] = data[name]
     try:

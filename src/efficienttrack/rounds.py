@@ -4,7 +4,9 @@ Round 1 is Algorithm 1 (:func:`efficienttrack.pipeline.run_pipeline`). Round k �
 training references (one pass, no noise, as the paper's real-machine rounds), then trains g_θ and π_φ starting
 from θ_{k−1} and φ_{k−1} (warm starts, with their feature scaling) on every episode recorded so far
 (``round_data = "all"``) or on the new pass only (``"new"``, the paper's choice), and evaluates the new policy on
-the test references. Each round k ≥ 2 lives in ``OUT/rounds/<k>/`` with the layout of a run folder (its own
+the test references. A later round trains ``warm_budget`` × round 1's optimizer steps, with the same sizes and the
+same way of training as the ``round`` command (:func:`~efficienttrack.next_round.continued_config`). Each round
+k ≥ 2 lives in ``OUT/rounds/<k>/`` with the layout of a run folder (its own
 ``stages/``, so an interrupted round resumes where it stopped)::
 
     OUT/rounds/<k>/records/deploy/          π_{k−1} on the training references: the round's new data
@@ -30,6 +32,7 @@ from efficienttrack.config import RunConfig
 from efficienttrack.dynamics import ClosedLoopModel
 from efficienttrack.fileio import atomic_write, write_csv
 from efficienttrack.metrics import compute_metrics, interaction_hours, rounded
+from efficienttrack.next_round import continued_config
 from efficienttrack.policy import AdjustmentPolicy
 from efficienttrack.records import EpisodeRecord
 from efficienttrack.references import Reference
@@ -151,9 +154,11 @@ def run_round(
     records = [*previous.records, *deployed]
     train_records = records if cfg.round_data == "all" else deployed
     common: dict[str, Any] = {"device": device, "seed": cfg.seed, "held_out": held_out}
-    trainer: Callable[..., Any] = partial(dynamics.train_model, cfg.model, train_records, init=previous.g_theta, **common)
+    model_cfg = continued_config(cfg.model.scaled(cfg.warm_budget), previous.g_theta.cfg)
+    policy_cfg = continued_config(cfg.policy.scaled(cfg.warm_budget), previous.pi_phi.cfg)
+    trainer: Callable[..., Any] = partial(dynamics.train_model, model_cfg, train_records, init=previous.g_theta, **common)
     g_theta, model_facts = train_stage(stages, "model", folder, log, trainer, dynamics.save_model, dynamics.load_model, device)
-    trainer = partial(policy.train_policy, cfg.policy, g_theta, train_records, init=previous.pi_phi, **common)
+    trainer = partial(policy.train_policy, policy_cfg, g_theta, train_records, init=previous.pi_phi, **common)
     pi_phi, policy_facts = train_stage(stages, "policy", folder, log, trainer, policy.save_policy, policy.load_policy, device)
     test_records = evaluate_stage(stages, "efficienttrack", folder, system, pi_phi, test_refs, device)
     steps = previous.interaction_steps + sum(len(r) for r in deployed)

@@ -83,6 +83,18 @@ class TrainingSchedule:
             return self.steps
         return int(self.epochs) * math.ceil(windows / self.batch_size)
 
+    def scaled(self, share: float) -> Self:
+        """This schedule with ``share`` × its optimizer steps (or epochs), at least one; everything else kept.
+
+        Args:
+            share: > 0, e.g. 0.5 for a warm-started round that trains half as long as the first.
+        """
+        if not (math.isfinite(share) and share > 0):
+            raise EfficientTrackError(f"{type(self).__name__}: a schedule is scaled by a share > 0, got {share}")
+        if self.steps is not None:
+            return dataclasses.replace(self, steps=max(1, round(self.steps * share)))
+        return dataclasses.replace(self, epochs=max(1, round(int(self.epochs) * share)))
+
     @classmethod
     def from_dict(cls, data: dict, source: str | None = None) -> Self:
         """Build the config from a JSON/YAML mapping, validated field by field.
