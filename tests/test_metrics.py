@@ -18,6 +18,7 @@ from efficienttrack.metrics import (
     interaction_hours,
     mae,
     metrics_table,
+    moving_held_split,
     rmse,
     smoothness,
     tip_distance,
@@ -218,3 +219,21 @@ def test_metrics_cli_json_pd_clean():
     assert figures["mae_deg"] == 5.4391 and figures["per_joint_mae_deg"] == [1.4497, 4.722, 5.0496, 10.5352]
     result = CliRunner().invoke(app, ["metrics", str(DATA / "xe75" / "pd_clean_train")], env={"COLUMNS": "80"})
     assert result.exit_code == 0 and "pd_clean_train" in result.output and "80.02" in result.output
+
+
+def test_moving_held_split_tells_lag_from_an_offset_at_rest():
+    t = np.arange(200)
+    q_des = np.zeros((200, 4))
+    q_des[:100, 0] = np.radians(0.5) * t[:100]  # boom moves at 10 °/s, then holds; the other joints hold
+    q_des[100:, 0] = q_des[99, 0]
+    q = np.empty_like(q_des)
+    q[0] = q_des[0]
+    q[1:] = q_des[:-1]
+    q[1:101, 0] -= np.radians(1.0)  # 1° behind while moving
+    q[101:, 0] -= np.radians(0.25)  # 0.25° below the held reference
+    record = EpisodeRecord(q=q, qd=np.zeros_like(q), q_ref=q_des, q_des=q_des, u=None, t=t / 20.0)
+    split = moving_held_split([record])
+    assert split["held_share"][0] == pytest.approx(100 / 199, abs=0.01) and split["held_share"][1] == 1.0
+    assert split["moving_mae_deg"][0] == pytest.approx(1.0) and split["held_mae_deg"][0] == pytest.approx(0.25, abs=0.01)
+    assert split["held_bias_deg"][0] == pytest.approx(-0.25, abs=0.01)
+    assert split["moving_mae_deg"][1] is None and split["held_mae_deg"][1] == 0.0

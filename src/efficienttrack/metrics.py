@@ -194,6 +194,48 @@ def compute_metrics(records: Sequence[EpisodeRecord]) -> dict[str, Any]:
     return result
 
 
+HELD_SPEED_DEG_S = 2.0
+"""Below this desired speed (°/s) a joint's reference counts as held in :func:`moving_held_split`."""
+
+
+def moving_held_split(records: Sequence[EpisodeRecord], held_speed_deg_s: float = HELD_SPEED_DEG_S) -> dict[str, Any]:
+    """Tracking error per joint, split by whether that joint's reference moves or holds still, pooled over steps.
+
+    Step t of a joint counts as held when its desired speed |wrap(q_des[t] − q_des[t−1])| / dt (for t = 0:
+    from q[0]) is below ``held_speed_deg_s``. Ripple and offsets show in the held steps, lag in the moving ones;
+    the signed mean on held steps tells an offset (a joint resting below or above its reference) from ripple.
+
+    Args:
+        records: the episodes (``q``, ``q_des`` (T, 4) rad).
+        held_speed_deg_s: the speed threshold, °/s.
+
+    Returns:
+        ``{"held_speed_deg_s", "held_share": [4], "moving_mae_deg": [4], "held_mae_deg": [4], "held_bias_deg": [4]}``,
+        per joint (boom, arm, bucket, swing); a joint without held (or moving) steps gets None there.
+    """
+    if not records:
+        raise EfficientTrackError("metrics: no episodes given")
+    errors, held = [], []
+    for record in records:
+        errors.append(tracking_error(record.q, record.q_des))
+        previous = np.concatenate([record.q[:1], record.q_des[:-2]])
+        held.append(np.abs(wrap(record.q_des[:-1] - previous)) * CONTROL_RATE_HZ < np.radians(held_speed_deg_s))
+    e, still = np.concatenate(errors), np.concatenate(held)
+
+    def per_joint(values: np.ndarray, mask: np.ndarray) -> list[float | None]:
+        counts = mask.sum(axis=0)
+        sums = np.where(mask, values, 0.0).sum(axis=0)
+        return [None if n == 0 else float(np.degrees(total / n)) for total, n in zip(sums, counts, strict=True)]
+
+    return {
+        "held_speed_deg_s": held_speed_deg_s,
+        "held_share": still.mean(axis=0).tolist(),
+        "moving_mae_deg": per_joint(np.abs(e), ~still),
+        "held_mae_deg": per_joint(np.abs(e), still),
+        "held_bias_deg": per_joint(e, still),
+    }
+
+
 def metrics_by_path(
     paths: Iterable[str | Path], recursive: bool = False, pool: bool = False, per_episode: bool = False
 ) -> dict[str, dict[str, Any]]:
