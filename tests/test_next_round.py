@@ -185,3 +185,17 @@ def test_interrupted_round_resumes(model, policy, records, tmp_path):
     )  # fmt: skip
     assert result.exit_code == 0, result.output
     assert_same_state(load_policy(out / "policy.pt"), finished, atol=0)
+
+
+def test_round_trains_the_warm_budget_of_the_preset_by_default(model, policy, records, tmp_path):
+    save_records(records, tmp_path / "data")
+    save_model(model, tmp_path / "m.pt")
+    save_policy(policy, tmp_path / "p.pt")
+    args = ("round", "--model", tmp_path / "m.pt", "--policy", tmp_path / "p.pt", "--data", tmp_path / "data")
+    result = invoke(*args, "--out", tmp_path / "r", "--preset", "tiny", "--warm-budget", "0.1", "--device", "cpu")
+    assert result.exit_code == 0, result.output
+    report = json.loads((tmp_path / "r" / ROUND_JSON).read_text())
+    assert report["model_steps"] == round(0.1 * MODEL_PRESETS["tiny"].steps)
+    assert report["policy_steps"] == round(0.1 * POLICY_PRESETS["tiny"].steps)
+    refused = invoke(*args, "--out", tmp_path / "r0", "--warm-budget", "0")
+    assert "--warm-budget 0.0: must be a share > 0" in str(refused.exception)  # main() prints it on one line

@@ -15,7 +15,7 @@ from rich.console import Console
 
 import efficienttrack
 from efficienttrack.collect import CollectConfig
-from efficienttrack.config import ROUND_DATA
+from efficienttrack.config import ROUND_DATA, RunConfig
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import prepare_output_folder
 from efficienttrack.metrics import metrics_by_path, metrics_table, rounded, write_metrics_csv
@@ -423,12 +423,13 @@ HeldOutOpt = Annotated[
 ]
 
 
-def _learn_preset(presets: dict, name: str, steps: int | None):
+def _learn_preset(presets: dict, name: str, steps: int | None, share: float = 1.0):
+    """The preset's config, with ``steps`` optimizer steps when given, else its own scaled by ``share``."""
     import dataclasses
 
     if name not in presets:
         raise EfficientTrackError(f"--preset '{name}': expected one of {', '.join(presets)}")
-    return presets[name] if steps is None else dataclasses.replace(presets[name], steps=steps, epochs=None)
+    return presets[name].scaled(share) if steps is None else dataclasses.replace(presets[name], steps=steps, epochs=None)
 
 
 def _warm_start(option: str, path: Path | None, load, cfg, device: str):
@@ -573,6 +574,10 @@ def round_command(
     ] = "cpu",
     steps_model: Annotated[int | None, typer.Option("--steps-model", help="Override the model's optimizer steps.")] = None,
     steps_policy: Annotated[int | None, typer.Option("--steps-policy", help="Override the policy's optimizer steps.")] = None,
+    warm_budget: Annotated[
+        float,
+        typer.Option("--warm-budget", help="Share of the preset's optimizer steps a warm round trains (as run --rounds)."),
+    ] = RunConfig.warm_budget,
     device: DeviceOpt = "auto",
     seed: TrainSeedOpt = 0,
     threads: ThreadsOpt = 1,
@@ -596,8 +601,10 @@ def round_command(
     from efficienttrack.policy import POLICY_PRESETS, load_policy
 
     _set_threads(threads)
-    model_schedule = _learn_preset(MODEL_PRESETS, preset_name, steps_model)
-    policy_schedule = _learn_preset(POLICY_PRESETS, preset_name, steps_policy)
+    if not warm_budget > 0:
+        raise EfficientTrackError(f"--warm-budget {warm_budget}: must be a share > 0 of the preset's steps")
+    model_schedule = _learn_preset(MODEL_PRESETS, preset_name, steps_model, warm_budget)
+    policy_schedule = _learn_preset(POLICY_PRESETS, preset_name, steps_policy, warm_budget)
     g_theta, _ = _warm_start("--model", model, load_model, model_schedule, device)
     pi_phi, _ = _warm_start("--policy", policy, load_policy, policy_schedule, device)
     new, old = load_records(data, recursive), load_records(old_data, recursive) if old_data else []
