@@ -387,6 +387,7 @@ def test_save_records_refuses_names_leading_outside_the_folder(tmp_path):
     [
         (np.array("[1, 2]"), "field 'meta_json' holds a JSON list, expected an object"),
         (np.array("{bad"), "field 'meta_json' is not valid JSON"),
+        (np.array("[" * 100_000), "field 'meta_json' is not valid JSON .RecursionError"),
         (np.array(b"\xff\xfe"), "field 'meta_json': has dtype |S2, expected a text string"),
         (np.array(["{}", "{}"]), r"field 'meta_json' has shape \(2,\), expected one string"),
         (np.array('{"name": 5}'), "field 'meta_json' key 'name' = 5 cannot be a file name: it is a int"),
@@ -441,3 +442,9 @@ def test_damaged_npz_names_the_field_in_one_line(tmp_path):
     with pytest.raises(EfficientTrackError, match=r"ep.npz: field 'q': damaged \(Bad CRC-32") as info:
         load_record(path)
     assert "\n" not in str(info.value)
+
+
+def test_a_hidden_file_stem_is_kept_as_the_name(tmp_path):
+    """Only names stored inside a file are checked on load; a file's own stem is a file name already."""
+    write_npz(tmp_path / ".hidden.npz")
+    assert load_record(tmp_path / ".hidden.npz").meta["name"] == ".hidden"

@@ -194,6 +194,9 @@ def real_array(value: object, source: str) -> np.ndarray:
 def parse_meta(text: str, source: str, default_name: str) -> dict[str, Any]:
     """A record's meta from its JSON text: an object whose ``name``, when given, is a plain file name.
 
+    The name becomes a file name when the record is saved (``convert``), so one that could lead outside a folder
+    is refused here, naming the file it was read from (:func:`efficienttrack.fileio.check_file_name`).
+
     Args:
         text: the JSON text.
         source: file and field, for messages.
@@ -204,12 +207,14 @@ def parse_meta(text: str, source: str, default_name: str) -> dict[str, Any]:
     """
     try:
         meta = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise EfficientTrackError(f"{source} is not valid JSON ({exc})") from exc
+    except (json.JSONDecodeError, RecursionError) as exc:
+        raise EfficientTrackError(f"{source} is not valid JSON ({type(exc).__name__}: {exc})") from exc
     if not isinstance(meta, dict):
         raise EfficientTrackError(f"{source} holds a JSON {type(meta).__name__}, expected an object")
-    meta.setdefault("name", default_name)
-    check_file_name(meta["name"], f"{source} key 'name'")
+    if "name" in meta:
+        check_file_name(meta["name"], f"{source} key 'name'")
+    else:
+        meta["name"] = default_name
     return meta
 
 
