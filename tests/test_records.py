@@ -1,5 +1,6 @@
 import json
 import os
+import re
 import subprocess
 import sys
 import warnings
@@ -332,3 +333,118 @@ def test_metrics_json_cli_line(tmp_path):
     figures = json.loads(line)
     assert figures["episodes"] == 2 and figures["steps"] == 844
     assert figures["mae_deg"] == pytest.approx(6.00, abs=0.005)
+
+
+# ------------------------------------------------------------------- names, meta and dtypes from file contents
+
+
+@pytest.mark.parametrize("name", ["../../x", "/abs/x", "sub/x", "..", "a\x00b", ""])
+def test_convert_never_writes_outside_out(tmp_path, name):
+    """A record's stored name becomes its file name: one leading outside --out is refused, nothing is written."""
+    source, out, sibling = tmp_path / "in", tmp_path / "a" / "out", tmp_path / "a" / "sibling"
+    save_records([make_record(name="victim")], sibling)
+    before = (sibling / "victim.npz").read_bytes()
+    source.mkdir()
+    write_npz(source / "ep.npz", meta_json=np.array(json.dumps({"name": name})))
+    result = CliRunner().invoke(app, ["convert", str(source), "--out", str(out)])
+    assert isinstance(result.exception, EfficientTrackError), result.output
+    assert f"ep.npz: field 'meta_json' key 'name' = {name!r} cannot be a file name" in str(result.exception)
+    assert (sibling / "victim.npz").read_bytes() == before
+    written = sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*") if p.is_file())
+    assert written == ["a/sibling/victim.npz", "in/ep.npz"]
+
+
+def test_cli_convert_traversal_is_one_line_exit_2(tmp_path):
+    (tmp_path / "in").mkdir()
+    write_npz(tmp_path / "in" / "ep.npz", meta_json=np.array(json.dumps({"name": "../../x"})))
+    proc = subprocess.run(
+        [sys.executable, "-c", "from efficienttrack.cli import main; main()", "convert", "in", "--out", "out"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=tmp_path,
+    )
+    assert proc.returncode == 2 and proc.stdout == "", proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "ep.npz: field 'meta_json' key 'name'" in lines[0]
+    assert not (tmp_path.parent / "x.npz").exists() and not (tmp_path / "out").exists()
+
+
+def test_save_records_refuses_names_leading_outside_the_folder(tmp_path):
+    for name in ("../escape", "/tmp/abs", ".hidden", "a\x00b"):
+        with pytest.raises(
+            EfficientTrackError, match=re.escape(f"out: record 0 meta 'name' = {name!r} cannot be a file name")
+        ):
+            save_records([make_record(name=name)], tmp_path / "out")
+    assert not (tmp_path / "escape.npz").exists() and not list((tmp_path / "out").glob("*"))
+    path = save_csv(make_record(name="../x"), tmp_path / "ours.csv")
+    with pytest.raises(EfficientTrackError, match=r"ours.csv: field 'meta' key 'name' = '../x' cannot be a file name"):
+        load_csv(path)
+
+
+@pytest.mark.parametrize(
+    ("meta_json", "problem"),
+    [
+        (np.array("[1, 2]"), "field 'meta_json' holds a JSON list, expected an object"),
+        (np.array("{bad"), "field 'meta_json' is not valid JSON"),
+        (np.array("[" * 100_000), "field 'meta_json' is not valid JSON .RecursionError"),
+        (np.array(b"\xff\xfe"), "field 'meta_json': has dtype |S2, expected a text string"),
+        (np.array(["{}", "{}"]), r"field 'meta_json' has shape \(2,\), expected one string"),
+        (np.array('{"name": 5}'), "field 'meta_json' key 'name' = 5 cannot be a file name: it is a int"),
+    ],
+)
+def test_malformed_meta_json_is_a_clear_error(tmp_path, meta_json, problem):
+    write_npz(tmp_path / "m.npz", meta_json=meta_json)
+    with pytest.raises(EfficientTrackError, match=f"m.npz: {problem}"):
+        load_record(tmp_path / "m.npz")
+
+
+def test_bool_and_complex_arrays_are_refused(tmp_path):
+    for dtype in (bool, complex, np.int64):
+        write_npz(tmp_path / "x.npz", q=np.zeros((12, 4), dtype))
+        with pytest.raises(
+            EfficientTrackError, match=f"x.npz: field 'q': has dtype {np.dtype(dtype)}, expected real floating"
+        ):
+            load_record(tmp_path / "x.npz")
+    record = make_record(steps=12)
+    record.q = np.zeros((12, 4), complex)
+    with pytest.raises(EfficientTrackError, match="mem: field 'q' has dtype complex128, expected real numbers"):
+        record.validate("mem")
+    arr = np.empty((), dtype=object)
+    arr[()] = {key: [np.ones(4, bool)] * 3 for key in ("js", "jv", "target", "real_target", "action")} | {"time": [0.0] * 3}
+    np.save(tmp_path / "up.npy", arr, allow_pickle=True)
+    with pytest.raises(EfficientTrackError, match=r"up.npy: field 'js' \(q\) has dtype bool, expected real numbers"):
+        load_upstream_npy(tmp_path / "up.npy")
+
+
+def test_a_tiny_upstream_file_cannot_expand(tmp_path):
+    """The probe's 562-byte upstream .npy that expanded to 690 MB: its array is refused before it is allocated."""
+    reconstruct = np.ndarray.__reduce__(np.empty(0))[0]
+
+    class Expanding:
+        def __reduce__(self):
+            return (reconstruct, (np.ndarray, (0,), b"b"), (1, (90_000_000,), np.dtype("f8"), False, b""))
+
+    arr = np.empty((), dtype=object)
+    arr[()] = {"js": Expanding()}
+    np.save(tmp_path / "tiny.npy", arr, allow_pickle=True)
+    assert (tmp_path / "tiny.npy").stat().st_size < 600
+    with pytest.raises(EfficientTrackError, match=r"tiny.npy: declares a float64 array of shape \(90000000,\)"):
+        load_records([tmp_path])
+
+
+def test_damaged_npz_names_the_field_in_one_line(tmp_path):
+    path = save_records([make_record(steps=400)], tmp_path)[0]
+    raw = bytearray(path.read_bytes())
+    start = raw.index(b"q.npy") + len("q.npy") + 200
+    raw[start : start + 64] = bytes(64)  # np.savez stores: the damage shows as a CRC error
+    path.write_bytes(bytes(raw))
+    with pytest.raises(EfficientTrackError, match=r"ep.npz: field 'q': damaged \(Bad CRC-32") as info:
+        load_record(path)
+    assert "\n" not in str(info.value)
+
+
+def test_a_hidden_file_stem_is_kept_as_the_name(tmp_path):
+    """Only names stored inside a file are checked on load; a file's own stem is a file name already."""
+    write_npz(tmp_path / ".hidden.npz")
+    assert load_record(tmp_path / ".hidden.npz").meta["name"] == ".hidden"

@@ -159,7 +159,7 @@ def _write_npy(tmp_path, name, arr):
         (np.array([[0.0, 0, 0, 0], [0, np.nan, 0, 0]]), "NaN or inf"),
         (np.tile([[10.0, -30.0, 90.0, 45.0]], (5, 1)), "looks like degrees"),
         (np.array([[0.0, 0, 0, 0], [0, 0, 0.1, 0], [0, 0, 0.8, 0]]), "bucket jumps 0.7 rad between samples 1 and 2"),
-        (np.array([["a", "b", "c", "d"]] * 3), "real numeric array"),
+        (np.array([["a", "b", "c", "d"]] * 3), "dtype <U1, expected real floating-point numbers"),
     ],
 )
 def test_validation_errors_name_the_file(tmp_path, arr, message):
@@ -186,7 +186,7 @@ def test_file_level_errors(tmp_path):
     with pytest.raises(EfficientTrackError, match="unsupported reference file type"):
         load_references([tmp_path / "x.txt"])
     np.save(tmp_path / "pickled.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
-    with pytest.raises(EfficientTrackError, match="pickled.npy: not a plain numeric .npy"):
+    with pytest.raises(EfficientTrackError, match="pickled.npy: holds Python objects"):
         load_references([tmp_path / "pickled.npy"])
     (tmp_path / "words.csv").write_text("boom,arm,bucket,swing\n0,0,zero,0\n")
     with pytest.raises(EfficientTrackError, match="words.csv: expected plain numeric CSV"):
@@ -200,10 +200,34 @@ def test_file_level_errors(tmp_path):
     np.savetxt(dup / "r.csv", np.zeros((3, 4)), delimiter=",")
     with pytest.raises(EfficientTrackError, match="'r' was already read"):
         load_references(dup)
-    with pytest.raises(EfficientTrackError, match="not a plain file name"):
+    with pytest.raises(EfficientTrackError, match="reference name = .../escape. cannot be a file name"):
         save_references([Reference("../escape", np.zeros((3, 4)))], tmp_path)
     with pytest.raises(EfficientTrackError, match="two references are named 'a'"):
         save_references([Reference("a", np.zeros((3, 4)))] * 2, tmp_path / "out")
+
+
+def test_empty_damaged_and_oversized_reference_files(tmp_path):
+    (tmp_path / "zero.npy").write_bytes(b"")
+    with pytest.raises(EfficientTrackError, match=r"zero.npy: empty file \(0 bytes\)"):
+        load_references(tmp_path / "zero.npy")
+    (tmp_path / "zero.npy").unlink()
+    (tmp_path / "zero.csv").write_bytes(b"")
+    with pytest.raises(EfficientTrackError, match="zero.csv: empty file, no reference samples"):
+        load_references(tmp_path / "zero.csv")
+    (tmp_path / "header.csv").write_text("boom,arm,bucket,swing\n")
+    with pytest.raises(EfficientTrackError, match="header.csv: no rows, no reference samples"):
+        load_references(tmp_path / "header.csv")
+    np.save(tmp_path / "flags.npy", np.zeros((5, 4), bool))
+    with pytest.raises(EfficientTrackError, match="flags.npy: has dtype bool, expected real floating-point numbers"):
+        load_references(tmp_path / "flags.npy")
+    header = "{'descr': '<f8', 'fortran_order': False, 'shape': (90000000, 4), }"
+    (tmp_path / "huge.npy").write_bytes(
+        b"\x93NUMPY\x01\x00" + len(header + "\n").to_bytes(2, "little") + header.encode() + b"\n"
+    )
+    with pytest.raises(EfficientTrackError, match=r"huge.npy: declares a float64 array of shape \(90000000, 4\)"):
+        load_references(tmp_path / "huge.npy")
+    with pytest.raises(EfficientTrackError, match="reference name = 'a\\\\x00b' cannot be a file name: it holds a NUL"):
+        save_references([Reference("a\x00b", np.zeros((3, 4)))], tmp_path / "out")
 
 
 # --- plot and CLI ------------------------------------------------------------------------------------

@@ -132,3 +132,25 @@ def test_a_schedule_scales_its_steps_or_epochs_and_keeps_the_rest():
     assert dynamics.ModelConfig(steps=None, epochs=3).scaled(0.1).epochs == 1  # at least one
     with pytest.raises(EfficientTrackError, match="scaled by a share > 0"):
         cfg.scaled(0)
+
+
+@pytest.mark.parametrize(
+    "content",
+    [
+        b"",
+        b"X\xe8\xb3\xfb",  # torch raised struct.error
+        b"K\xfdh+\xac+\x10\xddr\x8b>",  # KeyError
+        b"qJ\x9bR\x8bicc!\xa4a\xb5^\xf5[{\xea\xfd\x80\x9a\x9a\x9e\x92[y\xa64/\xa0\xfd\xb8\xb2\x94\xd9\x7f",  # IndexError
+        np.random.default_rng(0).bytes(1000),
+    ],
+)
+@pytest.mark.parametrize("load", [dynamics.load_model, policy.load_policy])
+def test_random_bytes_as_a_checkpoint_are_one_clear_error(tmp_path, content, load):
+    path = tmp_path / "random.pt"
+    path.write_bytes(content)
+    path.with_suffix(".json").write_text(
+        '{"kind": "%s", "config": {}}' % ("closed_loop_model" if load is dynamics.load_model else "adjustment_policy")
+    )
+    with pytest.raises(EfficientTrackError, match=r"random.pt: (empty file|refused to load: not a plain tensor)") as info:
+        load(path)
+    assert "\n" not in str(info.value)

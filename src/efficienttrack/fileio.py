@@ -70,6 +70,44 @@ def atomic_write(path: str | Path, write: Callable[[IO[Any]], object], mode: str
     return path
 
 
+MAX_NAME_BYTES = 200
+"""Longest name (UTF-8 bytes) :func:`check_file_name` accepts: a suffix and :func:`atomic_write`'s temporary
+``.<name>.<random>.tmp`` must still fit the usual 255-byte limit of a file name."""
+
+
+def check_file_name(name: object, source: str) -> str:
+    r"""Return ``name`` when it can name a file inside any folder; else raise EfficientTrackError naming ``source``.
+
+    Names read from file contents (an episode's ``meta.name``, a reference's name) become output file names, so a
+    name must not lead outside the folder it is joined to. Refused: non-strings, empty names, names starting with a
+    dot (``.``, ``..``, hidden files), path separators (``/``, ``\\``), NUL and other control characters, and names
+    longer than :data:`MAX_NAME_BYTES`.
+
+    Args:
+        name: the candidate name, without suffix.
+        source: where the name comes from, for the message, e.g. ``"a.npz: field 'meta_json' key 'name'"``.
+
+    Returns:
+        ``name``, unchanged.
+    """
+    if not isinstance(name, str):
+        problem = f"is a {type(name).__name__}, not a string"
+    elif not name:
+        problem = "is empty"
+    elif "/" in name or "\\" in name:
+        problem = "holds a path separator"
+    elif name.startswith("."):
+        problem = "starts with a dot"
+    elif any(ord(char) < 0x20 or ord(char) == 0x7F for char in name):
+        problem = "holds a NUL or control character"
+    elif len(name.encode("utf-8", "surrogatepass")) > MAX_NAME_BYTES:
+        problem = f"is longer than {MAX_NAME_BYTES} bytes"
+    else:
+        return name
+    shown = repr(name) if len(repr(name)) <= 80 else repr(name)[:77] + "..."
+    raise EfficientTrackError(f"{source} = {shown} cannot be a file name: it {problem} (names must stay inside the folder)")
+
+
 def write_json(path: str | Path, data: Any) -> Path:
     """Write ``data`` as indented JSON atomically.
 

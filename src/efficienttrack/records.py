@@ -7,12 +7,16 @@ error of step t is ``wrap(q[t+1] − q_des[t])``.
 
 Formats read by :func:`load_records` (all validated on load):
 
-- ``.npz`` (ours and the XE75 logs): arrays ``q, qd, q_ref, q_des, u, t`` (+ ``meta_json``), no pickle.
+- ``.npz`` (ours and the XE75 logs): real floating-point arrays ``q, qd, q_ref, q_des, u, t`` (+ ``meta_json``,
+  a JSON object whose ``name``, when given, must be a plain file name), no pickle.
 - ``.csv`` (ours): an optional ``# meta: {json}`` line, then the header ``t, q_boom … q_swing,
   qd_*, q_ref_*, q_des_*, u_*`` (``u_*`` absent when there is no PWM), one row per step.
 - ``.npy`` (the original research repository): a 0-d object array holding a pickled dict
   ``js → q, jv → qd, target → q_ref, real_target → q_des, action → u, time → t``. Its pickle
   is read by an unpickler that only builds numpy arrays and refuses every other global.
+
+Binary formats are read by :mod:`efficienttrack.npyfile`: no file may expand beyond
+:data:`~efficienttrack.npyfile.MAX_EXPANDED_BYTES`, checked before anything is allocated.
 - ``.csv`` (the original research repository): header ``target,real_target,js,jv,time,action``,
   vectors printed by numpy as ``"[a b c d]"``.
 """
@@ -22,9 +26,7 @@ from __future__ import annotations
 import csv
 import io
 import json
-import pickle
 import warnings
-import zipfile
 from collections import Counter
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -32,11 +34,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import numpy.lib.format as npy_format
 
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import atomic_write
+from efficienttrack.fileio import atomic_write, check_file_name
 from efficienttrack.joints import JOINT_NAMES, MAX_ABS_ANGLE
+from efficienttrack.npyfile import read_npz, read_pickled_npy
 
 JOINT_FIELDS = ("q", "qd", "q_ref", "q_des", "u")
 ANGLE_FIELDS = ("q", "q_ref", "q_des")
@@ -103,11 +105,7 @@ class EpisodeRecord:
                 if name == "u":
                     continue
                 raise EfficientTrackError(f"{source}: field '{name}' is missing")
-            try:
-                arr = np.asarray(value, dtype=np.float64)
-            except (TypeError, ValueError) as exc:
-                raise EfficientTrackError(f"{source}: field '{name}' is not a numeric array ({exc})") from exc
-            setattr(self, name, arr)
+            setattr(self, name, real_array(value, f"{source}: field '{name}'"))
         steps = len(self.q) if self.q.ndim else 0
         if steps < 2:
             raise EfficientTrackError(f"{source}: field 'q' needs at least 2 steps, has {steps}")
@@ -154,19 +152,14 @@ class EpisodeRecord:
             path: the ``.npz`` file (read with ``allow_pickle=False``).
         """
         path = Path(path)
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                arrays = {name: data[name] for name in data.files}
-        except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
-            raise EfficientTrackError(f"{path}: not a readable .npz episode record ({exc})") from exc
+        arrays = read_npz(path, kinds={"meta_json": "U"})
         missing = [name for name in ("q", "qd", "q_ref", "q_des", "t") if name not in arrays]
         if missing:
             raise EfficientTrackError(f"{path}: missing field(s) {', '.join(repr(name) for name in missing)}")
-        try:
-            meta = json.loads(str(arrays["meta_json"])) if "meta_json" in arrays else {}
-        except json.JSONDecodeError as exc:
-            raise EfficientTrackError(f"{path}: field 'meta_json' is not valid JSON ({exc})") from exc
-        meta.setdefault("name", path.stem)
+        meta_json = arrays.get("meta_json", np.array("{}"))
+        if meta_json.shape != ():
+            raise EfficientTrackError(f"{path}: field 'meta_json' has shape {meta_json.shape}, expected one string")
+        meta = parse_meta(str(meta_json), f"{path}: field 'meta_json'", path.stem)
         record = cls(
             q=arrays["q"],
             qd=arrays["qd"],
@@ -177,6 +170,52 @@ class EpisodeRecord:
             meta=meta,
         )
         return record.validate(str(path))
+
+
+def real_array(value: object, source: str) -> np.ndarray:
+    """``value`` as a float64 array when it holds real numbers; bool, complex, strings and objects are refused.
+
+    Args:
+        value: an array or nested sequence of numbers.
+        source: file and field, for messages.
+
+    Returns:
+        A float64 array (``value`` itself when it already is one).
+    """
+    try:
+        arr = np.asarray(value)
+    except (TypeError, ValueError) as exc:
+        raise EfficientTrackError(f"{source} is not a numeric array ({exc})") from exc
+    if arr.dtype.kind not in "fiu":
+        raise EfficientTrackError(f"{source} has dtype {arr.dtype}, expected real numbers")
+    return arr.astype(np.float64, copy=False)
+
+
+def parse_meta(text: str, source: str, default_name: str) -> dict[str, Any]:
+    """A record's meta from its JSON text: an object whose ``name``, when given, is a plain file name.
+
+    The name becomes a file name when the record is saved (``convert``), so one that could lead outside a folder
+    is refused here, naming the file it was read from (:func:`efficienttrack.fileio.check_file_name`).
+
+    Args:
+        text: the JSON text.
+        source: file and field, for messages.
+        default_name: the name when the meta gives none (the file's stem).
+
+    Returns:
+        The meta dict, with ``name`` set.
+    """
+    try:
+        meta = json.loads(text)
+    except (json.JSONDecodeError, RecursionError) as exc:
+        raise EfficientTrackError(f"{source} is not valid JSON ({type(exc).__name__}: {exc})") from exc
+    if not isinstance(meta, dict):
+        raise EfficientTrackError(f"{source} holds a JSON {type(meta).__name__}, expected an object")
+    if "name" in meta:
+        check_file_name(meta["name"], f"{source} key 'name'")
+    else:
+        meta["name"] = default_name
+    return meta
 
 
 def _check_time(t: np.ndarray, source: str) -> None:
@@ -231,10 +270,7 @@ def _load_csv_ours(path: Path, lines: list[str]) -> EpisodeRecord:
     body = [line for line in lines if not line.startswith("#")]
     for line in lines:
         if line.startswith("# meta:"):
-            try:
-                meta = json.loads(line[len("# meta:") :])
-            except json.JSONDecodeError as exc:
-                raise EfficientTrackError(f"{path}: field 'meta' is not valid JSON ({exc})") from exc
+            meta = parse_meta(line[len("# meta:") :], f"{path}: field 'meta'", path.stem)
     header = [name.strip() for name in body[0].split(",")]
     unknown = [name for name in header if name not in CSV_COLUMNS]
     if unknown:
@@ -260,56 +296,11 @@ def _load_csv_ours(path: Path, lines: list[str]) -> EpisodeRecord:
 # ------------------------------------------------------------------------------ original repository formats
 
 
-_RECONSTRUCT = np.ndarray.__reduce__(np.empty(0))[0]
-"""numpy's array reconstructor (``numpy._core.multiarray._reconstruct``, ``numpy.core`` before numpy 2)."""
-UPSTREAM_PICKLE_GLOBALS: dict[tuple[str, str], Any] = {
-    ("numpy.core.multiarray", "_reconstruct"): _RECONSTRUCT,
-    ("numpy._core.multiarray", "_reconstruct"): _RECONSTRUCT,
-    ("numpy", "ndarray"): np.ndarray,
-    ("numpy", "dtype"): np.dtype,
-}
-"""The only globals an upstream ``.npy`` pickle may name (its time stamps are plain floats: no numpy scalars)."""
-
-
-class _NumpyOnlyUnpickler(pickle.Unpickler):
-    """Unpickler that builds numpy arrays, dtypes and plain containers, and refuses every other global."""
-
-    def __init__(self, file: io.BufferedIOBase, source: Path) -> None:
-        super().__init__(file)
-        self.source = source
-
-    def find_class(self, module: str, name: str) -> Any:
-        """Return an allowed numpy global; refuse anything else with EfficientTrackError."""
-        try:
-            return UPSTREAM_PICKLE_GLOBALS[(module, name)]
-        except KeyError:
-            raise EfficientTrackError(
-                f"{self.source}: refused to unpickle global '{module}.{name}' "
-                "(an upstream episode may only contain numpy arrays; the file is corrupt or malicious)"
-            ) from None
-
-
-def _unpickle_upstream_npy(path: Path) -> Any:
-    """Read the header of the ``.npy`` at ``path`` and unpickle its object payload with the restricted unpickler."""
-    try:
-        with path.open("rb") as f:
-            version = npy_format.read_magic(f)
-            if version == (1, 0):
-                shape, _, dtype = npy_format.read_array_header_1_0(f)
-            elif version in ((2, 0), (3, 0)):
-                shape, _, dtype = npy_format.read_array_header_2_0(f)
-            else:
-                raise EfficientTrackError(f"{path}: unsupported .npy format version {version}")
-            if dtype != np.dtype(object) or shape != ():
-                raise EfficientTrackError(
-                    f"{path}: holds a {dtype} array of shape {shape}, not an upstream episode "
-                    "(a 0-d object array with a dict of js, jv, target, real_target, action, time); a reference trajectory?"
-                )
-            return _NumpyOnlyUnpickler(f, path).load()
-    except EfficientTrackError:
-        raise
-    except (OSError, ValueError, TypeError, AttributeError, IndexError, KeyError, EOFError, pickle.UnpicklingError) as exc:
-        raise EfficientTrackError(f"{path}: not a readable upstream .npy episode ({type(exc).__name__}: {exc})") from exc
+UPSTREAM_NPY = (
+    "an upstream episode (a 0-d object array with a dict of js, jv, target, real_target, action, time); "
+    "a reference trajectory?"
+)
+"""What an upstream episode ``.npy`` holds, for the message when a file holds something else."""
 
 
 def _upstream_fields(path: Path, columns: dict[str, Any]) -> EpisodeRecord:
@@ -321,10 +312,7 @@ def _upstream_fields(path: Path, columns: dict[str, Any]) -> EpisodeRecord:
         )
     fields: dict[str, np.ndarray] = {}
     for key, name in UPSTREAM_KEYS.items():
-        try:
-            fields[name] = np.asarray(columns[key], dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise EfficientTrackError(f"{path}: field '{key}' ({name}) is not a numeric array ({exc})") from exc
+        fields[name] = real_array(columns[key], f"{path}: field '{key}' ({name})")
     return EpisodeRecord(meta={"name": path.stem, "format": "upstream"}, **fields).validate(f"{path}")
 
 
@@ -342,10 +330,9 @@ def load_upstream_npy(path: str | Path) -> EpisodeRecord:
             pickle, missing keys or invalid values.
     """
     path = Path(path)
-    content = _unpickle_upstream_npy(path)
-    episode = content.item() if isinstance(content, np.ndarray) and content.dtype == object and content.shape == () else None
+    episode = read_pickled_npy(path, UPSTREAM_NPY)
     if not isinstance(episode, dict):
-        raise EfficientTrackError(f"{path}: the pickled object is {type(content).__name__}, not an episode dict")
+        raise EfficientTrackError(f"{path}: the pickled object is a {type(episode).__name__}, not an episode dict")
     return _upstream_fields(path, episode)
 
 
@@ -525,6 +512,9 @@ def load_named_records(folder: str | Path, names: Sequence[str]) -> list[Episode
 def save_records(records: Sequence[EpisodeRecord], folder: str | Path, fmt: str = "npz") -> list[Path]:
     """Write each record to ``folder/<meta name>.<fmt>`` atomically.
 
+    A name that could lead outside ``folder`` (path separators, a leading dot, NUL...) is refused before anything is
+    written (:func:`efficienttrack.fileio.check_file_name`).
+
     Args:
         records: the episodes; unnamed ones are called ``episode_0000``, ``episode_0001``, ...
         folder: destination folder (created).
@@ -532,11 +522,17 @@ def save_records(records: Sequence[EpisodeRecord], folder: str | Path, fmt: str 
 
     Returns:
         The paths written, in the order of ``records``.
+
+    Raises:
+        EfficientTrackError: an unknown format, a name that is not a plain file name, or two records with one name.
     """
     if fmt not in ("npz", "csv"):
         raise EfficientTrackError(f"--format '{fmt}': expected npz or csv")
     folder = Path(folder)
-    names = [str(record.meta.get("name") or f"episode_{i:04d}") for i, record in enumerate(records)]
+    names = [
+        check_file_name(record.meta.get("name") or f"episode_{i:04d}", f"{folder}: record {i} meta 'name'")
+        for i, record in enumerate(records)
+    ]
     duplicates = sorted(name for name, count in Counter(names).items() if count > 1)
     if duplicates:
         raise EfficientTrackError(f"{folder}: several records are named {', '.join(duplicates[:5])}; names must be unique")

@@ -15,8 +15,9 @@ import numpy as np
 
 from efficienttrack.angles import wrap
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import atomic_write
+from efficienttrack.fileio import atomic_write, check_file_name
 from efficienttrack.joints import DT, JOINT_NAMES, MAX_ABS_ANGLE
+from efficienttrack.npyfile import read_npy
 
 MIN_STEPS = 2
 """Fewest samples a reference may have."""
@@ -101,12 +102,7 @@ def check_reference(q: object, source: str) -> np.ndarray:
 def _read_array(path: Path) -> np.ndarray:
     """Read one reference file as a raw array; errors name the file."""
     if path.suffix == ".npy":
-        try:
-            return np.load(path, allow_pickle=False)
-        except ValueError as exc:
-            raise EfficientTrackError(f"{path}: not a plain numeric .npy array ({exc})") from exc
-        except OSError as exc:
-            raise EfficientTrackError(f"{path}: cannot read ({exc})") from exc
+        return read_npy(path)
     try:
         lines = [line for line in path.read_text().splitlines() if line.strip()]
     except (OSError, UnicodeDecodeError) as exc:
@@ -116,6 +112,8 @@ def _read_array(path: Path) -> np.ndarray:
             [float(x) for x in lines[0].split(",")]
         except ValueError:
             lines = lines[1:]  # a header row
+    if not lines:
+        raise EfficientTrackError(f"{path}: {'empty file' if path.stat().st_size == 0 else 'no rows'}, no reference samples")
     try:
         return np.loadtxt(lines, delimiter=",", ndmin=2, dtype=np.float64)
     except ValueError as exc:
@@ -125,8 +123,9 @@ def _read_array(path: Path) -> np.ndarray:
 def load_references(source: str | Path | Iterable[str | Path]) -> list[Reference]:
     """Read references from a folder or from files, checked, sorted by name.
 
-    ``.npy`` files are read with ``allow_pickle=False``; ``.csv`` files are plain numbers, four
-    comma-separated columns (boom, arm, bucket, swing, rad), with an optional header row. From a
+    ``.npy`` files must hold a plain floating-point array (no pickle, at most
+    :data:`~efficienttrack.npyfile.MAX_EXPANDED_BYTES`, see :func:`efficienttrack.npyfile.read_npy`); ``.csv`` files
+    are plain numbers, four comma-separated columns (boom, arm, bucket, swing, rad), with an optional header row. From a
     folder, every ``*.npy`` and ``*.csv`` file directly inside it is read.
 
     Args:
@@ -178,9 +177,7 @@ def save_references(refs: Iterable[Reference], folder: str | Path) -> list[Path]
     folder = Path(folder)
     paths: list[Path] = []
     for ref in refs:
-        if not ref.name or Path(ref.name).name != ref.name or ref.name.startswith("."):
-            raise EfficientTrackError(f"reference name '{ref.name}' is not a plain file name")
-        path = folder / f"{ref.name}.npy"
+        path = folder / f"{check_file_name(ref.name, f'{folder}: reference name')}.npy"
         if path in paths:
             raise EfficientTrackError(f"two references are named '{ref.name}'")
         paths.append(atomic_write(path, lambda f, q=ref.q: np.save(f, q, allow_pickle=False)))

@@ -13,6 +13,8 @@ import hashlib
 import json
 import math
 import pickle
+import struct
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -241,6 +243,13 @@ def load_checkpoint(
     return module.to(resolve_device(device)).eval()
 
 
+CHECKPOINT_READ_ERRORS = (
+    pickle.UnpicklingError, RuntimeError, EOFError, OSError, ValueError, AttributeError, IndexError, KeyError, TypeError,
+    OverflowError, struct.error,
+)  # fmt: skip
+"""What ``torch.load(weights_only=True)`` raises on a file that is not a checkpoint (random bytes give all of these)."""
+
+
 def load_tensors(path: str | Path) -> dict[str, Any]:
     """``torch.load(path, weights_only=True)`` on CPU, with a clear error for anything but tensors and plain containers.
 
@@ -250,9 +259,13 @@ def load_tensors(path: str | Path) -> dict[str, Any]:
     Returns:
         The loaded dict.
     """
+    if Path(path).is_file() and Path(path).stat().st_size == 0:
+        raise EfficientTrackError(f"{path}: empty file (0 bytes), not a checkpoint")
     try:
-        data = torch.load(path, map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, RuntimeError, EOFError, OSError, ValueError, AttributeError) as exc:
+        with warnings.catch_warnings():  # a damaged file can make torch warn about its pickle protocol before failing
+            warnings.simplefilter("ignore", UserWarning)
+            data = torch.load(path, map_location="cpu", weights_only=True)
+    except CHECKPOINT_READ_ERRORS as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise EfficientTrackError(
             f"{path}: refused to load: not a plain tensor checkpoint (files must hold data, never code): {first}"
