@@ -68,6 +68,7 @@ from efficienttrack.rounds import (
     run_round,
     write_rounds,
 )
+from efficienttrack.runtime import check_references
 from efficienttrack.stages import RunLog, Stages, evaluate_stage, track_and_save, train_stage
 from efficienttrack.systems.spec import SystemSpec
 from efficienttrack.training import read_scalars
@@ -217,6 +218,7 @@ def run_pipeline(
     _check_plots(max_plots)
     out = Path(out)
     env = system.open()
+    check_references([*train_refs, *test_refs], env.limits)  # before collection moves the machine
     identity = {
         "config": {key: value for key, value in cfg.to_dict().items() if key != "rounds"},  # more rounds extend a run
         "system": system.to_dict(),
