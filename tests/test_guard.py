@@ -11,12 +11,13 @@ from efficienttrack.episodes import FALLBACK, Guard, rollout
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.policy import PolicyConfig
 from efficienttrack.records import load_records, save_records
-from efficienttrack.references import Reference
+from efficienttrack.references import Reference, save_references
 from efficienttrack.runtime import Runtime, track
 from efficienttrack.systems.hydraulic import xe75_closed_loop, xe75_params, xe75_plant
 from efficienttrack.systems.limits import DEFAULT_LIMITS, XE75_MAX_ADJUST, GuardLimits
 from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.systems.spec import SystemSpec, load_system
+from test_cli import invoke, refused
 from toy_system import LagSystem, sine_refs
 
 XE75 = xe75_params().guard_limits()
@@ -314,3 +315,19 @@ def test_a_step_that_never_returns_ends_the_episode_with_an_error():
     sine = [ref.q for ref in sine_refs([30])]
     direct, watched = (rollout(BatchedSystem(LagSystem()), sine, Runtime(None), step_timeout=t)[0] for t in (None, 5.0))
     np.testing.assert_array_equal(direct.q, watched.q)
+
+
+# ---------------------------------------------------------------------------------------------- command line
+
+
+def test_cli_limits_file_refuses_references_outside_before_any_work(tmp_path):
+    save_references(sine_refs([30, 30], seed=1), tmp_path / "refs")  # the boom down to −0.35 rad
+    (tmp_path / "limits.yaml").write_text("q_min: [-0.1, -6, -6, -3.2]\n")
+    system = ["--system", "toy_system:make", "--limits", tmp_path / "limits.yaml"]
+    refs = tmp_path / "refs"
+    result = invoke("run", *system, "--train-refs", refs, "--test-refs", refs, "--out", tmp_path / "run", "--preset", "tiny")
+    refused(result, "reference 'ref_00': boom is")
+    assert not (tmp_path / "run" / "run.json").exists() and not (tmp_path / "run" / "collect").exists()
+    refused(invoke("evaluate", *system, "--refs", refs, "--out", tmp_path / "eval"), "outside the joint limits [-0.1, 6.283]")
+    (tmp_path / "limits.yaml").write_text("max_adjust: 0.1\n")
+    refused(invoke("evaluate", *system, "--refs", refs, "--out", tmp_path / "eval"), "'max_adjust' must be a list of numbers")
