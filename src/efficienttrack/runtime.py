@@ -89,15 +89,13 @@ class Runtime:
         """h, F: lengths of the histories kept and of the desired positions ``step`` needs (policy's, or 1 without)."""
         self.limits = DEFAULT_LIMITS if limits is None else limits
         """The limits the guard enforces."""
+        self.max_adjust = np.zeros(4) if policy is None else self.limits.adjust_bound(policy.cfg.max_adjust)
+        """(4,) rad, the bound of |a| enforced: the machine's, tightened (never widened) by the checkpoint's."""
         if policy is None:
-            self.max_adjust = np.zeros(4)
             self.device = torch.device("cpu")
         else:
-            self.max_adjust = self.limits.adjust_bound(policy.cfg.max_adjust)
             self.device = resolve_device(device) if device is not None else next(policy.parameters()).device
             policy.to(self.device)
-        """(4,) rad, the bound of |a| enforced: the machine's, tightened by the policy's."""
-        self._q_min, self._q_max = np.asarray(self.limits.q_min), np.asarray(self.limits.q_max)
         self._rate = np.asarray(self.limits.max_adjust_rate, dtype=np.float64)
         self._max_move = np.asarray(self.limits.max_speed, dtype=np.float64) * dt
         self.fallbacks = np.zeros(0, dtype=np.int64)
@@ -189,9 +187,10 @@ class Runtime:
         a = np.where(fallback[:, None], 0.0, limited)
         # joint limits
         q_ref = self.limits.clamp(q_next + a)
-        guard |= _bits(np.any(q_ref != q_next + a, axis=1), Guard.CLAMPED)
-        a = q_ref - q_next
-        a[:, SWING] = wrap(a[:, SWING])
+        clamped = np.any(q_ref != q_next + a, axis=1)
+        guard |= _bits(clamped, Guard.CLAMPED)
+        a = np.where(clamped[:, None], q_ref - q_next, a)
+        a[:, SWING] = np.where(clamped, wrap(a[:, SWING]), a[:, SWING])  # a swing clamped after wrapping
         self._history = dataset.push_reference(history, q_ref)
         self._a_prev = a
         self.fallbacks += fallback
