@@ -56,7 +56,7 @@ def test_pd_alone_sends_the_desired_reference(refs):
     for ref, record in zip(refs, records, strict=True):
         np.testing.assert_array_equal(record.q_ref, ref.q[1:])
         np.testing.assert_array_equal(record.q_des, ref.q[1:])
-        assert record.meta == {"fallbacks": 0, "name": ref.name, "method": "pd"}
+        assert record.meta == {"fallbacks": 0, "guard": {}, "name": ref.name, "method": "pd"}
 
 
 def test_guard_falls_back_to_raw_reference_and_counts(refs):

@@ -205,12 +205,22 @@ PlantOpt = Annotated[
 ]
 PdOpt = Annotated[str, typer.Option("--pd", help="PD gains for --plant: preset name (xe75) or a JSON file.")]
 SystemOpts = Annotated[list[str] | None, typer.Option("--system-opt", help="key=value option of the system (repeatable).")]
+LimitsOpt = Annotated[
+    Path | None,
+    typer.Option("--limits", help="YAML/JSON of the guard's joint limits and adjustment bounds (amends the system's)."),
+]
 
 
-def _system_spec(system: str | None, plant: str | None, pd: str, options: list[str] | None):
+def _system_spec(system: str | None, plant: str | None, pd: str, options: list[str] | None, limits: Path | None = None):
     from efficienttrack.systems.spec import SystemSpec
 
-    return SystemSpec(system=system, plant=plant, pd=pd, options=tuple(parse_options(options).items()))
+    return SystemSpec(
+        system=system,
+        plant=plant,
+        pd=pd,
+        options=tuple(parse_options(options).items()),
+        limits=None if limits is None else str(limits),
+    )
 
 
 def _run_config(
@@ -291,6 +301,7 @@ def evaluate_command(
     plant: PlantOpt = None,
     pd: PdOpt = "xe75",
     system_opt: SystemOpts = None,
+    limits: LimitsOpt = None,
     policy: Annotated[
         Path | None, typer.Option("--policy", help="Policy checkpoint (policy.pt) to compare with PD; PD alone without.")
     ] = None,
@@ -305,7 +316,7 @@ def evaluate_command(
     from efficienttrack.pipeline import EVALUATE_OUTPUTS, evaluate
     from efficienttrack.references import load_references
 
-    spec, references = _system_spec(system, plant, pd, system_opt), load_references(refs)
+    spec, references = _system_spec(system, plant, pd, system_opt, limits), load_references(refs)
     prepare_output_folder(out, EVALUATE_OUTPUTS, force)
     evaluate(spec, references, out, policy, device, wide_console(), plots)
 
@@ -355,6 +366,7 @@ def run_command(
     plant: PlantOpt = None,
     pd: PdOpt = "xe75",
     system_opt: SystemOpts = None,
+    limits: LimitsOpt = None,
     preset_name: PresetOpt = "cpu",
     config: ConfigOpt = None,
     seed: RunSeedOpt = None,
@@ -370,7 +382,7 @@ def run_command(
     from efficienttrack.references import load_references
 
     _set_threads(threads)
-    spec = _system_spec(system, plant, pd, system_opt)
+    spec = _system_spec(system, plant, pd, system_opt, limits)
     cfg = _run_config(config, preset_name, seed, device, rounds, round_data)
     train, test = load_references(train_refs), load_references(test_refs)
     _prepare_run_folder(out, RUN_OUTPUTS, force)

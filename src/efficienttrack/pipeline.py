@@ -68,6 +68,7 @@ from efficienttrack.rounds import (
     run_round,
     write_rounds,
 )
+from efficienttrack.runtime import check_references
 from efficienttrack.stages import RunLog, Stages, evaluate_stage, track_and_save, train_stage
 from efficienttrack.systems.spec import SystemSpec
 from efficienttrack.training import read_scalars
@@ -209,7 +210,8 @@ def run_pipeline(
         (:func:`efficienttrack.rounds.round_summary`), "provenance"}``.
 
     Raises:
-        EfficientTrackError: bad system spec, no references, a negative ``max_plots``, or ``out`` holding another run.
+        EfficientTrackError: bad system spec, no references, one outside the joint limits, a negative ``max_plots``, or
+            ``out`` holding another run.
     """
     start = time.perf_counter()
     if not train_refs or not test_refs:
@@ -217,6 +219,7 @@ def run_pipeline(
     _check_plots(max_plots)
     out = Path(out)
     env = system.open()
+    check_references([*train_refs, *test_refs], env.limits)  # before collection moves the machine
     identity = {
         "config": {key: value for key, value in cfg.to_dict().items() if key != "rounds"},  # more rounds extend a run
         "system": system.to_dict(),
@@ -341,7 +344,8 @@ def evaluate(
         ``interaction_hours`` those of the run the policy comes from when it lies in a run folder (else null).
 
     Raises:
-        EfficientTrackError: no references, a missing policy file, a bad device or a negative ``max_plots``.
+        EfficientTrackError: no references, one outside the joint limits, a missing policy file, a bad device or a
+            negative ``max_plots``.
     """
     start = time.perf_counter()
     if not refs:
@@ -349,6 +353,7 @@ def evaluate(
     _check_plots(max_plots)
     out = Path(out)
     env = system.open()
+    check_references(refs, env.limits)
     pi, torch_device = None, None
     if policy_path is not None:
         if not Path(policy_path).is_file():

@@ -34,6 +34,7 @@ from efficienttrack.dynamics import NORM_SAMPLES, ClosedLoopModel
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.nets import MLP, Standardizer, feature_width, relative_features, resolve_device
 from efficienttrack.records import EpisodeRecord
+from efficienttrack.systems.limits import XE75_MAX_ADJUST
 from efficienttrack.training import (
     TrainingSchedule,
     TrainLoop,
@@ -44,8 +45,6 @@ from efficienttrack.training import (
     warm_start,
 )
 
-XE75_MAX_ADJUST = (0.15, 0.30, 0.40, 0.40)
-"""Per-joint adjustment bound of the real XE75 deployment (boom, arm, bucket, swing), rad."""
 EVAL_CHUNK = 8192
 """Windows per batch in :func:`predicted_tracking_error`."""
 HELD_OUT_TAG = "held_out/tracking_error_deg"

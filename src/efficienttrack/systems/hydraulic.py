@@ -49,6 +49,7 @@ import numpy as np
 from efficienttrack.angles import wrap
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.joints import DT, N_JOINTS, SWING
+from efficienttrack.systems.limits import DEFAULT_LIMITS, GuardLimits
 from efficienttrack.systems.pd import XE75_PD, ClosedLoop
 
 U_MAX = 1000.0
@@ -197,6 +198,27 @@ class HydraulicParams:
             q_max=np.where(np.arange(N_JOINTS) == SWING, np.inf, a["q_max"]),
             noise=np.concatenate([a["noise_q"], a["noise_qd"]]),
             dt=float(self.dt),
+        )
+
+    @property
+    def top_speed(self) -> np.ndarray:
+        """(4,) rad/s, the fastest each joint can move: full valve, no pump sharing, the linkage's fastest angle."""
+        p = self.arrays
+        r = np.linspace(np.asarray(self.q_min) - p.q_mid, np.asarray(self.q_max) - p.q_mid, 101)
+        linkage = np.exp((p.speed_q + p.speed_q2 * r) * r).max(axis=0)
+        return np.maximum(np.abs(p.v_pos), np.abs(p.v_neg)) * p.flow_table.max(axis=0) * linkage
+
+    def guard_limits(self) -> GuardLimits:
+        """The limits of the runtime guard for this machine: its joint range, and twice its top speed as plausible.
+
+        Boom, arm and bucket may be sent references within ``[q_min, q_max]``; the swing is unlimited (it wraps).
+        The adjustment bounds are the package's (:data:`~efficienttrack.systems.limits.XE75_MAX_ADJUST`).
+        """
+        swing = np.arange(N_JOINTS) == SWING
+        return DEFAULT_LIMITS.replace(
+            q_min=tuple(float(v) for v in np.where(swing, -math.pi, self.q_min)),
+            q_max=tuple(float(v) for v in np.where(swing, math.pi, self.q_max)),
+            max_speed=tuple(float(v) for v in 2.0 * self.top_speed),
         )
 
     @property
@@ -395,12 +417,26 @@ def step(state: HydraulicState, u: np.ndarray, params: HydraulicParams) -> Hydra
     dv = v_cmd - state.qd
     change = (p.alpha + (dv * state.qd < 0.0) * p.alpha_brake_minus_accel) * dv
     qd = state.qd + np.minimum(np.maximum(change, p.dv_min), p.dv_max)
-    q = state.q + p.dt * qd
-    # joint limits (swing unlimited) and swing wrap
+    q, qd = within_limits(state.q + p.dt * qd, qd, params)
+    return HydraulicState(q=q, qd=qd, u_hist=u_hist, spool=spool)
+
+
+def within_limits(q: np.ndarray, qd: np.ndarray, params: HydraulicParams) -> tuple[np.ndarray, np.ndarray]:
+    """Joints stopped at their limits (swing unlimited, wrapped to (−π, π]): the machine cannot be elsewhere.
+
+    Args:
+        q: (N, 4) rad, joint positions.
+        qd: (N, 4) rad/s, joint velocities.
+        params: model parameters (``q_min``, ``q_max``).
+
+    Returns:
+        ``q`` clamped into the limits, and ``qd`` with 0 where a joint was stopped.
+    """
+    p = params.arrays
     q_lim = np.minimum(np.maximum(q, p.q_min), p.q_max)
-    qd *= q_lim == q
-    q_lim[:, 3] = wrap(q_lim[:, 3])
-    return HydraulicState(q=q_lim, qd=qd, u_hist=u_hist, spool=spool)
+    qd = qd * (q_lim == q)
+    q_lim[:, SWING] = wrap(q_lim[:, SWING])
+    return q_lim, qd
 
 
 def observe(state: HydraulicState, params: HydraulicParams, rng: np.random.Generator | None = None) -> np.ndarray:
@@ -431,8 +467,12 @@ class HydraulicExcavator:
     obs    (8,)/(N, 8)  [q rad, q̇ rad/s]      q within [q_min, q_max] (swing in (−π, π])
     ====== ============ ===================== ==========================================
 
-    ``dt`` = ``params.dt`` (0.05 s). ``reset`` optionally takes the logged velocity ``qd0`` and the
-    last commands ``u_past`` (K, 4)/(K, N, 4), time order, to start in a logged state. Output rank
+    ``dt`` = ``params.dt`` (0.05 s). ``reset`` clamps a start outside ``[q_min, q_max]`` into the limits (and wraps
+    the swing), as ``step`` would at once: the simulated machine cannot stand beyond its end stops, and logs of the
+    real machine read slightly past the fitted limits (the bucket at −0.519 rad against −0.50), so refusing them would
+    refuse real windows. References outside the limits are refused before anything runs (``runtime.track``).
+    ``limits`` are the runtime guard's (:meth:`HydraulicParams.guard_limits`). ``reset`` optionally takes the logged
+    velocity ``qd0`` and the last commands ``u_past`` (K, 4)/(K, N, 4), time order, to start in a logged state. Output rank
     follows the ``q0`` given to ``reset``. Version 3 (the model of this module docstring; version 2 had no
     linkage factor and no acceleration limit, version 1 also no spool lag, one saturation per joint and a pump
     limit instead of the pump coupling).
@@ -453,6 +493,11 @@ class HydraulicExcavator:
         self.state: HydraulicState | None = None
         self._single = False
 
+    @property
+    def limits(self) -> GuardLimits:
+        """What the runtime guard may send this machine (:meth:`HydraulicParams.guard_limits`)."""
+        return self.params.guard_limits()
+
     def reset(self, q0: np.ndarray, qd0: np.ndarray | None = None, u_past: np.ndarray | None = None) -> np.ndarray:
         """Machines at ``q0`` (4,)/(N, 4) rad; return obs (8,)/(N, 8).
 
@@ -468,7 +513,9 @@ class HydraulicExcavator:
             raise EfficientTrackError(f"hydraulic simulator: qd0 must match q0 {q0.shape}, got {np.shape(qd0)}")
         if u_past is not None and np.size(u_past) % (n * N_JOINTS):
             raise EfficientTrackError(f"hydraulic simulator: u_past must be (K, {n}, 4), got {np.shape(u_past)}")
-        self.state = initial_state(q0.reshape(n, N_JOINTS), self.params, qd0, u_past)
+        state = initial_state(q0.reshape(n, N_JOINTS), self.params, qd0, u_past)
+        q, qd = within_limits(state.q, state.qd, self.params)
+        self.state = state._replace(q=q, qd=qd)
         return self._obs()
 
     def step(self, u: np.ndarray) -> np.ndarray:

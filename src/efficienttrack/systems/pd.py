@@ -109,6 +109,11 @@ class ClosedLoop:
         self._q: np.ndarray | None = None
         self._e_prev: np.ndarray | None = None
 
+    @property
+    def limits(self) -> Any:
+        """The plant's ``limits`` (what the runtime guard may send it), or None when the plant gives none."""
+        return getattr(self.plant, "limits", None)
+
     def reset(self, q0: np.ndarray) -> np.ndarray:
         """Reset the plant at ``q0`` (4,)/(N, 4) rad; return obs (8,)/(N, 8)."""
         obs = np.asarray(self.plant.reset(q0), dtype=np.float64)

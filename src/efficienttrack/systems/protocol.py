@@ -21,7 +21,10 @@ Batch semantics: a system that sets the attribute ``batched = True`` accepts ``(
 and returns ``(N, 8)`` observations for any N it was reset with. Without it, the system takes
 single ``(4,)`` arrays only (a real machine is N = 1); the package then runs it one episode at a
 time. A closed-loop system may expose ``last_command`` (the PWM it applied in the last step,
-``(4,)``/``(N, 4)``); it is recorded when present.
+``(4,)``/``(N, 4)``); it is recorded when present. It may expose ``limits`` (a
+:class:`~efficienttrack.systems.limits.GuardLimits` or a mapping of its fields): the joint limits and adjustment
+bounds the runtime guard enforces; without it the guard uses
+:data:`~efficienttrack.systems.limits.DEFAULT_LIMITS`.
 
 Loading a system by name or import path: :mod:`efficienttrack.systems.spec`.
 """
@@ -34,6 +37,7 @@ import numpy as np
 
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.joints import N_JOINTS, OBS_DIM
+from efficienttrack.systems.limits import DEFAULT_LIMITS, GuardLimits
 
 
 @runtime_checkable
@@ -91,6 +95,10 @@ class BatchedSystem:
         self.dt = float(dt)
         self.batched = bool(getattr(system, "batched", False))
         self.max_batch: int | None = None if self.batched else 1
+        own = getattr(system, "limits", None)
+        self.limits = DEFAULT_LIMITS if own is None else GuardLimits.coerce(own, f"{name}: attribute 'limits'")
+        """What the runtime guard may send: the system's own ``limits``, a user's limits file (``SystemSpec.limits``),
+        or :data:`~efficienttrack.systems.limits.DEFAULT_LIMITS`."""
         self._n = 0
 
     def reset(self, q0: np.ndarray) -> np.ndarray:

@@ -8,7 +8,8 @@ and must return the system. Modules are looked up in the current working directo
 
 :class:`SystemSpec` is what the CLI and the pipeline carry around: a reference-level system
 (``--system``), or a PWM-level plant (``--plant``) closed with PD gains (``--pd``); with neither,
-the built-in ``xe75``.
+the built-in ``xe75``. A limits file (``--limits``) amends the limits the runtime guard enforces
+(:mod:`efficienttrack.systems.limits`).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from efficienttrack.errors import EfficientTrackError
+from efficienttrack.systems.limits import GuardLimits
 from efficienttrack.systems.pd import ClosedLoop, PDGains
 from efficienttrack.systems.protocol import BatchedSystem
 
@@ -131,6 +133,8 @@ class SystemSpec:
     """PD gains for ``plant``: a preset name or a JSON file (``--pd``)."""
     options: tuple[tuple[str, Any], ...] = ()
     """Keyword options of the callable (``--system-opt key=value``)."""
+    limits: str | None = None
+    """YAML/JSON file of the guard's limits (``--limits``); fields it leaves out keep the system's own."""
 
     def __post_init__(self) -> None:
         """Refuse a spec naming both a system and a plant."""
@@ -143,25 +147,31 @@ class SystemSpec:
         return self.system if self.system is not None else DEFAULT_SYSTEM
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON form (for run.json and metrics.json)."""
+        """JSON form (for run.json and metrics.json); ``limits`` only when a file is given (older run.json match)."""
         return {
             "system": None if self.plant else self.system_name,
             "plant": self.plant,
             "pd": self.pd if self.plant else None,
             "options": dict(self.options),
+            **({"limits": self.limits} if self.limits is not None else {}),
         }
 
     def open(self) -> BatchedSystem:
         """Build the closed-loop system this spec names.
 
         Returns:
-            The checked, batched view of the system (a plant is closed with its PD gains).
+            The checked, batched view of the system (a plant is closed with its PD gains), its ``limits`` amended
+            by the limits file.
         """
         options = dict(self.options)
         if self.plant is None:
-            return load_system(self.system_name, **options)
-        plant = load_plant(self.plant, **options)
-        return close_loop(plant, PDGains.load(self.pd), name=f"plant '{self.plant}' under PD '{self.pd}'")
+            system = load_system(self.system_name, **options)
+        else:
+            plant = load_plant(self.plant, **options)
+            system = close_loop(plant, PDGains.load(self.pd), name=f"plant '{self.plant}' under PD '{self.pd}'")
+        if self.limits is not None:
+            system.limits = GuardLimits.load(self.limits, base=system.limits)
+        return system
 
     def open_plant(self) -> BatchedSystem | None:
         """The PWM-level plant under the system, where there is one: ``--plant``, or a built-in system's own plant.
