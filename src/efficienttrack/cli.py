@@ -267,7 +267,7 @@ def collect_command(
     pd: PdOpt = "xe75",
     system_opt: SystemOpts = None,
     passes: Annotated[int, typer.Option("--passes", help="Passes over the references.")] = COLLECT.passes,
-    noise_ratio: Annotated[str, typer.Option("--noise-ratio", help="Noisy:clean episodes, e.g. 9:2.")] = COLLECT.noise_ratio_text,
+    noise_ratio: Annotated[str, typer.Option("--noise-ratio", help="Noisy:clean episodes.")] = COLLECT.noise_ratio_text,
     sigma_max: Annotated[float, typer.Option("--sigma-max", help="Largest noise level σ_max, rad.")] = COLLECT.sigma_max,
     seed: Annotated[int, typer.Option("--seed", help="Noise seed.")] = COLLECT.seed,
 ) -> None:
