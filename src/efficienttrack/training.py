@@ -25,12 +25,19 @@ from torch import nn
 from efficienttrack.configfile import config_from_dict
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import atomic_write, write_json
-from efficienttrack.nets import resolve_device
+from efficienttrack.nets import check_size, resolve_device
 from efficienttrack.progress import ProgressDisplay
 from efficienttrack.provenance import provenance
 from efficienttrack.records import EpisodeRecord
 
 NetworkT = TypeVar("NetworkT", bound=nn.Module)
+
+MAX_BATCH_SIZE = 65_536
+"""Most windows per optimizer step a config may ask for (the paper: 2048)."""
+MAX_STEPS = 10_000_000
+"""Most optimizer steps of a training run (the paper: 2000 epochs of its data, about 170,000 steps)."""
+MAX_EPOCHS = 100_000
+"""Most passes over the training windows a config may ask for (the paper: 2000)."""
 
 
 @dataclass(frozen=True)
@@ -61,27 +68,47 @@ class TrainingSchedule:
     """Optimizer steps between held-out evaluations when training logs (None: a tenth of the run)."""
 
     def __post_init__(self) -> None:
-        """Validate the schedule's fields (EfficientTrackError naming the config class and the field)."""
+        """Validate the schedule's fields (EfficientTrackError naming the config class, the field and its bound)."""
         name = type(self).__name__
-        for field in ("batch_size", "save_every"):
-            if getattr(self, field) < 1:
-                raise EfficientTrackError(f"{name}.{field} must be ≥ 1, got {getattr(self, field)}")
+        check_size(name, "batch_size", self.batch_size, 1, MAX_BATCH_SIZE)
+        check_size(name, "save_every", self.save_every, 1, MAX_STEPS)
         if (self.steps is None) == (self.epochs is None):
             raise EfficientTrackError(f"{name}: set exactly one of steps and epochs")
-        if (self.steps is not None and self.steps < 1) or (self.epochs is not None and self.epochs < 1):
-            raise EfficientTrackError(f"{name}: steps/epochs must be ≥ 1")
-        if not (math.isfinite(self.lr) and math.isfinite(self.weight_decay)) or self.lr <= 0 or self.weight_decay < 0:
+        if self.steps is not None:
+            check_size(name, "steps", self.steps, 1, MAX_STEPS)
+        if self.epochs is not None:
+            check_size(name, "epochs", self.epochs, 1, MAX_EPOCHS)
+        if self.eval_every is not None:
+            check_size(name, "eval_every", self.eval_every, 1, MAX_STEPS)
+        for field in ("lr", "weight_decay", "grad_clip"):
+            value = getattr(self, field)
+            if field == "grad_clip" and value is None:
+                continue
+            if not isinstance(value, int | float) or isinstance(value, bool) or not math.isfinite(value):
+                raise EfficientTrackError(f"{name}.{field} must be a finite number, got {value!r}")
+        if self.lr <= 0 or self.weight_decay < 0:
             raise EfficientTrackError(f"{name}: lr must be > 0, weight_decay ≥ 0, got {self.lr} and {self.weight_decay}")
         if self.grad_clip is not None and not self.grad_clip > 0:
             raise EfficientTrackError(f"{name}.grad_clip must be > 0 or None, got {self.grad_clip}")
-        if self.eval_every is not None and self.eval_every < 1:
-            raise EfficientTrackError(f"{name}.eval_every must be ≥ 1 or None, got {self.eval_every}")
 
     def total_steps(self, windows: int) -> int:
-        """Optimizer steps of a run on ``windows`` training windows (``steps``, or ``epochs`` passes over them)."""
+        """Optimizer steps of a run on ``windows`` training windows (``steps``, or ``epochs`` passes over them).
+
+        Args:
+            windows: training windows available.
+
+        Raises:
+            EfficientTrackError: ``epochs`` passes over ``windows`` make more than :data:`MAX_STEPS` steps.
+        """
         if self.steps is not None:
             return self.steps
-        return int(self.epochs) * math.ceil(windows / self.batch_size)
+        total = int(self.epochs) * math.ceil(windows / self.batch_size)
+        if total > MAX_STEPS:
+            raise EfficientTrackError(
+                f"{type(self).__name__}.epochs: {self.epochs} passes over {windows} windows make {total} optimizer steps, "
+                f"more than the {MAX_STEPS} allowed; lower epochs or raise batch_size"
+            )
+        return total
 
     def scaled(self, share: float) -> Self:
         """This schedule with ``share`` × its optimizer steps (or epochs), at least one; everything else kept.
