@@ -36,7 +36,7 @@ import numpy.lib.format as npy_format
 
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import atomic_write
-from efficienttrack.joints import JOINT_NAMES, MAX_ABS_ANGLE
+from efficienttrack.joints import JOINT_NAMES, MAX_ABS_ANGLE, MAX_ABS_VELOCITY
 
 JOINT_FIELDS = ("q", "qd", "q_ref", "q_des", "u")
 ANGLE_FIELDS = ("q", "q_ref", "q_des")
@@ -135,6 +135,13 @@ class EpisodeRecord:
                 raise EfficientTrackError(
                     f"{source}: field '{name}' reaches {peak:.1f}, beyond ±2π rad: angles look like degrees (use radians)"
                 )
+        fastest = np.abs(self.qd).max(axis=0)
+        if np.any(fastest > MAX_ABS_VELOCITY):
+            joint = int(np.argmax(fastest))
+            raise EfficientTrackError(
+                f"{source}: field 'qd' reaches {fastest[joint]:.3g} rad/s at the {JOINT_NAMES[joint]}, beyond the "
+                f"±{MAX_ABS_VELOCITY:g} rad/s of any excavator joint: a corrupted file, or not rad/s?"
+            )
         _check_time(self.t, source)
         return self
 

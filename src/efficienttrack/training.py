@@ -205,6 +205,7 @@ def save_checkpoint(module: nn.Module, kind: str, config: Any, path: str | Path)
         The checkpoint path.
     """
     path = Path(path)
+    check_finite(module, f"{path}: {kind} not saved")
     tensors = module.state_dict()
     state = {name: tensor.detach().cpu() for name, tensor in tensors.items()}
     atomic_write(path, lambda f: torch.save(state, f))
@@ -217,6 +218,24 @@ def save_checkpoint(module: nn.Module, kind: str, config: Any, path: str | Path)
     }
     write_json(config_path(path), meta)
     return path
+
+
+def check_finite(module: nn.Module, what: str) -> None:
+    """Refuse a network whose weights or buffers hold NaN/inf (a diverged training), before it is saved or resumed.
+
+    Args:
+        module: the network.
+        what: the start of the message: the file and what is refused (``"model.pt: not saved"``).
+
+    Raises:
+        EfficientTrackError: naming the first non-finite tensors.
+    """
+    bad = [name for name, tensor in module.state_dict().items() if tensor.is_floating_point() and not tensor.isfinite().all()]
+    if bad:
+        raise EfficientTrackError(
+            f"{what}: the weights hold NaN/inf values ({', '.join(bad[:3])}), the training diverged (check the data for "
+            "absurd values, lower the learning rate)"
+        )
 
 
 def _file_sha256(path: Path) -> str:
@@ -260,6 +279,11 @@ def load_checkpoint(
         raise EfficientTrackError(f"{path}: not a state_dict (expected a dict of named tensors)")
     if meta.get("weights_sha256") not in (None, _file_sha256(path)):
         raise EfficientTrackError(f"{cfg_file}: written for other weights than {path} (an interrupted save?); save both again")
+    bad = [name for name, tensor in state.items() if tensor.is_floating_point() and not torch.isfinite(tensor).all()]
+    if bad:
+        raise EfficientTrackError(
+            f"{path}: weights hold NaN/inf values ({', '.join(bad[:3])}); the training diverged, retrain"
+        )
     module = network(config.from_dict(meta["config"], f"{path} config"))
     try:
         module.load_state_dict(state)
@@ -484,14 +508,24 @@ class TrainLoop:
                 f"{self.checkpoint}: training state of another run (kind, config, steps, data, seed or model differ); "
                 "delete it (--force on the command line) to start afresh, or train with the config it was made with"
             )
+        fix = "delete it (--force on the command line) to start this training afresh"
         try:
             self.module.load_state_dict(state["module"])
             self.optimizer.load_state_dict(state["optimizer"])
             self.generator.set_state(state["generator"])
-        except (KeyError, RuntimeError, ValueError) as exc:
-            raise EfficientTrackError(f"{self.checkpoint}: unreadable training state ({exc})") from exc
-        self.start = int(state["step"])
-        self._losses[: self.start] = state["losses"].numpy()[: self.start]
+            step, losses = state["step"], state["losses"]
+        except (KeyError, RuntimeError, ValueError, TypeError) as exc:
+            raise EfficientTrackError(f"{self.checkpoint}: unreadable training state (missing or bad {exc}); {fix}") from exc
+        if not isinstance(step, int) or isinstance(step, bool) or not 0 <= step <= self.total:
+            raise EfficientTrackError(f"{self.checkpoint}: training state at step {step!r}, outside 0 … {self.total}; {fix}")
+        if not isinstance(losses, torch.Tensor) or losses.shape != (self.total,) or not losses[:step].isfinite().all():
+            raise EfficientTrackError(f"{self.checkpoint}: training state lacks the losses of its {step} steps; {fix}")
+        try:
+            check_finite(self.module, f"{self.checkpoint}: training state refused")
+        except EfficientTrackError as exc:
+            raise EfficientTrackError(f"{exc}; {fix}") from exc
+        self.start = step
+        self._losses[:step] = losses.double().numpy()[:step]
 
     def save(self, step: int) -> None:
         """Flush the log, then write the training state after ``step`` steps atomically (no-op without a checkpoint).
@@ -503,6 +537,7 @@ class TrainLoop:
             self._log.flush()
         if self.checkpoint is None:
             return
+        check_finite(self.module, f"{self.checkpoint}: {self.kind} training state after {step} steps not saved")
         state = {
             "kind": self.kind,
             "config": self._config,
@@ -542,6 +577,13 @@ class TrainLoop:
             step: the optimizer step just taken (0-based; logged as ``step + 1`` steps done).
             loss: its loss.
         """
+        if not math.isfinite(loss):
+            kept = f"; the training state in {self.checkpoint} is kept" if self.checkpoint and self.checkpoint.exists() else ""
+            raise EfficientTrackError(
+                f"{self.kind} training stopped: the loss is {loss} at step {step + 1} of {self.total} (check the training "
+                f"data for absurd values, lower lr ({self.cfg.lr}) or set grad_clip ({self.cfg.grad_clip})); nothing was "
+                f"saved from this step on{kept}"
+            )
         self._losses[step] = loss
         done = step + 1
         if self._log is not None:
