@@ -145,7 +145,7 @@ def test_load_refuses_a_config_written_for_other_weights(trained, tmp_path):
 
 
 def test_config_rejects_non_finite_values():
-    with pytest.raises(EfficientTrackError, match="lr must be > 0"):
+    with pytest.raises(EfficientTrackError, match="lr must be a finite number"):
         ModelConfig(lr=float("nan"))
 
 

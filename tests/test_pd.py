@@ -1,9 +1,11 @@
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from efficienttrack.angles import wrap
+from efficienttrack.errors import EfficientTrackError
 from efficienttrack.records import load_records
 from efficienttrack.systems.pd import XE75_PD, ClosedLoop, PDGains
 
@@ -125,3 +127,65 @@ def test_pd_step_wraps_the_error_and_takes_the_first_step_without_derivative_kic
     np.testing.assert_array_equal(u, XE75_PD.command(e, e))
     u_next, _ = XE75_PD.step(q_ref, q, e_prev=np.zeros(4))
     np.testing.assert_array_equal(u_next, XE75_PD.command(e, np.zeros(4)))
+
+
+# ------------------------------------------------------------------------------------- the gains file
+
+
+def _gains_file(tmp_path, **changes):
+    fields = {**XE75_PD.to_dict(), **changes}
+    path = tmp_path / "gains.json"
+    path.write_text(json.dumps(fields))
+    return path
+
+
+def test_a_gains_file_round_trips(tmp_path):
+    assert PDGains.load(str(_gains_file(tmp_path))) == XE75_PD
+
+
+@pytest.mark.parametrize(
+    ("changes", "field", "problem"),
+    [
+        ({"u_max": -5}, "u_max", "> 0"),
+        ({"u_max": 0}, "u_max", "> 0"),
+        ({"u_max": "1000"}, "u_max", "one number"),
+        ({"c": -1.0}, "c", "≥ 0"),
+        ({"c": [1, 2, 3, 4]}, "c", "one number"),
+        ({"kp": [float("nan"), 1, 1, 1]}, "kp", "4 numbers"),
+        ({"kp": float("nan")}, "kp", "4 numbers"),
+        ({"kp": "5000"}, "kp", "4 numbers"),
+        ({"kp": [1, 2, 3]}, "kp", "4 numbers"),
+        ({"kp": [[1, 2], [3, 4]]}, "kp", "4 numbers"),
+        ({"kp": [1, 2, 3, True]}, "kp", "4 numbers"),
+        ({"kd": [1, 2, 3, float("inf")]}, "kd", "4 numbers"),
+        ({"kd": [1, 2, 3, -4]}, "kd", "≥ 0"),
+        ({"sign": [1, 1, 1, 0.5]}, "sign", "−1 or 1"),
+    ],
+)
+def test_a_bad_gains_file_is_refused_naming_the_file_and_field(tmp_path, changes, field, problem):
+    path = _gains_file(tmp_path, **changes)
+    with pytest.raises(EfficientTrackError, match=rf"{path}: PD gains: field '{field}'.*{problem}"):
+        PDGains.load(str(path))
+
+
+@pytest.mark.parametrize(
+    ("text", "problem"),
+    [
+        ("[1, 2]", "expected an object"),
+        ('{"kp": [1, 1, 1, 1], "kd": [1, 1, 1, 1]}', "missing field.*sign"),
+        ('{"kp": [1, 1, 1, 1], "kd": [1, 1, 1, 1], "sign": [1, 1, 1, 1], "ki": 3}', "unknown field.*ki"),
+        ('{"kp": [1, 1, 1, 1], "kd": [1, 1, 1, 1], "sign": [1, 1, 1, 1], "c": 1e999}', "field 'c'"),
+        ("{truncated", "not a valid PD gains file"),
+    ],
+)
+def test_a_malformed_gains_file_is_refused(tmp_path, text, problem):
+    path = tmp_path / "gains.json"
+    path.write_text(text)
+    with pytest.raises(EfficientTrackError, match=problem):
+        PDGains.load(str(path))
+
+
+def test_gains_built_in_code_are_checked_too():
+    with pytest.raises(EfficientTrackError, match="field 'u_max'"):
+        PDGains(kp=XE75_PD.kp, kd=XE75_PD.kd, sign=XE75_PD.sign, u_max=float("nan"))
+    assert PDGains(kp=[1, 2, 3, 4], kd=XE75_PD.kd, sign=XE75_PD.sign).kp == (1.0, 2.0, 3.0, 4.0)

@@ -50,6 +50,8 @@ RESULT_KEYS = {
     "train_seconds",
     "model",
     "fallbacks",
+    "fallback_share",
+    "warning",
     "references",
     "policy",
     "system",

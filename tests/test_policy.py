@@ -119,7 +119,7 @@ def test_config_validation():
     assert PolicyConfig.from_dict({"max_adjust": [0.1, 0.1, 0.1, 0.1]}).max_adjust == (0.1, 0.1, 0.1, 0.1)
     with pytest.raises(EfficientTrackError, match="4 positive bounds"):
         PolicyConfig(max_adjust=(0.1, 0.1))
-    with pytest.raises(EfficientTrackError, match="must be a list of numbers"):
+    with pytest.raises(EfficientTrackError, match="must be a list of finite numbers"):
         PolicyConfig.from_dict({"max_adjust": "0.1"})
 
 

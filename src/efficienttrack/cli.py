@@ -17,7 +17,7 @@ import efficienttrack
 from efficienttrack.collect import CollectConfig
 from efficienttrack.config import ROUND_DATA, RunConfig
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import prepare_output_folder
+from efficienttrack.fileio import finite_json, prepare_output_folder
 from efficienttrack.metrics import metrics_by_path, metrics_table, rounded, write_metrics_csv
 from efficienttrack.records import RECORD_SUFFIXES, load_records, record_files, save_records
 from efficienttrack.systems.fit import FitConfig
@@ -162,7 +162,7 @@ def metrics_command(
         write_metrics_csv(rows, csv_file)
     if json_output:
         for name, result in rows.items():
-            typer.echo(json.dumps({"path": name, **rounded(result)}))
+            typer.echo(json.dumps(finite_json({"path": name, **rounded(result)}, "metrics"), allow_nan=False))
     else:
         wide_console(max(map(len, rows))).print(metrics_table(rows, title="Tracking metrics", label="path"))
 
@@ -524,7 +524,7 @@ def model_error_command(
     _set_threads(threads)
     result = model_error(load_model(model, device), load_records(data, recursive), steps)
     if json_output:
-        typer.echo(json.dumps(result._asdict()))
+        typer.echo(json.dumps(finite_json(result._asdict(), "model-error"), allow_nan=False))
         return
     joints = ", ".join(f"{v:.3f}" for v in result.per_joint_deg)
     typer.echo(f"MPE {result.mpe_deg:.3f}° over {result.windows} windows × {steps} steps; per joint {joints}°")
@@ -751,7 +751,7 @@ def sim_fidelity_command(
             plot_sim_vs_real(records[i].q, result.q_sim[:n, i], records[i].q_des, path, name)
     report = result.to_json()
     if json_output:
-        typer.echo(json.dumps(report))
+        typer.echo(json.dumps(finite_json(report, "sim fidelity"), allow_nan=False))
         return
 
     def fmt(values: list[float | None] | None, unit: str = "°") -> str:

@@ -34,6 +34,8 @@ from efficienttrack.records import EpisodeRecord, load_named_records, load_recor
 from efficienttrack.references import Reference
 from efficienttrack.systems.protocol import BatchedSystem
 
+MAX_PASSES = 1000
+"""Most passes over the references a collection may ask for (the paper: 10)."""
 NOISE_MIX = "episode"
 """How ``collect.json`` names the noise mixing (noisy or clean per episode); folders mixed per pass are refused."""
 
@@ -58,8 +60,8 @@ class CollectConfig:
         weights = self.noise_ratio
         if len(weights) != 2 or not all(np.isfinite(w) and w >= 0 for w in weights) or sum(weights) == 0:
             raise EfficientTrackError(f"collect.noise_ratio: needs two weights ≥ 0, not both 0, got {self.noise_ratio}")
-        if self.passes < 1:
-            raise EfficientTrackError(f"collect.passes: must be ≥ 1, got {self.passes}")
+        if not isinstance(self.passes, int) or isinstance(self.passes, bool) or not 1 <= self.passes <= MAX_PASSES:
+            raise EfficientTrackError(f"collect.passes: must be an integer in [1, {MAX_PASSES}], got {self.passes!r}")
 
     @staticmethod
     def parse_noise_ratio(text: str, option: str = "--noise-ratio") -> tuple[float, float]:

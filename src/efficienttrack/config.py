@@ -26,6 +26,8 @@ from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import atomic_write, write_json
 from efficienttrack.policy import POLICY_PRESETS, PolicyConfig
 
+MAX_ROUNDS = 100
+"""Most continual-learning rounds a run may ask for (the paper: 3)."""
 ROUND_DATA = ("all", "new")
 """What a later round may train on: every episode so far, or only its own deployment pass."""
 
@@ -56,8 +58,8 @@ class RunConfig:
 
     def __post_init__(self) -> None:
         """Validate the run-level fields (EfficientTrackError naming the field)."""
-        if not isinstance(self.rounds, int) or isinstance(self.rounds, bool) or self.rounds < 1:
-            raise EfficientTrackError(f"RunConfig.rounds must be an integer ≥ 1, got {self.rounds!r}")
+        if not isinstance(self.rounds, int) or isinstance(self.rounds, bool) or not 1 <= self.rounds <= MAX_ROUNDS:
+            raise EfficientTrackError(f"RunConfig.rounds must be an integer ≥ 1 and ≤ {MAX_ROUNDS}, got {self.rounds!r}")
         if self.round_data not in ROUND_DATA:
             raise EfficientTrackError(f"RunConfig.round_data must be one of {', '.join(ROUND_DATA)}, got {self.round_data!r}")
         budget = self.warm_budget

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import re
 import types
 from pathlib import Path
@@ -83,7 +84,7 @@ def config_from_dict(cls: type[ConfigT], data: dict[str, Any], source: str) -> C
     values = {name: _coerce(hints[name], value, f"{source}: field '{name}'") for name, value in data.items()}
     try:
         return cls(**values)
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, EfficientTrackError) as exc:  # the class's own checks name the field; add the file
         raise EfficientTrackError(f"{source}: {exc}") from exc
 
 
@@ -97,10 +98,8 @@ def _coerce(hint: Any, value: Any, where: str) -> Any:
         (inner,) = [option for option in options if option is not type(None)]
         return _coerce(inner, value, where)
     if origin is tuple:
-        if not isinstance(value, list | tuple) or not all(
-            isinstance(v, int | float) and not isinstance(v, bool) for v in value
-        ):
-            raise EfficientTrackError(f"{where} must be a list of numbers, got {value!r}")
+        if not isinstance(value, list | tuple) or not all(map(_finite_number, value)):
+            raise EfficientTrackError(f"{where} must be a list of finite numbers, got {value!r}")
         return tuple(float(v) for v in value)
     if hint is bool:
         if not isinstance(value, bool):
@@ -111,11 +110,21 @@ def _coerce(hint: Any, value: Any, where: str) -> Any:
             raise EfficientTrackError(f"{where} must be an integer, got {value!r}")
         return value
     if hint is float:
-        if not isinstance(value, int | float) or isinstance(value, bool):
-            raise EfficientTrackError(f"{where} must be a number, got {value!r}")
+        if not _finite_number(value):
+            raise EfficientTrackError(f"{where} must be a finite number, got {value!r}")
         return float(value)
     if hint is str:
         if not isinstance(value, str):
             raise EfficientTrackError(f"{where} must be a string, got {value!r}")
         return value
     raise EfficientTrackError(f"{where}: unsupported config type {hint}")
+
+
+def _finite_number(value: Any) -> bool:
+    """True for an int or float that is a finite float (not a bool, not NaN/±inf, not an int beyond the float range)."""
+    if not isinstance(value, int | float) or isinstance(value, bool):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False

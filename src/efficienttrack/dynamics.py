@@ -32,9 +32,19 @@ from torch import nn
 
 from efficienttrack.angles import wrap
 from efficienttrack.dataset import Sequences, push
-from efficienttrack.errors import EfficientTrackError
 from efficienttrack.metrics import position_error
-from efficienttrack.nets import MLP, Standardizer, feature_width, relative_features, resolve_device
+from efficienttrack.nets import (
+    MAX_HIDDEN,
+    MAX_HORIZON,
+    MAX_LAYERS,
+    MLP,
+    Standardizer,
+    check_size,
+    check_training_memory,
+    feature_width,
+    relative_features,
+    resolve_device,
+)
 from efficienttrack.records import EpisodeRecord
 from efficienttrack.training import (
     TrainingSchedule,
@@ -80,9 +90,11 @@ class ModelConfig(TrainingSchedule):
     def __post_init__(self) -> None:
         """Validate the fields."""
         super().__post_init__()
-        for name in ("hidden", "layers", "horizon", "history_length"):
-            if getattr(self, name) < 1:
-                raise EfficientTrackError(f"ModelConfig.{name} must be ≥ 1, got {getattr(self, name)}")
+        check_size("ModelConfig", "hidden", self.hidden, 1, MAX_HIDDEN)
+        check_size("ModelConfig", "layers", self.layers, 1, MAX_LAYERS)
+        check_size("ModelConfig", "horizon", self.horizon, 1, MAX_HORIZON)
+        if self.history is not None:
+            check_size("ModelConfig", "history", self.history, 1, MAX_HORIZON)
 
     @property
     def history_length(self) -> int:
@@ -248,6 +260,7 @@ def train_model(
     started = time.perf_counter()
     device = resolve_device(device)
     H = cfg.rollout_length
+    check_training_memory("ModelConfig", cfg.batch_size, H, [cfg], device)
     torch.manual_seed(seed)
     data = Sequences(records, history=cfg.history_length, future=H, device=device)
     starts = data.starts(H)
@@ -320,6 +333,7 @@ def model_error(
     Returns:
         The error overall, per joint and per step, in degrees.
     """
+    check_size("model_error", "steps", steps, 1, MAX_HORIZON)
     device = next(model.parameters()).device if device is None else resolve_device(device)
     was_training = model.training
     model.eval().to(device)

@@ -9,9 +9,11 @@ from __future__ import annotations
 import csv
 import fnmatch
 import json
+import math
 import os
 import shutil
 import tempfile
+import warnings
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import IO, Any
@@ -108,8 +110,40 @@ def check_file_name(name: object, source: str) -> str:
     raise EfficientTrackError(f"{source} = {shown} cannot be a file name: it {problem} (names must stay inside the folder)")
 
 
+def finite_json(data: Any, where: str) -> Any:
+    """``data`` with every NaN/±inf float replaced by None (JSON ``null``), with a warning naming them.
+
+    JSON has no NaN or Infinity (Python's ``json`` writes them, other readers refuse the file); a figure that is
+    not finite is written as ``null`` and noted.
+
+    Args:
+        data: JSON-serializable data (dicts, lists, tuples, numbers, strings, None).
+        where: the file or output, named in the warning.
+
+    Returns:
+        The data with lists for tuples and None for non-finite floats.
+    """
+    replaced: list[str] = []
+
+    def clean(value: Any, key: str) -> Any:
+        if isinstance(value, float) and not math.isfinite(value):
+            replaced.append(key or "(top level)")
+            return None
+        if isinstance(value, dict):
+            return {k: clean(v, f"{key}.{k}" if key else str(k)) for k, v in value.items()}
+        if isinstance(value, list | tuple):
+            return [clean(v, f"{key}[{i}]") for i, v in enumerate(value)]
+        return value
+
+    cleaned = clean(data, "")
+    if replaced:
+        more = f" and {len(replaced) - 5} more" if len(replaced) > 5 else ""
+        warnings.warn(f"{where}: not finite, written as null: {', '.join(replaced[:5])}{more}", stacklevel=2)
+    return cleaned
+
+
 def write_json(path: str | Path, data: Any) -> Path:
-    """Write ``data`` as indented JSON atomically.
+    """Write ``data`` as indented JSON atomically; NaN/inf figures become ``null`` with a warning (:func:`finite_json`).
 
     Args:
         path: destination; parent folders are created.
@@ -118,7 +152,8 @@ def write_json(path: str | Path, data: Any) -> Path:
     Returns:
         The destination path.
     """
-    return atomic_write(path, lambda f: json.dump(data, f, indent=2, sort_keys=False), mode="w")
+    cleaned = finite_json(data, str(path))
+    return atomic_write(path, lambda f: json.dump(cleaned, f, indent=2, sort_keys=False, allow_nan=False), mode="w")
 
 
 def write_csv(path: str | Path, header: Sequence[str], rows: Iterable[Sequence[Any]]) -> Path:

@@ -22,3 +22,6 @@ CONTROL_RATE_HZ = 1.0 / DT
 """Control steps per second, to turn a step count into interaction time."""
 MAX_ABS_ANGLE = 2 * math.pi
 """Angles beyond ±2π rad are taken for degrees (or garbage) and refused wherever they are read."""
+MAX_ABS_VELOCITY = 20.0
+"""Joint speeds beyond ±20 rad/s (about 3 turns a second) are no excavator's and refused wherever records are read;
+the XE75's logs stay below 3 rad/s."""

@@ -1,8 +1,10 @@
-"""What the dynamics model and the policy share: the paper's MLP, feature scaling, relative features and devices."""
+"""What the dynamics model and the policy share: the paper's MLP, feature scaling, relative features, devices and sizes."""
 
 from __future__ import annotations
 
-from typing import TypeVar
+import os
+from collections.abc import Sequence
+from typing import Any, TypeVar
 
 import torch
 from torch import nn
@@ -15,6 +17,12 @@ ConfigT = TypeVar("ConfigT")
 
 STD_FLOOR = 1e-6
 """Smallest standard deviation used to scale a feature; constant features are only centred."""
+MAX_HIDDEN = 8192
+"""Most units per hidden layer a config may ask for (the paper: 512)."""
+MAX_LAYERS = 64
+"""Most hidden blocks a config may ask for (the paper: 6)."""
+MAX_HORIZON = 400
+"""Longest horizon, history or future a config may ask for: 20 s at 20 Hz (the paper: 20 steps)."""
 
 
 class MLP(nn.Module):
@@ -137,3 +145,75 @@ def relative_features(obs_hist: torch.Tensor, qref_hist: torch.Tensor, targets: 
         wrap(targets - q_t),
     )
     return torch.cat([p.flatten(1) for p in parts], dim=1)
+
+
+def check_size(owner: str, name: str, value: Any, low: int, high: int) -> None:
+    """Check that a config's size field ``owner.name`` is an integer in [``low``, ``high``].
+
+    Args:
+        owner: the config class, named in the message.
+        name: the field.
+        value: its value.
+        low: smallest value allowed.
+        high: largest value allowed (a documented bound, e.g. :data:`MAX_HIDDEN`).
+
+    Raises:
+        EfficientTrackError: naming the field and the bound.
+    """
+    if not isinstance(value, int) or isinstance(value, bool):
+        raise EfficientTrackError(f"{owner}.{name} must be an integer, got {value!r}")
+    if value < low:
+        raise EfficientTrackError(f"{owner}.{name} must be ≥ {low}, got {value}")
+    if value > high:
+        raise EfficientTrackError(f"{owner}.{name} must be ≤ {high} (the upper bound of this size), got {value}")
+
+
+def device_memory(device: torch.device) -> int | None:
+    """Total memory of ``device`` in bytes: the GPU's for CUDA, the machine's RAM for the CPU; None when unknown."""
+    if device.type == "cuda":
+        return torch.cuda.get_device_properties(device).total_memory
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def training_bytes(batch: int, rollout: int, networks: Sequence[Any]) -> int:
+    """Rough memory of one BPTT training step: float32 weights with their gradients and Adam moments, and activations.
+
+    Each rollout step keeps, per window, the input and about four values per hidden unit (Linear, LayerNorm,
+    ELU) of every network for the backward pass. A rough figure (within a factor of about 2): it catches sizes
+    that cannot fit, not ones that nearly do.
+
+    Args:
+        batch: windows per step.
+        rollout: steps each window is rolled.
+        networks: configs of the networks run at each rollout step (``in_dim``, ``hidden``, ``layers``).
+
+    Returns:
+        Bytes.
+    """
+    params = sum(n.in_dim * n.hidden + (n.layers - 1) * n.hidden**2 + 8 * n.hidden for n in networks)
+    units = sum(n.in_dim + 4 * n.layers * n.hidden for n in networks)
+    return 4 * (4 * params + batch * rollout * units)
+
+
+def check_training_memory(owner: str, batch: int, rollout: int, networks: Sequence[Any], device: torch.device) -> None:
+    """Refuse a training run whose step needs more memory than ``device`` has (:func:`training_bytes`), before any work.
+
+    Args:
+        owner: the config class, named in the message.
+        batch: windows per step (``batch_size``).
+        rollout: steps each window is rolled (``horizon``).
+        networks: configs of the networks run at each rollout step.
+        device: where the training runs.
+
+    Raises:
+        EfficientTrackError: the estimate exceeds the device's memory, naming the fields to lower.
+    """
+    need, have = training_bytes(batch, rollout, networks), device_memory(device)
+    if have is not None and need > have:
+        raise EfficientTrackError(
+            f"{owner}: a training step needs about {need / 2**30:.1f} GiB (batch_size {batch} × horizon {rollout} × "
+            f"network sizes), more than the {have / 2**30:.1f} GiB of {device}; lower batch_size, horizon, hidden or layers"
+        )

@@ -102,6 +102,9 @@ DEMO_OUTPUTS = (*RUN_OUTPUTS, "refs")
 """What :func:`demo` writes in its folder: the run's outputs and the generated references."""
 EVALUATE_OUTPUTS = ("records", "metrics.json", "plots", "run.log")
 """What :func:`evaluate` writes in its folder: a fresh evaluation deletes these."""
+FALLBACK_LIMIT = 0.1
+"""Share of the policy's steps on which the guard may fall back to the raw reference (a = 0) before the results are
+no longer reported as EfficientTrack's: above it they are mostly the PD controller's."""
 
 
 @dataclass(frozen=True)
@@ -124,6 +127,26 @@ def _check_plots(max_plots: int | None) -> None:
         raise EfficientTrackError(f"--plots {max_plots}: expected a number of references ≥ 0")
 
 
+def fallback_share(records: Sequence[EpisodeRecord] | None) -> tuple[float | None, str | None]:
+    """Share of the policy's steps on which the guard fell back, and a warning when it exceeds :data:`FALLBACK_LIMIT`.
+
+    Args:
+        records: the policy's records (``meta["fallbacks"]`` counts each episode's guarded steps), or None.
+
+    Returns:
+        (share in [0, 1], warning text or None); (None, None) without records.
+    """
+    if not records:
+        return None, None
+    share = sum(r.meta["fallbacks"] for r in records) / max(1, sum(len(r) for r in records))
+    if share <= FALLBACK_LIMIT:
+        return share, None
+    return share, (
+        f"the guard fell back to the raw reference (a = 0) on {share:.0%} of the policy's steps: these figures are "
+        "mostly the PD controller's, not EfficientTrack's; check the policy (its training, max_adjust) and the system"
+    )
+
+
 def _metrics(
     system: SystemSpec,
     refs: Sequence[Reference],
@@ -139,6 +162,7 @@ def _metrics(
     wall_seconds: float,
 ) -> dict[str, Any]:
     """The one ``metrics.json`` schema of :func:`run_pipeline` and :func:`evaluate` (see their Returns)."""
+    share, warning = fallback_share(et_records)
     return {
         "pd": rounded(compute_metrics(pd_records)),
         "efficienttrack": None if et_records is None else rounded(compute_metrics(et_records)),
@@ -147,6 +171,8 @@ def _metrics(
         "train_seconds": train_seconds,
         "model": model,
         "fallbacks": None if et_records is None else sum(r.meta["fallbacks"] for r in et_records),
+        "fallback_share": None if share is None else round(share, 4),
+        "warning": warning,
         "references": [ref.name for ref in refs],
         "policy": policy_path,
         "system": system.to_dict(),
@@ -168,14 +194,17 @@ def _publish(
 ) -> None:
     """Write ``metrics.json``, the tracking plots (every reference, or the first ``max_plots``) and print the table."""
     write_json(out / "metrics.json", metrics)
-    runs = {"PD": pd_records} if et_records is None else {"PD": pd_records, "EfficientTrack": et_records}
+    method = "EfficientTrack" if metrics["warning"] is None else "guard fallback (not EfficientTrack)"
+    runs = {"PD": pd_records} if et_records is None else {"PD": pd_records, method: et_records}
     for i, ref in enumerate(refs[:max_plots]):
         plots.plot_tracking(
             {name: records[i] for name, records in runs.items()}, out / "plots" / f"tracking_{ref.name}.png", ref.name
         )
     plots.plot_tracking_error(runs, out / "plots" / "tracking_error.png")
-    rows = {"PD": metrics["pd"]} if et_records is None else {"PD": metrics["pd"], "EfficientTrack": metrics["efficienttrack"]}
-    log.print(metrics_table(rows, title=f"{title} ({out})", training_steps={"EfficientTrack": metrics["interaction_steps"]}))
+    rows = {"PD": metrics["pd"]} if et_records is None else {"PD": metrics["pd"], method: metrics["efficienttrack"]}
+    log.print(metrics_table(rows, title=f"{title} ({out})", training_steps={method: metrics["interaction_steps"]}))
+    if metrics["warning"] is not None:
+        log.print(f"[bold red]warning: {metrics['warning']}[/]")
 
 
 def run_pipeline(
@@ -205,8 +234,9 @@ def run_pipeline(
         The folder, the metrics written to ``OUT/metrics.json`` and the skipped stages of round 1. The metrics
         are those of the last round: ``{"pd", "efficienttrack": compute_metrics' dicts of the test episodes,
         "interaction_steps" and "interaction_hours": training interactions of every round so far, "train_seconds",
-        "model": {"tr_mpe_deg", "te_mpe_deg"}, "fallbacks": guard fallbacks, "references": test reference names,
-        "policy": the policy checkpoint, "system", "config", "rounds": one entry per round
+        "model": {"tr_mpe_deg", "te_mpe_deg"}, "fallbacks": guard fallbacks, "fallback_share": their share of the
+        policy's steps, "warning": None, or why the figures are not EfficientTrack's (:func:`fallback_share`),
+        "references": test reference names, "policy": the policy checkpoint, "system", "config", "rounds": one entry per round
         (:func:`efficienttrack.rounds.round_summary`), "provenance"}``.
 
     Raises:
@@ -239,7 +269,8 @@ def run_pipeline(
 
     # Algorithm 1: collection (resumes pass by pass)
     collected = collect(env, train_refs, cfg.collect, out / "records" / "train")
-    facts = stages.done("collect") or stages.finish("collect", {"interaction_steps": collected.interaction_steps})
+    steps = collected.interaction_steps
+    facts = stages.done("collect", ("interaction_steps",)) or stages.finish("collect", {"interaction_steps": steps})
     log.print(f"collected {len(collected.records)} episodes, {facts['interaction_steps']} interaction steps")
 
     # the PD controller alone on the test references: the baseline, and the held-out episodes of both trainings
@@ -339,8 +370,8 @@ def evaluate(
         max_plots: draw the tracking plots of the first ``max_plots`` references (None: every one).
 
     Returns:
-        The content of ``metrics.json``: as :func:`run_pipeline`'s, with ``efficienttrack`` and ``fallbacks``
-        null without a policy, ``model``, ``config`` and ``train_seconds`` null, and ``interaction_steps`` /
+        The content of ``metrics.json``: as :func:`run_pipeline`'s, with ``efficienttrack``, ``fallbacks`` and
+        ``fallback_share`` null without a policy, ``model``, ``config`` and ``train_seconds`` null, and ``interaction_steps`` /
         ``interaction_hours`` those of the run the policy comes from when it lies in a run folder (else null).
 
     Raises:
@@ -405,7 +436,8 @@ def demo(
     start = time.perf_counter()
     result = run_pipeline(SystemSpec(), train, test, out, cfg or DEMO, console, max_plots, command="demo")
     ratio = result.metrics["efficienttrack"]["mae_deg"] / result.metrics["pd"]["mae_deg"]
+    method = "EfficientTrack" if result.metrics["warning"] is None else "guard fallback (not EfficientTrack)"
     RunLog(Path(out), console).print(
-        f"EfficientTrack MAE = {ratio:.2f} × PD MAE; wall time {time.perf_counter() - start:.0f} s; outputs in {out}"
+        f"{method} MAE = {ratio:.2f} × PD MAE; wall time {time.perf_counter() - start:.0f} s; outputs in {out}"
     )
     return result

@@ -32,7 +32,18 @@ from efficienttrack.angles import wrap
 from efficienttrack.dataset import Sequences, push
 from efficienttrack.dynamics import NORM_SAMPLES, ClosedLoopModel
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.nets import MLP, Standardizer, feature_width, relative_features, resolve_device
+from efficienttrack.nets import (
+    MAX_HIDDEN,
+    MAX_HORIZON,
+    MAX_LAYERS,
+    MLP,
+    Standardizer,
+    check_size,
+    check_training_memory,
+    feature_width,
+    relative_features,
+    resolve_device,
+)
 from efficienttrack.records import EpisodeRecord
 from efficienttrack.systems.limits import XE75_MAX_ADJUST
 from efficienttrack.training import (
@@ -76,13 +87,9 @@ class PolicyConfig(TrainingSchedule):
     def __post_init__(self) -> None:
         """Validate the fields."""
         super().__post_init__()
-        for name in ("hidden", "layers"):
-            if getattr(self, name) < 1:
-                raise EfficientTrackError(f"PolicyConfig.{name} must be ≥ 1, got {getattr(self, name)}")
-        if self.horizon < 2:
-            raise EfficientTrackError(
-                f"PolicyConfig.horizon must be ≥ 2 (the smoothness term needs two actions), got {self.horizon}"
-            )
+        check_size("PolicyConfig", "hidden", self.hidden, 1, MAX_HIDDEN)
+        check_size("PolicyConfig", "layers", self.layers, 1, MAX_LAYERS)
+        check_size("PolicyConfig", "horizon", self.horizon, 2, MAX_HORIZON)  # ≥ 2: the smoothness term needs two actions
         if len(self.max_adjust) != 4 or not all(math.isfinite(b) and b > 0 for b in self.max_adjust):
             raise EfficientTrackError(f"PolicyConfig.max_adjust must be 4 positive bounds (rad), got {self.max_adjust}")
         if not (math.isfinite(self.gamma) and math.isfinite(self.k_smooth)) or not 0 < self.gamma <= 1 or self.k_smooth < 0:
@@ -303,6 +310,7 @@ def train_policy(
     started = time.perf_counter()
     device = resolve_device(device)
     H, F, desired = cfg.rollout_length, cfg.future_length, desired_length(cfg, cfg.rollout_length)
+    check_training_memory("PolicyConfig", cfg.batch_size, H, [cfg, model.cfg], device)
     torch.manual_seed(seed)
     data = Sequences(records, history=max(cfg.history_length, model.cfg.history_length), future=desired, device=device)
     starts = data.starts(0)

@@ -111,15 +111,22 @@ def claim_folder(path: str | Path, identity: dict[str, Any], refusal: str) -> No
         refusal: the error message when the folder holds other work (the path is put in front).
 
     Raises:
-        EfficientTrackError: the file describes other work, or cannot be read.
+        EfficientTrackError: the file describes other work, or is unreadable, truncated or corrupted (saying how to
+            recover).
     """
     path = Path(path)
     if not path.exists():
         write_json(path, {**identity, "provenance": provenance()})
         return
+    damaged = (
+        "; it records what this folder's work is, so nothing is resumed without it: restore it, or start afresh "
+        "(--force, or another folder)"
+    )
     try:
         found = json.loads(path.read_text())
     except (OSError, ValueError) as exc:
-        raise EfficientTrackError(f"{path}: unreadable ({exc}); {refusal}") from exc
-    if not isinstance(found, dict) or {key: value for key, value in found.items() if key != "provenance"} != identity:
+        raise EfficientTrackError(f"{path}: unreadable, truncated or corrupted ({exc}){damaged}") from exc
+    if not isinstance(found, dict):
+        raise EfficientTrackError(f"{path}: holds a {type(found).__name__}, not a mapping of facts: corrupted{damaged}")
+    if {key: value for key, value in found.items() if key != "provenance"} != identity:
         raise EfficientTrackError(f"{path}: {refusal}")

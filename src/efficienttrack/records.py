@@ -37,7 +37,7 @@ import numpy as np
 
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import atomic_write, check_file_name
-from efficienttrack.joints import JOINT_NAMES, MAX_ABS_ANGLE
+from efficienttrack.joints import JOINT_NAMES, MAX_ABS_ANGLE, MAX_ABS_VELOCITY
 from efficienttrack.npyfile import read_npz, read_pickled_npy
 
 JOINT_FIELDS = ("q", "qd", "q_ref", "q_des", "u")
@@ -133,6 +133,13 @@ class EpisodeRecord:
                 raise EfficientTrackError(
                     f"{source}: field '{name}' reaches {peak:.1f}, beyond ±2π rad: angles look like degrees (use radians)"
                 )
+        fastest = np.abs(self.qd).max(axis=0)
+        if np.any(fastest > MAX_ABS_VELOCITY):
+            joint = int(np.argmax(fastest))
+            raise EfficientTrackError(
+                f"{source}: field 'qd' reaches {fastest[joint]:.3g} rad/s at the {JOINT_NAMES[joint]}, beyond the "
+                f"±{MAX_ABS_VELOCITY:g} rad/s of any excavator joint: a corrupted file, or not rad/s?"
+            )
         _check_time(self.t, source)
         return self
 

@@ -162,7 +162,7 @@ def run_round(
     pi_phi, policy_facts = train_stage(stages, "policy", folder, log, trainer, policy.save_policy, policy.load_policy, device)
     test_records = evaluate_stage(stages, "efficienttrack", folder, system, pi_phi, test_refs, device)
     steps = previous.interaction_steps + sum(len(r) for r in deployed)
-    stages.done(INTERACTIONS_STAGE) or stages.finish(INTERACTIONS_STAGE, {"interaction_steps": steps})
+    stages.done(INTERACTIONS_STAGE, ("interaction_steps",)) or stages.finish(INTERACTIONS_STAGE, {"interaction_steps": steps})
     seconds = model_facts["seconds"] + policy_facts["seconds"]
     summary = round_summary(k, steps, test_records, g_theta, train_records, seconds)
     log.print(f"round {k}: test MAE {summary['efficienttrack']['mae_deg']:.3f}° after {steps} interaction steps")

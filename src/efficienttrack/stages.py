@@ -15,6 +15,7 @@ from typing import Any
 import torch
 from rich.console import Console
 
+from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import atomic_write, write_json
 from efficienttrack.provenance import provenance
 from efficienttrack.records import EpisodeRecord, load_named_records, save_records
@@ -39,18 +40,43 @@ class Stages:
         self.folder = out / "stages"
         self.skipped: list[str] = []
 
-    def done(self, name: str) -> dict[str, Any] | None:
-        """The facts of finished stage ``name`` (noted as skipped), or None when it has not finished."""
+    def done(self, name: str, keys: tuple[str, ...] = ()) -> dict[str, Any] | None:
+        """The facts of finished stage ``name`` (noted as skipped), or None when it has not finished.
+
+        Args:
+            name: the stage.
+            keys: facts the caller reads; a marker without them is refused like a truncated one.
+
+        Raises:
+            EfficientTrackError: the marker is unreadable, truncated or lacks ``keys``, naming the file and the fix.
+        """
         path = self.folder / f"{name}.json"
         if not path.exists():
             return None
+        try:
+            facts = json.loads(path.read_text())
+        except (OSError, ValueError) as exc:
+            raise _broken_marker(path, name, f"unreadable ({exc})") from exc
+        if not isinstance(facts, dict):
+            raise _broken_marker(path, name, "not a mapping of facts")
+        missing = [key for key in keys if key not in facts]
+        if missing:
+            raise _broken_marker(path, name, f"missing {', '.join(missing)}")
         self.skipped.append(name)
-        return json.loads(path.read_text())
+        return facts
 
     def finish(self, name: str, facts: dict[str, Any]) -> dict[str, Any]:
         """Mark stage ``name`` finished with its ``facts`` (JSON-serializable); returns the facts."""
         write_json(self.folder / f"{name}.json", facts)
         return facts
+
+
+def _broken_marker(path: Path, name: str, problem: str) -> EfficientTrackError:
+    """The error for a stage marker that cannot be used: what is wrong, and how to recover."""
+    return EfficientTrackError(
+        f"{path}: the marker of finished stage '{name}' is {problem}, truncated or corrupted; delete that file to redo "
+        "the stage on the next run, or start afresh with --force"
+    )
 
 
 class RunLog:
@@ -159,7 +185,7 @@ def train_stage(
     Returns:
         The trained network (eval mode, on ``device``) and the stage's facts (``seconds``, ``log``).
     """
-    facts = stages.done(name)
+    facts = stages.done(name, ("seconds", "log"))
     if facts is None:
         result = train(checkpoint=out / "checkpoints" / f"{name}.ckpt", log_dir=out / LOGS / name)
         save(result[0], out / f"{name}.pt")

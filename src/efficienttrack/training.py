@@ -27,12 +27,19 @@ from torch import nn
 from efficienttrack.configfile import config_from_dict
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import atomic_write, write_json
-from efficienttrack.nets import resolve_device
+from efficienttrack.nets import check_size, resolve_device
 from efficienttrack.progress import ProgressDisplay
 from efficienttrack.provenance import provenance
 from efficienttrack.records import EpisodeRecord
 
 NetworkT = TypeVar("NetworkT", bound=nn.Module)
+
+MAX_BATCH_SIZE = 65_536
+"""Most windows per optimizer step a config may ask for (the paper: 2048)."""
+MAX_STEPS = 10_000_000
+"""Most optimizer steps of a training run (the paper: 2000 epochs of its data, about 170,000 steps)."""
+MAX_EPOCHS = 100_000
+"""Most passes over the training windows a config may ask for (the paper: 2000)."""
 
 
 @dataclass(frozen=True)
@@ -63,27 +70,47 @@ class TrainingSchedule:
     """Optimizer steps between held-out evaluations when training logs (None: a tenth of the run)."""
 
     def __post_init__(self) -> None:
-        """Validate the schedule's fields (EfficientTrackError naming the config class and the field)."""
+        """Validate the schedule's fields (EfficientTrackError naming the config class, the field and its bound)."""
         name = type(self).__name__
-        for field in ("batch_size", "save_every"):
-            if getattr(self, field) < 1:
-                raise EfficientTrackError(f"{name}.{field} must be ≥ 1, got {getattr(self, field)}")
+        check_size(name, "batch_size", self.batch_size, 1, MAX_BATCH_SIZE)
+        check_size(name, "save_every", self.save_every, 1, MAX_STEPS)
         if (self.steps is None) == (self.epochs is None):
             raise EfficientTrackError(f"{name}: set exactly one of steps and epochs")
-        if (self.steps is not None and self.steps < 1) or (self.epochs is not None and self.epochs < 1):
-            raise EfficientTrackError(f"{name}: steps/epochs must be ≥ 1")
-        if not (math.isfinite(self.lr) and math.isfinite(self.weight_decay)) or self.lr <= 0 or self.weight_decay < 0:
+        if self.steps is not None:
+            check_size(name, "steps", self.steps, 1, MAX_STEPS)
+        if self.epochs is not None:
+            check_size(name, "epochs", self.epochs, 1, MAX_EPOCHS)
+        if self.eval_every is not None:
+            check_size(name, "eval_every", self.eval_every, 1, MAX_STEPS)
+        for field in ("lr", "weight_decay", "grad_clip"):
+            value = getattr(self, field)
+            if field == "grad_clip" and value is None:
+                continue
+            if not isinstance(value, int | float) or isinstance(value, bool) or not math.isfinite(value):
+                raise EfficientTrackError(f"{name}.{field} must be a finite number, got {value!r}")
+        if self.lr <= 0 or self.weight_decay < 0:
             raise EfficientTrackError(f"{name}: lr must be > 0, weight_decay ≥ 0, got {self.lr} and {self.weight_decay}")
         if self.grad_clip is not None and not self.grad_clip > 0:
             raise EfficientTrackError(f"{name}.grad_clip must be > 0 or None, got {self.grad_clip}")
-        if self.eval_every is not None and self.eval_every < 1:
-            raise EfficientTrackError(f"{name}.eval_every must be ≥ 1 or None, got {self.eval_every}")
 
     def total_steps(self, windows: int) -> int:
-        """Optimizer steps of a run on ``windows`` training windows (``steps``, or ``epochs`` passes over them)."""
+        """Optimizer steps of a run on ``windows`` training windows (``steps``, or ``epochs`` passes over them).
+
+        Args:
+            windows: training windows available.
+
+        Raises:
+            EfficientTrackError: ``epochs`` passes over ``windows`` make more than :data:`MAX_STEPS` steps.
+        """
         if self.steps is not None:
             return self.steps
-        return int(self.epochs) * math.ceil(windows / self.batch_size)
+        total = int(self.epochs) * math.ceil(windows / self.batch_size)
+        if total > MAX_STEPS:
+            raise EfficientTrackError(
+                f"{type(self).__name__}.epochs: {self.epochs} passes over {windows} windows make {total} optimizer steps, "
+                f"more than the {MAX_STEPS} allowed; lower epochs or raise batch_size"
+            )
+        return total
 
     def scaled(self, share: float) -> Self:
         """This schedule with ``share`` × its optimizer steps (or epochs), at least one; everything else kept.
@@ -180,6 +207,7 @@ def save_checkpoint(module: nn.Module, kind: str, config: Any, path: str | Path)
         The checkpoint path.
     """
     path = Path(path)
+    check_finite(module, f"{path}: {kind} not saved")
     tensors = module.state_dict()
     state = {name: tensor.detach().cpu() for name, tensor in tensors.items()}
     atomic_write(path, lambda f: torch.save(state, f))
@@ -192,6 +220,24 @@ def save_checkpoint(module: nn.Module, kind: str, config: Any, path: str | Path)
     }
     write_json(config_path(path), meta)
     return path
+
+
+def check_finite(module: nn.Module, what: str) -> None:
+    """Refuse a network whose weights or buffers hold NaN/inf (a diverged training), before it is saved or resumed.
+
+    Args:
+        module: the network.
+        what: the start of the message: the file and what is refused (``"model.pt: not saved"``).
+
+    Raises:
+        EfficientTrackError: naming the first non-finite tensors.
+    """
+    bad = [name for name, tensor in module.state_dict().items() if tensor.is_floating_point() and not tensor.isfinite().all()]
+    if bad:
+        raise EfficientTrackError(
+            f"{what}: the weights hold NaN/inf values ({', '.join(bad[:3])}), the training diverged (check the data for "
+            "absurd values, lower the learning rate)"
+        )
 
 
 def _file_sha256(path: Path) -> str:
@@ -235,6 +281,11 @@ def load_checkpoint(
         raise EfficientTrackError(f"{path}: not a state_dict (expected a dict of named tensors)")
     if meta.get("weights_sha256") not in (None, _file_sha256(path)):
         raise EfficientTrackError(f"{cfg_file}: written for other weights than {path} (an interrupted save?); save both again")
+    bad = [name for name, tensor in state.items() if tensor.is_floating_point() and not torch.isfinite(tensor).all()]
+    if bad:
+        raise EfficientTrackError(
+            f"{path}: weights hold NaN/inf values ({', '.join(bad[:3])}); the training diverged, retrain"
+        )
     module = network(config.from_dict(meta["config"], f"{path} config"))
     try:
         module.load_state_dict(state)
@@ -470,14 +521,24 @@ class TrainLoop:
                 f"{self.checkpoint}: training state of another run (kind, config, steps, data, seed or model differ); "
                 "delete it (--force on the command line) to start afresh, or train with the config it was made with"
             )
+        fix = "delete it (--force on the command line) to start this training afresh"
         try:
             self.module.load_state_dict(state["module"])
             self.optimizer.load_state_dict(state["optimizer"])
             self.generator.set_state(state["generator"])
-        except (KeyError, RuntimeError, ValueError) as exc:
-            raise EfficientTrackError(f"{self.checkpoint}: unreadable training state ({exc})") from exc
-        self.start = int(state["step"])
-        self._losses[: self.start] = state["losses"].numpy()[: self.start]
+            step, losses = state["step"], state["losses"]
+        except (KeyError, RuntimeError, ValueError, TypeError) as exc:
+            raise EfficientTrackError(f"{self.checkpoint}: unreadable training state (missing or bad {exc}); {fix}") from exc
+        if not isinstance(step, int) or isinstance(step, bool) or not 0 <= step <= self.total:
+            raise EfficientTrackError(f"{self.checkpoint}: training state at step {step!r}, outside 0 … {self.total}; {fix}")
+        if not isinstance(losses, torch.Tensor) or losses.shape != (self.total,) or not losses[:step].isfinite().all():
+            raise EfficientTrackError(f"{self.checkpoint}: training state lacks the losses of its {step} steps; {fix}")
+        try:
+            check_finite(self.module, f"{self.checkpoint}: training state refused")
+        except EfficientTrackError as exc:
+            raise EfficientTrackError(f"{exc}; {fix}") from exc
+        self.start = step
+        self._losses[:step] = losses.double().numpy()[:step]
 
     def save(self, step: int) -> None:
         """Flush the log, then write the training state after ``step`` steps atomically (no-op without a checkpoint).
@@ -489,6 +550,7 @@ class TrainLoop:
             self._log.flush()
         if self.checkpoint is None:
             return
+        check_finite(self.module, f"{self.checkpoint}: {self.kind} training state after {step} steps not saved")
         state = {
             "kind": self.kind,
             "config": self._config,
@@ -528,6 +590,13 @@ class TrainLoop:
             step: the optimizer step just taken (0-based; logged as ``step + 1`` steps done).
             loss: its loss.
         """
+        if not math.isfinite(loss):
+            kept = f"; the training state in {self.checkpoint} is kept" if self.checkpoint and self.checkpoint.exists() else ""
+            raise EfficientTrackError(
+                f"{self.kind} training stopped: the loss is {loss} at step {step + 1} of {self.total} (check the training "
+                f"data for absurd values, lower lr ({self.cfg.lr}) or set grad_clip ({self.cfg.grad_clip})); nothing was "
+                f"saved from this step on{kept}"
+            )
         self._losses[step] = loss
         done = step + 1
         if self._log is not None:

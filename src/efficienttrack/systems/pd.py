@@ -12,7 +12,8 @@ logged PWM exactly.
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+import math
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +37,31 @@ class PDGains:
     """Constant push in the direction of the error, PWM (overcomes the valve dead zone)."""
     u_max: float = 1000.0
     """PWM saturation."""
+
+    def __post_init__(self) -> None:
+        """Check every field: kp, kd ≥ 0 and sign ±1, 4 values each (boom, arm, bucket, swing); c ≥ 0; u_max > 0.
+
+        Raises:
+            EfficientTrackError: naming the field and the problem (a gain of the wrong type, shape, sign or not finite).
+        """
+        for name in ("kp", "kd", "sign"):
+            values = getattr(self, name)
+            if not isinstance(values, tuple | list) or len(values) != 4 or not all(map(_is_number, values)):
+                raise EfficientTrackError(f"PD gains: field '{name}' needs 4 numbers (boom, arm, bucket, swing): {values!r}")
+            object.__setattr__(self, name, tuple(float(v) for v in values))
+        for name in ("c", "u_max"):
+            if not _is_number(getattr(self, name)):
+                raise EfficientTrackError(f"PD gains: field '{name}' needs one number, got {getattr(self, name)!r}")
+            object.__setattr__(self, name, float(getattr(self, name)))
+        for name in ("kp", "kd"):
+            if not all(v >= 0 for v in getattr(self, name)):
+                raise EfficientTrackError(f"PD gains: field '{name}' must be ≥ 0 per joint, got {getattr(self, name)}")
+        if not all(v in (-1.0, 1.0) for v in self.sign):
+            raise EfficientTrackError(f"PD gains: field 'sign' must be −1 or 1 per joint, got {self.sign}")
+        if self.c < 0:
+            raise EfficientTrackError(f"PD gains: field 'c' must be ≥ 0 PWM, got {self.c}")
+        if self.u_max <= 0:
+            raise EfficientTrackError(f"PD gains: field 'u_max' must be > 0 PWM (the saturation), got {self.u_max}")
 
     def command(self, e: np.ndarray, e_prev: np.ndarray) -> np.ndarray:
         """PWM for errors ``e`` and previous errors ``e_prev``, both (..., 4) rad → (..., 4) PWM."""
@@ -70,18 +96,34 @@ class PDGains:
         if not path.is_file():
             raise EfficientTrackError(f"PD gains '{spec}': neither a preset ({', '.join(PD_PRESETS)}) nor a JSON file")
         try:
-            fields: dict[str, Any] = json.loads(path.read_text())
-            gains = cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()})
-        except (json.JSONDecodeError, TypeError) as exc:
+            data: Any = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise EfficientTrackError(f"{path}: not a valid PD gains file: {exc}") from exc
-        for name in ("kp", "kd", "sign"):
-            if len(getattr(gains, name)) != 4:
-                raise EfficientTrackError(f"{path}: field '{name}' needs 4 values (boom, arm, bucket, swing)")
-        return gains
+        known = [f.name for f in fields(cls)]
+        if not isinstance(data, dict):
+            raise EfficientTrackError(f"{path}: not a valid PD gains file: expected an object with {', '.join(known)}")
+        unknown, missing = sorted(set(data) - set(known)), [name for name in ("kp", "kd", "sign") if name not in data]
+        if unknown or missing:
+            problem = f"unknown field(s) {', '.join(unknown)}" if unknown else f"missing field(s) {', '.join(missing)}"
+            raise EfficientTrackError(f"{path}: not a valid PD gains file: {problem}; fields: {', '.join(known)}")
+        try:
+            return cls(**data)
+        except EfficientTrackError as exc:
+            raise EfficientTrackError(f"{path}: {exc}") from exc
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serializable fields."""
         return asdict(self)
+
+
+def _is_number(value: Any) -> bool:
+    """True for a finite int or float (not a bool, a string, NaN/inf or an int beyond the float range)."""
+    if not isinstance(value, int | float) or isinstance(value, bool):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
 
 
 XE75_PD = PDGains(kp=(5000.0, 1000.0, 1000.0, 500.0), kd=(15006.0, 6016.0, 4284.0, 7000.0), sign=(-1.0, -1.0, -1.0, 1.0))

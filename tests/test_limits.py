@@ -1,0 +1,134 @@
+"""Config files refuse non-finite numbers and sizes beyond their documented bounds, naming the field and the bound."""
+
+import dataclasses
+
+import pytest
+import torch
+
+from efficienttrack import nets
+from efficienttrack.collect import MAX_PASSES, CollectConfig
+from efficienttrack.config import MAX_ROUNDS, PRESETS, RunConfig, load_config
+from efficienttrack.dynamics import MODEL_PRESETS, ClosedLoopModel, ModelConfig, model_error, train_model
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.nets import MAX_HIDDEN, MAX_HORIZON, MAX_LAYERS, check_training_memory, training_bytes
+from efficienttrack.policy import POLICY_PRESETS, PolicyConfig
+from efficienttrack.training import MAX_BATCH_SIZE, MAX_EPOCHS, MAX_STEPS
+from test_cli import invoke, refused
+from test_dynamics import lag_records
+
+# ------------------------------------------------------------------------------------- non-finite numbers
+
+
+@pytest.mark.parametrize(
+    ("text", "field"),
+    [
+        ("model:\n  grad_clip: .nan\n", "grad_clip"),
+        ("model:\n  lr: .inf\n", "lr"),
+        ("policy:\n  gamma: .nan\n", "gamma"),
+        ("policy:\n  max_adjust: [0.1, 0.1, .nan, 0.1]\n", "max_adjust"),
+        ("collect:\n  sigma_max: -.inf\n", "sigma_max"),
+        ("warm_budget: .nan\n", "warm_budget"),
+    ],
+)
+def test_a_yaml_config_refuses_nan_and_inf(tmp_path, text, field):
+    path = tmp_path / "cfg.yaml"
+    path.write_text(text)
+    with pytest.raises(EfficientTrackError, match=rf"cfg.yaml.*{field}"):
+        load_config(path)
+
+
+def test_a_json_config_refuses_nan_and_infinity(tmp_path):
+    path = tmp_path / "cfg.json"
+    for value in ("NaN", "Infinity", "1e999"):
+        path.write_text('{"model": {"grad_clip": ' + value + "}}")
+        with pytest.raises(EfficientTrackError, match="field 'grad_clip' must be a finite number"):
+            load_config(path)
+
+
+def test_a_config_built_in_code_refuses_an_infinite_grad_clip():
+    with pytest.raises(EfficientTrackError, match="ModelConfig.grad_clip must be a finite number"):
+        ModelConfig(grad_clip=float("inf"))
+    with pytest.raises(EfficientTrackError, match="PolicyConfig.weight_decay must be a finite number"):
+        PolicyConfig(weight_decay=float("nan"))
+
+
+# ------------------------------------------------------------------------------------------------ sizes
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("policy:\n  horizon: 100000\n", f"PolicyConfig.horizon must be ≤ {MAX_HORIZON}"),
+        ("model:\n  horizon: 100000\n", f"ModelConfig.horizon must be ≤ {MAX_HORIZON}"),
+        ("model:\n  history: 100000\n", f"ModelConfig.history must be ≤ {MAX_HORIZON}"),
+        ("model:\n  hidden: 1000000000\n", f"ModelConfig.hidden must be ≤ {MAX_HIDDEN}"),
+        ("model:\n  hidden: 1e9\n", "field 'hidden' must be an integer"),
+        ("policy:\n  layers: 1000\n", f"PolicyConfig.layers must be ≤ {MAX_LAYERS}"),
+        ("policy:\n  batch_size: 10000000\n", f"PolicyConfig.batch_size must be ≤ {MAX_BATCH_SIZE}"),
+        ("model:\n  steps: 1000000000000\n", f"ModelConfig.steps must be ≤ {MAX_STEPS}"),
+        ("model:\n  steps: null\n  epochs: 100000000\n", f"ModelConfig.epochs must be ≤ {MAX_EPOCHS}"),
+        ("collect:\n  passes: 100000\n", f"collect.passes: must be an integer in [1, {MAX_PASSES}]"),
+        ("rounds: 100000\n", f"RunConfig.rounds must be an integer ≥ 1 and ≤ {MAX_ROUNDS}"),
+    ],
+)
+def test_sizes_beyond_their_bound_are_refused_naming_field_and_bound(tmp_path, text, message):
+    path = tmp_path / "cfg.yaml"
+    path.write_text(text)
+    with pytest.raises(EfficientTrackError, match="cfg.yaml") as caught:
+        load_config(path)
+    assert message in str(caught.value)
+
+
+def test_sizes_given_in_code_are_checked_for_type_and_bound():
+    with pytest.raises(EfficientTrackError, match="ModelConfig.hidden must be an integer"):
+        ModelConfig(hidden=1e9)
+    with pytest.raises(EfficientTrackError, match="CollectConfig|collect.passes"):
+        CollectConfig(passes=2.5)
+    with pytest.raises(EfficientTrackError, match="RunConfig.rounds"):
+        RunConfig(rounds=MAX_ROUNDS + 1)
+
+
+def test_the_presets_lie_well_inside_the_bounds():
+    for cfg in (*MODEL_PRESETS.values(), *POLICY_PRESETS.values()):
+        assert cfg.hidden * 8 <= MAX_HIDDEN and cfg.layers * 8 <= MAX_LAYERS and cfg.horizon * 10 <= MAX_HORIZON
+        assert cfg.batch_size * 8 <= MAX_BATCH_SIZE
+    assert all(preset.collect.passes * 10 <= MAX_PASSES for preset in PRESETS.values())
+
+
+def test_epochs_making_too_many_steps_are_refused_when_the_windows_are_known():
+    cfg = dataclasses.replace(MODEL_PRESETS["paper"], epochs=MAX_EPOCHS)
+    assert cfg.total_steps(2048 * 10) == 10 * MAX_EPOCHS
+    with pytest.raises(EfficientTrackError, match=rf"ModelConfig.epochs: .* more than the {MAX_STEPS} allowed"):
+        cfg.total_steps(2048 * 1000)
+
+
+def test_cli_steps_beyond_the_bound_is_a_one_line_error(tmp_path):
+    from efficienttrack.records import save_records
+
+    save_records(lag_records(n=1, T=40), tmp_path / "data")
+    result = invoke("train-model", "--data", tmp_path / "data", "--out", tmp_path / "m.pt", "--steps", 10**12)
+    refused(result, f"ModelConfig.steps must be ≤ {MAX_STEPS}")
+    assert not (tmp_path / "m.pt").exists()
+
+
+def test_model_error_steps_are_bounded():
+    with pytest.raises(EfficientTrackError, match=f"model_error.steps must be ≤ {MAX_HORIZON}"):
+        model_error(ClosedLoopModel(MODEL_PRESETS["tiny"]), lag_records(n=1, T=40), steps=100_000)
+
+
+# ----------------------------------------------------------------------------------------------- memory
+
+
+def test_memory_estimate_is_a_few_gib_for_the_paper_and_refuses_what_cannot_fit():
+    paper_model, paper_policy = MODEL_PRESETS["paper"], POLICY_PRESETS["paper"]
+    estimate = training_bytes(paper_policy.batch_size, paper_policy.horizon, [paper_policy, paper_model])
+    assert 1 * 2**30 < estimate < 16 * 2**30
+    huge = ModelConfig(hidden=MAX_HIDDEN, layers=MAX_LAYERS, horizon=MAX_HORIZON, batch_size=MAX_BATCH_SIZE)
+    with pytest.raises(EfficientTrackError, match=r"ModelConfig: a training step needs about .* GiB .* lower batch_size"):
+        check_training_memory("ModelConfig", huge.batch_size, huge.horizon, [huge], torch.device("cpu"))
+
+
+def test_training_checks_the_memory_before_any_work(monkeypatch):
+    monkeypatch.setattr(nets, "device_memory", lambda device: 1024)
+    with pytest.raises(EfficientTrackError, match="more than the 0.0 GiB of cpu"):
+        train_model(MODEL_PRESETS["tiny"], lag_records(n=1, T=40), "cpu", progress=False)
