@@ -22,7 +22,7 @@ Both run on the one episode loop of :mod:`efficienttrack.episodes`, as data coll
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import torch
@@ -165,6 +165,7 @@ def track(
     device: torch.device | str | None = None,
     progress: bool = True,
     description: str = "tracking",
+    on_done: Callable[[list[EpisodeRecord]], None] | None = None,
 ) -> list[EpisodeRecord]:
     """Algorithm 2 over a set of references: one record per reference.
 
@@ -174,21 +175,32 @@ def track(
         references: the references (``.name``, ``.q`` (L_i, 4) rad of desired positions q*_0 … q*_{L_i − 1}).
         device: where the policy runs (its own device when None).
         progress: show progress (a bar on a terminal, plain lines otherwise).
-        description: label of the progress bar.
+        description: label of the progress bar and of errors.
+        on_done: called with the records of every group of episodes as soon as it has run (to flush them).
 
     Returns:
         Records with ``q_ref`` = the adjusted reference sent, ``q_des`` = the desired one, and
         ``meta`` = {name, method, fallbacks}.
+
+    Raises:
+        EfficientTrackError: the system or the policy raised; the message names the episodes that were running
+            and the error (chained as the cause).
     """
     records: list[EpisodeRecord] = []
     method = "pd" if policy is None else "efficienttrack"
     with ProgressDisplay(progress) as bar:
         for part in batches(system, len(references)):
             runtime = Runtime(policy, device=device)
-            with runtime:
-                arrays = [ref.q for ref in references[part]]
-                part_records = rollout(system, arrays, runtime, runtime.future_length, bar, description)
+            try:
+                with runtime:
+                    arrays = [ref.q for ref in references[part]]
+                    part_records = rollout(system, arrays, runtime, runtime.future_length, bar, description)
+            except Exception as exc:
+                names = ", ".join(ref.name for ref in references[part])
+                raise EfficientTrackError(f"{description}: failed on episode(s) {names}: {type(exc).__name__}: {exc}") from exc
             for record, ref in zip(part_records, references[part], strict=True):
                 record.meta.update(name=ref.name, method=method)
-                records.append(record)
+            records += part_records
+            if on_done is not None:
+                on_done(part_records)
     return records
