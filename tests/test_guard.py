@@ -330,4 +330,5 @@ def test_cli_limits_file_refuses_references_outside_before_any_work(tmp_path):
     assert not (tmp_path / "run" / "run.json").exists() and not (tmp_path / "run" / "collect").exists()
     refused(invoke("evaluate", *system, "--refs", refs, "--out", tmp_path / "eval"), "outside the joint limits [-0.1, 6.283]")
     (tmp_path / "limits.yaml").write_text("max_adjust: 0.1\n")
-    refused(invoke("evaluate", *system, "--refs", refs, "--out", tmp_path / "eval"), "'max_adjust' must be a list of finite numbers")
+    message = "'max_adjust' must be a list of finite numbers"
+    refused(invoke("evaluate", *system, "--refs", refs, "--out", tmp_path / "eval"), message)

@@ -17,7 +17,7 @@ import efficienttrack
 from efficienttrack.collect import CollectConfig
 from efficienttrack.config import ROUND_DATA, RunConfig
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import finite_json, prepare_output_folder
+from efficienttrack.fileio import check_output_file, check_output_folder, finite_json, output_lock, prepare_output_folder
 from efficienttrack.metrics import metrics_by_path, metrics_table, rounded, write_metrics_csv
 from efficienttrack.records import RECORD_SUFFIXES, load_records, record_files, save_records
 from efficienttrack.systems.fit import FitConfig
@@ -84,6 +84,11 @@ def parse_options(pairs: list[str] | None, flag: str = "--system-opt") -> dict[s
     return options
 
 
+def _lock(ctx: typer.Context, out: Path, folder: bool = True) -> None:
+    """Hold the lock of output ``out`` (a folder, else a checkpoint) until the command ``ctx`` ends, however it ends."""
+    ctx.with_resource(output_lock(out, folder=folder))
+
+
 REFERENCES_PLOT = "references.png"
 """Default name of the plot ``refs plot`` draws next to the references."""
 RecursiveOpt = Annotated[
@@ -121,6 +126,7 @@ def refs_generate_command(
     from efficienttrack.cycles import generate_references
     from efficienttrack.references import SUFFIXES, save_references
 
+    check_output_folder(out)
     refs = generate_references(n, seed, preset_name)
     prepare_output_folder(out, (*(f"*{suffix}" for suffix in SUFFIXES), REFERENCES_PLOT), force)
     save_references(refs, out)
@@ -137,9 +143,9 @@ def refs_plot_command(
     from efficienttrack.plots import plot_references
     from efficienttrack.references import load_references
 
+    path = check_output_file(out or (source if source.is_dir() else source.parent) / REFERENCES_PLOT)
     refs = load_references(source)
-    path = plot_references(refs, out or (source if source.is_dir() else source.parent) / REFERENCES_PLOT)
-    typer.echo(f"plotted {len(refs)} references to {path}")
+    typer.echo(f"plotted {len(refs)} references to {plot_references(refs, path)}")
 
 
 @app.command("metrics")
@@ -157,6 +163,8 @@ def metrics_command(
     """
     if pool and per_episode:
         raise EfficientTrackError("metrics: --pool and --per-episode exclude each other")
+    if csv_file is not None:
+        check_output_file(csv_file, "--csv")
     rows = metrics_by_path(paths, recursive=recursive, pool=pool, per_episode=per_episode)
     if csv_file is not None:
         write_metrics_csv(rows, csv_file)
@@ -183,6 +191,7 @@ def convert_command(
     ] = False,
 ) -> None:
     """Convert episode records between formats (upstream .npy/.csv → .npz, .npz ↔ .csv)."""
+    check_output_folder(out)
     files = [file for path in paths for file in record_files(path, recursive)]
     inside = [file for file in files if file.resolve().parent == out.resolve()]
     if inside:
@@ -260,6 +269,7 @@ COLLECT = CollectConfig()
 
 @app.command("collect")
 def collect_command(
+    ctx: typer.Context,
     refs: Annotated[Path, typer.Option("--refs", help="Folder of reference trajectories (.npy/.csv, rad).")],
     out: Annotated[Path, typer.Option("--out", help="Output folder (pass_<k>/ records; an interrupted run resumes).")],
     system: SystemOpt = None,
@@ -275,10 +285,12 @@ def collect_command(
     from efficienttrack.collect import collect
     from efficienttrack.references import load_references
 
+    check_output_folder(out)
     ratio = CollectConfig.parse_noise_ratio(noise_ratio)
     cfg = CollectConfig(sigma_max=sigma_max, noise_ratio=ratio, passes=passes, seed=seed)
     spec = _system_spec(system, plant, pd, system_opt)
     references = load_references(refs)
+    _lock(ctx, out)
     result = collect(spec.open(), references, cfg, out)
     typer.echo(
         f"collected {len(result.records)} episodes, {result.interaction_steps} interaction steps "
@@ -295,6 +307,7 @@ TrainSeedOpt = Annotated[int, typer.Option("--seed", help="Seed of initializatio
 
 @app.command("evaluate")
 def evaluate_command(
+    ctx: typer.Context,
     refs: Annotated[Path, typer.Option("--refs", help="Folder of reference trajectories (.npy/.csv, rad).")],
     out: Annotated[Path, typer.Option("--out", help="Output folder: records/, metrics.json, plots/, run.log.")],
     system: SystemOpt = None,
@@ -312,12 +325,19 @@ def evaluate_command(
         typer.Option("--force", help="Write into a non-empty OUT: first delete an earlier evaluation's outputs there."),
     ] = False,
 ) -> None:
-    """Algorithm 2: track the references with PD alone and with the adjustment policy; metrics and plots as `run`."""
-    from efficienttrack.pipeline import EVALUATE_OUTPUTS, evaluate
+    """Algorithm 2: track the references with PD alone and with the adjustment policy; metrics and plots as `run`.
+
+    An interrupted evaluation (or one whose system failed) resumes with the episodes not yet recorded.
+    """
+    from efficienttrack.pipeline import EVALUATE_JSON, EVALUATE_OUTPUTS, evaluate
     from efficienttrack.references import load_references
 
+    check_output_folder(out)
     spec, references = _system_spec(system, plant, pd, system_opt, limits), load_references(refs)
-    prepare_output_folder(out, EVALUATE_OUTPUTS, force)
+    _lock(ctx, out)
+    interrupted = (out / EVALUATE_JSON).exists() and not (out / "metrics.json").exists()
+    if force or not interrupted:
+        prepare_output_folder(out, EVALUATE_OUTPUTS, force)
     evaluate(spec, references, out, policy, device, wide_console(), plots)
 
 
@@ -359,6 +379,7 @@ def _prepare_run_folder(out: Path, outputs: tuple[str, ...], force: bool) -> Non
 
 @app.command("run")
 def run_command(
+    ctx: typer.Context,
     train_refs: Annotated[Path, typer.Option("--train-refs", help="Folder of training references.")],
     test_refs: Annotated[Path, typer.Option("--test-refs", help="Folder of held-out test references.")],
     out: Annotated[Path, typer.Option("--out", help="Output folder; rerunning resumes where it stopped.")],
@@ -381,16 +402,19 @@ def run_command(
     from efficienttrack.pipeline import RUN_OUTPUTS, run_pipeline
     from efficienttrack.references import load_references
 
+    check_output_folder(out)
     _set_threads(threads)
     spec = _system_spec(system, plant, pd, system_opt, limits)
     cfg = _run_config(config, preset_name, seed, device, rounds, round_data)
     train, test = load_references(train_refs), load_references(test_refs)
+    _lock(ctx, out)
     _prepare_run_folder(out, RUN_OUTPUTS, force)
     run_pipeline(spec, train, test, out, cfg, wide_console(), plots)
 
 
 @app.command("demo")
 def demo_command(
+    ctx: typer.Context,
     out: Annotated[Path, typer.Option("--out", help="Output folder; rerunning resumes where it stopped.")] = Path("runs/demo"),
     preset_name: PresetOpt = "cpu",
     config: ConfigOpt = None,
@@ -405,8 +429,10 @@ def demo_command(
     """The whole method on the built-in xe75 simulator with generated references (32 train / 8 test)."""
     from efficienttrack.pipeline import DEMO_OUTPUTS, demo
 
+    check_output_folder(out)
     _set_threads(threads)
     cfg = _run_config(config, preset_name, seed, device, rounds, round_data)
+    _lock(ctx, out)
     _prepare_run_folder(out, DEMO_OUTPUTS, force)
     demo(out, cfg, console=wide_console(), max_plots=plots)
 
@@ -417,6 +443,12 @@ DataOpt = Annotated[
 TrainForceOpt = Annotated[
     bool, typer.Option("--force", help="Start afresh: delete the training state (OUT with .state.pt) instead of resuming it.")
 ]
+
+
+def _check_checkpoint(out: Path) -> None:
+    """Check that checkpoint ``out`` and its log folder (``OUT`` with ``.logs``) can be written."""
+    check_output_file(out)
+    check_output_folder(out.with_suffix(".logs"))
 
 
 def _training_state(out: Path, force: bool) -> Path:
@@ -479,6 +511,7 @@ InitPolicyOpt = Annotated[
 
 @app.command("train-model")
 def train_model_command(
+    ctx: typer.Context,
     data: DataOpt,
     out: Annotated[
         Path, typer.Option("--out", help="Model checkpoint (model.pt; config to model.json, scalar logs to model.logs/).")
@@ -496,10 +529,12 @@ def train_model_command(
     """Train the closed-loop dynamics model on records (multi-step BPTT); an interrupted run resumes."""
     from efficienttrack.dynamics import MODEL_PRESETS, load_model, save_model, train_model
 
+    _check_checkpoint(out)
     _set_threads(threads)
     init, cfg = _warm_start("--init-model", init_model, load_model, _learn_preset(MODEL_PRESETS, preset_name, steps), device)
     records, held = load_records(data, recursive), load_records(held_out, recursive) if held_out else []
     logs = out.with_suffix(".logs")
+    _lock(ctx, out, folder=False)
     result = train_model(cfg, records, device, seed, True, _training_state(out, force), logs, held, init)
     save_model(result.model, out)
     typer.echo(
@@ -532,6 +567,7 @@ def model_error_command(
 
 @app.command("train-policy")
 def train_policy_command(
+    ctx: typer.Context,
     model: Annotated[Path, typer.Option("--model", help="Model checkpoint (model.pt) to train through.")],
     data: DataOpt,
     out: Annotated[
@@ -551,11 +587,13 @@ def train_policy_command(
     from efficienttrack.dynamics import load_model
     from efficienttrack.policy import POLICY_PRESETS, load_policy, predicted_tracking_error, save_policy, train_policy
 
+    _check_checkpoint(out)
     _set_threads(threads)
     preset_cfg = _learn_preset(POLICY_PRESETS, preset_name, steps)
     init, cfg = _warm_start("--init-policy", init_policy, load_policy, preset_cfg, device)
     g_theta, records = load_model(model, device), load_records(data, recursive)
     held, logs = load_records(held_out, recursive) if held_out else [], out.with_suffix(".logs")
+    _lock(ctx, out, folder=False)
     result = train_policy(cfg, g_theta, records, device, seed, True, _training_state(out, force), logs, held, init)
     save_policy(result.policy, out)
     before = predicted_tracking_error(g_theta, records, None, cfg.rollout_length)
@@ -568,6 +606,7 @@ def train_policy_command(
 
 @app.command("round")
 def round_command(
+    ctx: typer.Context,
     model: Annotated[Path, typer.Option("--model", help="The previous round's model checkpoint (model.pt).")],
     policy: Annotated[Path, typer.Option("--policy", help="The previous round's policy checkpoint, the one deployed.")],
     data: Annotated[
@@ -612,6 +651,7 @@ def round_command(
     from efficienttrack.next_round import ROUND_JSON, ROUND_OUTPUTS, next_round
     from efficienttrack.policy import POLICY_PRESETS, load_policy
 
+    check_output_folder(out)
     _set_threads(threads)
     if not warm_budget > 0:
         raise EfficientTrackError(f"--warm-budget {warm_budget}: must be a share > 0 of the preset's steps")
@@ -621,6 +661,7 @@ def round_command(
     pi_phi, _ = _warm_start("--policy", policy, load_policy, policy_schedule, device)
     new, old = load_records(data, recursive), load_records(old_data, recursive) if old_data else []
     held = load_records(held_out, recursive) if held_out else []
+    _lock(ctx, out)
     interrupted = out.is_dir() and not (out / ROUND_JSON).exists() and all(e.name in ROUND_OUTPUTS for e in out.iterdir())
     if force or not interrupted:
         prepare_output_folder(out, ROUND_OUTPUTS, force)
@@ -697,6 +738,7 @@ def sim_calibrate_command(
     from efficienttrack.systems.fit import calibrate, load_logs, save_params
     from efficienttrack.systems.hydraulic import HydraulicParams
 
+    check_output_file(out)
     candidates = parse_ints(delays, "--delays")
     config = replace(FIT, delays=candidates, max_windows=max_windows, max_nfev=max_nfev, max_ref_jitter=max_ref_jitter)
     first = HydraulicParams.load(start) if start is not None else None
@@ -734,6 +776,8 @@ def sim_fidelity_command(
     from efficienttrack.plots import plot_sim_vs_real
     from efficienttrack.systems.fit import fidelity, load_logs, select_by_jitter
 
+    if plot is not None:
+        check_output_folder(plot, "--plot")
     spec = _system_spec(system, plant, pd, system_opt)
     system_view, plant_view = spec.open(), spec.open_plant()
     records = load_logs(logs, need_u=plant_view is not None, recursive=recursive)

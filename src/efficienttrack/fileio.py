@@ -2,10 +2,16 @@
 
 Files get the permissions a plain ``open()`` would give them (``0o666`` less the umask, so
 ``-rw-r--r--`` under the usual umask 022), not the private ``0o600`` of the temporary file.
+
+Outputs are also guarded before the work that fills them: :func:`check_output_file` and
+:func:`check_output_folder` find an output that cannot be written (a file where a folder is needed or the
+reverse, a read-only or full disk) before any work is done, and :func:`output_lock` keeps a second
+process from writing the same folder or checkpoint at the same time.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import fnmatch
 import json
@@ -14,11 +20,16 @@ import os
 import shutil
 import tempfile
 import warnings
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import IO, Any
 
 from efficienttrack.errors import EfficientTrackError
+
+try:
+    import fcntl
+except ImportError:  # Windows: no flock
+    fcntl = None
 
 
 def current_umask() -> int:
@@ -211,3 +222,153 @@ def prepare_output_folder(folder: str | Path, owned: Sequence[str], force: bool 
             entry.unlink()
     folder.mkdir(parents=True, exist_ok=True)
     return removed
+
+
+def _writable_folder(folder: Path, path: Path, option: str) -> None:
+    """Check that files can be written where ``folder`` (or its nearest existing ancestor) is: a probe file is written."""
+    existing = folder
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise EfficientTrackError(f"{option} {path}: {existing} is a file, not a folder")
+    try:
+        fd, probe = tempfile.mkstemp(dir=existing, prefix=".efficienttrack-probe-")
+    except OSError as exc:
+        raise EfficientTrackError(f"{option} {path}: cannot write in {existing} ({exc.strerror})") from exc
+    try:
+        os.write(fd, b"\0")  # a byte, so that a full disk refuses it
+        os.fsync(fd)
+    except OSError as exc:
+        raise EfficientTrackError(f"{option} {path}: cannot write in {existing} ({exc.strerror})") from exc
+    finally:
+        os.close(fd)
+        os.unlink(probe)
+
+
+def check_output_file(path: str | Path, option: str = "--out") -> Path:
+    """Check before any work that the file ``path`` can be written: not a folder, its parent a folder (or creatable), writable.
+
+    A probe file is written and removed in the parent (or its nearest existing ancestor); no folder is created.
+
+    Args:
+        path: the output file.
+        option: the command-line option naming it, for messages.
+
+    Returns:
+        ``path`` as a Path.
+
+    Raises:
+        EfficientTrackError: ``path`` is a folder, a parent is a file, or nothing can be written there (read-only, full).
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise EfficientTrackError(f"{option} {path}: is a folder, expected a file")
+    _writable_folder(path.parent, path, option)
+    return path
+
+
+def check_output_folder(path: str | Path, option: str = "--out") -> Path:
+    """Check before any work that the folder ``path`` can be written: not a file, none of its parents a file, writable.
+
+    A probe file is written and removed in the folder (or its nearest existing ancestor); no folder is created.
+
+    Args:
+        path: the output folder.
+        option: the command-line option naming it, for messages.
+
+    Returns:
+        ``path`` as a Path.
+
+    Raises:
+        EfficientTrackError: ``path`` or a parent is a file, or nothing can be written there (read-only, full).
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise EfficientTrackError(f"{option} {path}: is a file, expected a folder")
+    _writable_folder(path, path, option)
+    return path
+
+
+def lock_path(path: str | Path) -> Path:
+    """The lock file of output file ``path`` (a checkpoint): ``.<name>.lock`` beside it, after resolving links.
+
+    Args:
+        path: the output file.
+
+    Returns:
+        The lock file's path.
+    """
+    path = Path(path).resolve()
+    return path.parent / f".{path.name}.lock"
+
+
+def _refuse_second_writer(path: Path, option: str, holder: str = "") -> EfficientTrackError:
+    pid = f" (pid {holder})" if holder.isdigit() else ""
+    return EfficientTrackError(
+        f"{option} {path}: another efficienttrack process{pid} is writing it; wait for it to finish, or use another {option}"
+    )
+
+
+@contextlib.contextmanager
+def output_lock(path: str | Path, option: str = "--out", folder: bool = True) -> Iterator[None]:
+    """Hold an exclusive lock on output ``path``, a run folder or a checkpoint file, while the block runs.
+
+    A folder is locked itself (``flock`` on the folder, created when missing): nothing is written for
+    the lock, so its listing and its parent are left alone. A file, which is replaced whole when it is
+    written, is locked through :func:`lock_path` (created holding the process id, removed on release).
+    The kernel releases a lock when its process ends, however it ends, so a killed run leaves no stale
+    lock. Locks hold between processes and between two holders in one process. Platforms without
+    ``fcntl`` (Windows) take no lock.
+
+    Args:
+        path: the output folder or file.
+        option: the command-line option naming it, for messages.
+        folder: ``path`` is a folder (else a file).
+
+    Yields:
+        Nothing: the lock is held inside the block.
+
+    Raises:
+        EfficientTrackError: another process (or holder) has the lock.
+    """
+    path = Path(path)
+    if fcntl is None:
+        yield
+        return
+    if folder:
+        path.mkdir(parents=True, exist_ok=True)
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise _refuse_second_writer(path, option) from None
+        try:
+            yield
+        finally:
+            os.close(fd)
+        return
+    lock = lock_path(path)
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(fd, 32).decode(errors="replace").strip()
+            os.close(fd)
+            raise _refuse_second_writer(path, option, holder) from None
+        try:
+            same = os.path.samestat(os.fstat(fd), os.stat(lock))
+        except FileNotFoundError:
+            same = False
+        if same:  # else the holder removed the file while we opened it: take the new one
+            break
+        os.close(fd)
+    try:
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        yield
+    finally:
+        lock.unlink(missing_ok=True)  # while still holding it, so that no one locks the removed file
+        os.close(fd)

@@ -30,13 +30,16 @@ settings into the same folder is refused, except for the number of rounds: a rer
 rounds adds them to the finished ones.
 
 :func:`evaluate` writes the same ``metrics.json`` schema (``efficienttrack`` null without a policy;
-``model``, ``config``, ``train_seconds`` null), records, tracking plots and ``run.log``.
+``model``, ``config``, ``train_seconds`` null), records, tracking plots and ``run.log``; its ``evaluate.json``
+names the system, references and policy, so that an interrupted evaluation resumes with the episodes not
+yet recorded (each is written as soon as it has run, :func:`efficienttrack.stages.track_and_save`).
 ``config.json``, ``run.json`` and ``metrics.json`` carry a ``provenance`` entry
 (:func:`efficienttrack.provenance.provenance`); run.json's is left out when comparing a rerun.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import time
 from collections.abc import Sequence
@@ -100,7 +103,9 @@ RUN_OUTPUTS = (
 """What :func:`run_pipeline` writes in its folder (see the module docstring): a fresh start deletes these."""
 DEMO_OUTPUTS = (*RUN_OUTPUTS, "refs")
 """What :func:`demo` writes in its folder: the run's outputs and the generated references."""
-EVALUATE_OUTPUTS = ("records", "metrics.json", "plots", "run.log")
+EVALUATE_JSON = "evaluate.json"
+"""What an evaluation folder holds: system, references and policy (a resumed evaluation must match)."""
+EVALUATE_OUTPUTS = (EVALUATE_JSON, "records", "metrics.json", "plots", "run.log")
 """What :func:`evaluate` writes in its folder: a fresh evaluation deletes these."""
 FALLBACK_LIMIT = 0.1
 """Share of the policy's steps on which the guard may fall back to the raw reference (a = 0) before the results are
@@ -356,7 +361,9 @@ def evaluate(
 ) -> dict[str, Any]:
     """The PD controller alone and, given a policy, Algorithm 2 on the same references; written like a run's results.
 
-    Writes ``OUT/records/{pd,efficienttrack}/<reference>.npz``, ``OUT/metrics.json`` (the schema of
+    Writes ``OUT/evaluate.json`` (system, references, policy and its SHA-256) first, then
+    ``OUT/records/{pd,efficienttrack}/<reference>.npz`` episode by episode (a rerun after an interruption or
+    a failure of the system resumes with the episodes not yet recorded), ``OUT/metrics.json`` (the schema of
     :func:`run_pipeline`), ``OUT/plots/`` (tracking per reference, tracking error over time) and
     appends to ``OUT/run.log``.
 
@@ -375,8 +382,9 @@ def evaluate(
         ``interaction_hours`` those of the run the policy comes from when it lies in a run folder (else null).
 
     Raises:
-        EfficientTrackError: no references, one outside the joint limits, a missing policy file, a bad device or a
-            negative ``max_plots``.
+        EfficientTrackError: no references, one outside the joint limits, a missing policy file, a bad device, a
+            negative ``max_plots``, ``out`` holding another evaluation, or the system failing on an episode (the
+            message names it).
     """
     start = time.perf_counter()
     if not refs:
@@ -391,6 +399,17 @@ def evaluate(
             raise EfficientTrackError(f"--policy {policy_path}: no such file")
         torch_device = resolve_device(device)
         pi = policy.load_policy(policy_path).to(torch_device)
+    identity = {
+        "system": system.to_dict(),
+        "references": {ref.name: len(ref.q) for ref in refs},
+        "policy": None if policy_path is None else str(Path(policy_path).resolve()),
+        "policy_sha256": None if policy_path is None else hashlib.sha256(Path(policy_path).read_bytes()).hexdigest(),
+    }
+    claim_folder(
+        out / EVALUATE_JSON,
+        identity,
+        "this folder holds an evaluation with another system, references or policy; use another --out, or --force",
+    )
     log = RunLog(out, console)
     log.header("evaluate")
     pd_records = track_and_save("pd", out, env, None, refs, None)

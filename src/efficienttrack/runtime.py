@@ -34,7 +34,7 @@ bit in :attr:`Sent.guard`, and records keep them per step (``meta["guard"]``).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import torch
@@ -269,6 +269,7 @@ def track(
     description: str = "tracking",
     limits: GuardLimits | None = None,
     step_timeout: float | None = STEP_TIMEOUT,
+    on_done: Callable[[list[EpisodeRecord]], None] | None = None,
 ) -> list[EpisodeRecord]:
     """Algorithm 2 over a set of references: one record per reference.
 
@@ -279,14 +280,19 @@ def track(
             every one must stay within the joint limits (checked before the first step).
         device: where the policy runs (its own device when None).
         progress: show progress (a bar on a terminal, plain lines otherwise).
-        description: label of the progress bar.
+        description: label of the progress bar and of errors.
         limits: the limits the guard enforces; the system's (``system.limits``) when None.
         step_timeout: seconds a system step may take before the episodes end with an error (None: no limit).
+        on_done: called with the records of every group of episodes as soon as it has run (to flush them).
 
     Returns:
         Records with ``q_ref`` = the adjusted reference sent, ``q_des`` = the desired one, and
         ``meta`` = {name, method, fallbacks (steps that fell back), guard ({reason: steps}, see
         :func:`~efficienttrack.episodes.guard_steps`)}.
+
+    Raises:
+        EfficientTrackError: a reference outside the joint limits (before any step); the system or the policy
+            raised, or a step timed out: the message names the episodes that were running and the error (chained).
     """
     limits = system.limits if limits is None else limits
     check_references(references, limits)
@@ -295,10 +301,16 @@ def track(
     with ProgressDisplay(progress) as bar:
         for part in batches(system, len(references)):
             runtime = Runtime(policy, device=device, limits=limits, dt=system.dt)
-            with runtime:
-                arrays = [ref.q for ref in references[part]]
-                part_records = rollout(system, arrays, runtime, runtime.future_length, bar, description, step_timeout)
+            try:
+                with runtime:
+                    arrays = [ref.q for ref in references[part]]
+                    part_records = rollout(system, arrays, runtime, runtime.future_length, bar, description, step_timeout)
+            except Exception as exc:
+                names = ", ".join(ref.name for ref in references[part])
+                raise EfficientTrackError(f"{description}: failed on episode(s) {names}: {type(exc).__name__}: {exc}") from exc
             for record, ref in zip(part_records, references[part], strict=True):
                 record.meta.update(name=ref.name, method=method)
-                records.append(record)
+            records += part_records
+            if on_done is not None:
+                on_done(part_records)
     return records

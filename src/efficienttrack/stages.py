@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -18,7 +19,7 @@ from rich.console import Console
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import atomic_write, write_json
 from efficienttrack.provenance import provenance
-from efficienttrack.records import EpisodeRecord, load_named_records, save_records
+from efficienttrack.records import EpisodeRecord, find_record_files, load_named_records, load_record, save_records
 from efficienttrack.references import Reference
 from efficienttrack.runtime import track
 from efficienttrack.systems.protocol import BatchedSystem
@@ -119,6 +120,11 @@ def track_and_save(
 ) -> list[EpisodeRecord]:
     """Track ``refs`` with ``pi`` (PD alone when None) and save the records to ``OUT/records/<name>``.
 
+    Every group of episodes is written to ``OUT/records/.<name>.partial/`` as soon as it has run, and the
+    folder becomes ``OUT/records/<name>`` when every reference is done, as collection does: when the system
+    fails or the run is interrupted, the finished episodes are kept and a rerun tracks only the others. A
+    complete ``OUT/records/<name>`` is read back instead of tracked again.
+
     Args:
         name: the records' folder under ``<out>/records``.
         out: the run (or round) folder.
@@ -129,10 +135,35 @@ def track_and_save(
 
     Returns:
         One record per reference, in the order of ``refs``.
+
+    Raises:
+        EfficientTrackError: the system or the policy failed; the message names the episode, the error and
+            where the finished episodes are kept.
     """
-    records = track(system, pi, refs, device=device, description=f"evaluating {name}")
-    save_records(records, out / "records" / name)
-    return records
+    folder = out / "records" / name
+    names = [ref.name for ref in refs]
+    if folder.is_dir():
+        return load_named_records(folder, names)
+    partial = folder.with_name(f".{name}.partial")
+    partial.mkdir(parents=True, exist_ok=True)
+    finished = {record.meta.get("name"): record for record in map(load_record, find_record_files(partial))}
+    todo = [ref for ref in refs if ref.name not in finished]
+    flushed: list[EpisodeRecord] = []
+
+    def flush(records: list[EpisodeRecord]) -> None:
+        save_records(records, partial)
+        flushed.extend(records)
+
+    try:
+        new = track(system, pi, todo, device=device, description=f"evaluating {name}", on_done=flush)
+    except EfficientTrackError as exc:
+        kept = len(refs) - len(todo) + len(flushed)
+        raise EfficientTrackError(
+            f"{exc}; {kept} of {len(refs)} episode(s) are recorded in {partial}, rerun the same command to go on from there"
+        ) from exc
+    os.replace(partial, folder)
+    by_name = {**finished, **{record.meta["name"]: record for record in new}}
+    return [by_name[ref_name] for ref_name in names]
 
 
 def evaluate_stage(
