@@ -16,7 +16,7 @@ LAYERS = (
     ("learning", {"dataset", "nets", "training", "dynamics", "policy"}),
     ("deployment", {"runtime", "learned_system", "next_round"}),
     ("reports", {"plots"}),
-    ("orchestration", {"config", "stages", "rounds", "pipeline", "cli"}),
+    ("orchestration", {"config", "stages", "rounds", "pipeline", "cli", "__main__"}),
 )
 """Layers from the bottom up: a module may import its own layer and the ones below."""
 
