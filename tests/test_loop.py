@@ -5,10 +5,15 @@ import math
 
 import numpy as np
 import pytest
+import torch
+from typer.testing import CliRunner
 
+from efficienttrack.cli import app
 from efficienttrack.deploy import SimulatedClock, SimulatedMachine, deploy, load_machine
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.loop import Loop, LoopConfig, Reading, TickLog
+from efficienttrack.policy import POLICY_PRESETS, AdjustmentPolicy, save_policy
+from efficienttrack.references import Reference, load_references, save_references
 from efficienttrack.runtime import Runtime, track
 from efficienttrack.systems.limits import DEFAULT_LIMITS
 from efficienttrack.systems.protocol import BatchedSystem
@@ -332,3 +337,81 @@ def test_deploy_runs_references_in_turn_and_stops_after_a_stopped_run(tmp_path):
 def test_load_machine_names_a_missing_adapter_method():
     with pytest.raises(EfficientTrackError, match="the adapter has no __enter__, __exit__, read, send"):
         load_machine("toy_system:make", {})(sine_refs([5])[0])
+
+
+# ------------------------------------------------------------------------------------------------ the command
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(a) for a in args], env={"COLUMNS": "200"})
+
+
+class DyingMachine(SimulatedMachine):
+    """A user's adapter (``--machine test_loop:DyingMachine``): the toy system at rest, whose sensor dies after 2 reads."""
+
+    def __init__(self):
+        super().__init__(BatchedSystem(make()), np.zeros(4))
+        self.reads = 0
+
+    def read(self):
+        self.reads += 1
+        return super().read() if self.reads <= 2 else None
+
+
+@pytest.fixture
+def deploy_inputs(tmp_path):
+    """Two short generated xe75 references and an untrained tiny policy."""
+    assert invoke("refs", "generate", "--out", tmp_path / "gen", "--n", "2").exit_code == 0
+    refs = [Reference(r.name, r.q[:40]) for r in load_references(tmp_path / "gen")]
+    save_references(refs, tmp_path / "refs")
+    policy = AdjustmentPolicy(POLICY_PRESETS["tiny"])
+    torch.nn.init.normal_(policy.pi_phi.body[-1].weight, std=0.5)
+    save_policy(policy, tmp_path / "policy.pt")
+    return tmp_path / "refs", tmp_path / "policy.pt"
+
+
+def test_deploy_refuses_to_send_without_arm(deploy_inputs, tmp_path):
+    refs, policy = deploy_inputs
+    for extra in ((), ("--shadow",)):
+        result = invoke("deploy", "--refs", refs, "--policy", policy, "--out", tmp_path / "o", "--fast", *extra)
+        assert isinstance(result.exception, EfficientTrackError) and "add --arm to allow motion" in str(result.exception)
+    assert not (tmp_path / "o").exists()
+
+
+def test_deploy_on_the_simulator_in_shadow_mode_then_armed(deploy_inputs, tmp_path):
+    refs, policy = deploy_inputs
+    shadow = invoke("deploy", "--refs", refs, "--policy", policy, "--out", tmp_path / "s", "--fast", "--arm", "--shadow")
+    assert shadow.exit_code == 0, shadow.output
+    assert "ref_01: done, 39 ticks" in shadow.output and "2 run(s) done (shadow)" in shadow.output
+    lines = [json.loads(x) for x in (tmp_path / "s" / "ref_02.jsonl").read_text().splitlines()]
+    assert np.abs([t["a"] for t in lines[1:-1]]).max() > 0 and np.all(np.array([t["a_sent"] for t in lines[:-1]]) == 0)
+    armed = invoke("deploy", "--refs", refs, "--policy", policy, "--out", tmp_path / "a", "--fast", "--arm")
+    assert armed.exit_code == 0, armed.output
+    a_sent = np.array([json.loads(x)["a_sent"] for x in (tmp_path / "a" / "ref_01.jsonl").read_text().splitlines()[:-1]])
+    assert np.abs(a_sent).max() > 0 and not a_sent[0].any() and not a_sent[-1].any()
+    summary = json.loads((tmp_path / "a" / "deploy.json").read_text())
+    assert summary["shadow"] is False and [r["reason"] for r in summary["runs"]] == ["done", "done"]
+    again = invoke("deploy", "--refs", refs, "--out", tmp_path / "a", "--fast", "--arm")
+    assert isinstance(again.exception, EfficientTrackError)  # a finished deployment's logs are not overwritten
+
+
+def test_deploy_a_machine_needs_its_limits_and_real_time(deploy_inputs, tmp_path):
+    refs, _ = deploy_inputs
+    result = invoke("deploy", "--refs", refs, "--out", tmp_path / "o", "--arm", "--machine", "test_loop:DyingMachine")
+    assert "--machine needs --limits FILE" in str(result.exception)
+    (tmp_path / "lim.json").write_text("{}")
+    args = ("deploy", "--refs", refs, "--out", tmp_path / "o", "--arm", "--machine", "test_loop:DyingMachine")
+    result = invoke(*args, "--limits", tmp_path / "lim.json", "--fast")
+    assert "--fast runs the simulator" in str(result.exception)
+
+
+def test_deploy_exits_1_when_a_watchdog_stops_a_run(tmp_path):
+    save_references([Reference("rest", np.zeros((40, 4)))], tmp_path / "refs")
+    (tmp_path / "lim.json").write_text("{}")
+    result = invoke(
+        "deploy", "--refs", tmp_path / "refs", "--out", tmp_path / "o", "--arm", "--machine", "test_loop:DyingMachine",
+        "--limits", tmp_path / "lim.json", "--stale-ticks", "1", "--stop-stale-ticks", "2",
+    )  # fmt: skip
+    assert result.exit_code == 1 and "rest: stale_sensor" in result.output
+    end = json.loads((tmp_path / "o" / "rest.jsonl").read_text().splitlines()[-1])
+    assert end["reason"] == "stale_sensor" and end["ticks"] <= 5

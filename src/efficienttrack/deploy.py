@@ -20,11 +20,12 @@ import numpy as np
 
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import write_json
+from efficienttrack.joints import DT
 from efficienttrack.loop import MONOTONIC, Clock, Loop, LoopConfig, LoopResult, LoopRuntime, Machine, Reading, TickLog
 from efficienttrack.references import Reference
 from efficienttrack.systems.limits import GuardLimits
 from efficienttrack.systems.protocol import BatchedSystem
-from efficienttrack.systems.spec import load_callable
+from efficienttrack.systems.spec import SystemSpec, load_callable
 
 DEPLOY_JSON = "deploy.json"
 """The settings and the summaries of a deployment's runs, in its output folder."""
@@ -168,3 +169,51 @@ def deploy(
         if result.stopped:
             break
     return results
+
+
+def deployment_parts(
+    spec: SystemSpec,
+    machine: str | None,
+    machine_options: dict[str, Any],
+    policy: str | Path | None,
+    device: str,
+    fast: bool,
+) -> tuple[LoopRuntime, Callable[[Reference], Machine], GuardLimits, Clock]:
+    """What ``efficienttrack deploy`` runs: the runtime, the machine factory, the limits and the clock.
+
+    Args:
+        spec: the simulated system (used when ``machine`` is None); with ``machine``, only its limits file counts.
+        machine: a user's adapter ``module:callable``, or None for the simulator.
+        machine_options: the adapter's keyword options.
+        policy: a policy checkpoint (``policy.pt``), or None for the raw reference alone (a = 0).
+        device: where the policy runs.
+        fast: run the simulator on a simulated clock, as fast as it computes (refused for a user's machine).
+
+    Returns:
+        The runtime, reference → machine adapter, the machine's limits, and the clock.
+    """
+    if machine is not None:
+        if fast:
+            raise EfficientTrackError(
+                "--fast runs the simulator on a simulated clock; a machine (--machine) runs in real time only"
+            )
+        if spec.limits is None:
+            raise EfficientTrackError("--machine needs --limits FILE: the joint limits and adjustment bounds of that machine")
+        if spec.system is not None or spec.plant is not None:
+            raise EfficientTrackError("give --machine SPEC or a simulated --system/--plant, not both")
+        limits, make_machine, clock = GuardLimits.load(spec.limits), load_machine(machine, machine_options), MONOTONIC
+    else:
+        system = spec.open()
+        if system.dt != DT:
+            raise EfficientTrackError(f"{system.name}: runs at dt = {system.dt} s; the loop runs at {DT} s (20 Hz)")
+        clock = SimulatedClock() if fast else MONOTONIC
+        limits = system.limits
+
+        def make_machine(ref: Reference) -> Machine:
+            return SimulatedMachine(system, ref.q[0], clock)
+
+    from efficienttrack.policy import load_policy  # torch: only here, the loop itself runs without it
+    from efficienttrack.runtime import Runtime
+
+    runtime = Runtime(None if policy is None else load_policy(policy, device), limits=limits)
+    return runtime, make_machine, limits, clock
