@@ -199,6 +199,25 @@ class Runtime:
         self.steps += 1
         return Sent(q_ref=q_ref, adjustment=a, fallback=fallback, guard=guard)
 
+    def sent_instead(self, q_ref: np.ndarray) -> None:
+        """The machine took ``q_ref`` instead of the reference the last ``step`` returned: the history holds it.
+
+        A loop that sends the raw reference (shadow mode, a hold, a stale sensor) or a machine that clamps calls this,
+        so that the policy's next step sees the references really sent, as in training. The guard's rate limit stays
+        on the adjustments ``step`` returned.
+
+        Args:
+            q_ref: (N, 4) rad, the references really sent in the last step.
+        """
+        if self._history is None or self.steps == 0:
+            raise EfficientTrackError("runtime: sent_instead called before a step (or after stop)")
+        q_ref = np.asarray(q_ref, dtype=np.float64)
+        if q_ref.shape != self._history.q_ref[:, -1].shape or not np.all(np.isfinite(q_ref)):
+            raise EfficientTrackError(f"runtime: sent_instead expects finite q_ref of shape (N, 4), got {q_ref.shape}")
+        q_hist = self._history.q_ref.copy()
+        q_hist[:, -1] = q_ref
+        self._history = dataset.History(obs=self._history.obs, q_ref=q_hist)
+
     def stop(self) -> None:
         """End the episode (the counters stay readable)."""
         self._history = None

@@ -72,6 +72,19 @@ def _resolve(spec: str, builtins: Mapping[str, str], what: str) -> Callable[...,
     return factory
 
 
+def load_callable(spec: str, what: str) -> Callable[..., Any]:
+    """The callable an import path ``"module.path:callable"`` names (a user's machine adapter, ``deploy --machine``).
+
+    Args:
+        spec: the import path; modules are looked up in the current working directory first.
+        what: what it is, for errors (e.g. ``"machine"``).
+
+    Returns:
+        The callable.
+    """
+    return _resolve(spec, {}, what)
+
+
 def _build(spec: str, builtins: Mapping[str, str], what: str, options: Mapping[str, Any]) -> BatchedSystem:
     factory = _resolve(spec, builtins, what)
     try:

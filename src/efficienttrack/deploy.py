@@ -1,0 +1,219 @@
+"""The fixed-rate loop over a folder of references (``efficienttrack deploy``), and the simulator as a machine.
+
+:func:`deploy` runs :class:`~efficienttrack.loop.Loop` along each reference in turn, one machine opened per reference,
+each with its own per-tick log ``OUT/<reference>.jsonl``, and keeps ``OUT/deploy.json`` (the settings and one summary
+per finished run) up to date after every run. A run that a watchdog stopped ends the deployment: the references after
+it are not started.
+
+The machine is either the simulator (:class:`SimulatedMachine` around a system of :mod:`efficienttrack.systems.spec`,
+the built-in ``xe75`` by default, reset at each reference's start) or a user's adapter (:func:`load_machine`, an import
+path ``module:callable`` returning a :class:`~efficienttrack.loop.Machine`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.fileio import write_json
+from efficienttrack.joints import DT
+from efficienttrack.loop import MONOTONIC, Clock, Loop, LoopConfig, LoopResult, LoopRuntime, Machine, Reading, TickLog
+from efficienttrack.references import Reference
+from efficienttrack.systems.limits import GuardLimits
+from efficienttrack.systems.protocol import BatchedSystem
+from efficienttrack.systems.spec import SystemSpec, load_callable
+
+DEPLOY_JSON = "deploy.json"
+"""The settings and the summaries of a deployment's runs, in its output folder."""
+DEPLOY_OUTPUTS = (DEPLOY_JSON, "*.jsonl")
+"""What ``deploy`` writes in its output folder (what ``--force`` clears)."""
+
+
+class SimulatedClock:
+    """A clock that only moves when slept on: a simulator runs as fast as it computes.
+
+    Args:
+        start: the clock's time at first, s.
+    """
+
+    def __init__(self, start: float = 0.0) -> None:
+        self.t = float(start)
+
+    def now(self) -> float:
+        """The simulated time, s."""
+        return self.t
+
+    def sleep(self, seconds: float) -> None:
+        """Advance the time by ``seconds`` at once.
+
+        Args:
+            seconds: how long, ≥ 0.
+        """
+        self.t += max(float(seconds), 0.0)
+
+
+class SimulatedMachine:
+    """A closed-loop system (``SystemSpec.open()``, e.g. the built-in ``xe75``) as a :class:`Machine`.
+
+    Opening resets the simulator at ``q0``; ``read`` returns its state stamped with the clock's time; ``send`` steps it
+    once (one control period) and returns the reference as given.
+
+    Args:
+        system: the checked system (one machine).
+        q0: (4,) rad, the start position (the reference's first).
+        clock: the loop's clock (for the stamps).
+    """
+
+    def __init__(self, system: BatchedSystem, q0: np.ndarray, clock: Clock = MONOTONIC) -> None:
+        self.system, self.q0, self.clock = system, np.asarray(q0, dtype=np.float64), clock
+        self._obs: np.ndarray | None = None
+
+    def __enter__(self) -> SimulatedMachine:
+        """Reset the simulator at ``q0``."""
+        self._obs = np.asarray(self.system.reset(self.q0[None]), dtype=np.float64)[0]
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        """Nothing to release."""
+        self._obs = None
+
+    def read(self) -> Reading:
+        """The simulator's state, stamped now."""
+        if self._obs is None:
+            raise EfficientTrackError(f"{self.system.name}: read before open")
+        return Reading(self._obs.copy(), self.clock.now())
+
+    def send(self, q_ref: np.ndarray) -> np.ndarray:
+        """One simulator step towards ``q_ref`` (4,) rad; returns it."""
+        if self._obs is None:
+            raise EfficientTrackError(f"{self.system.name}: send before open")
+        self._obs = np.asarray(self.system.step(np.asarray(q_ref, dtype=np.float64)[None]), dtype=np.float64)[0]
+        return np.asarray(q_ref, dtype=np.float64)
+
+
+def load_machine(spec: str, options: dict[str, Any]) -> Callable[[Reference], Machine]:
+    """A user's machine adapter by import path: a factory of one adapter per reference.
+
+    Args:
+        spec: ``"module.path:callable"``; the callable is called with ``options`` and returns a
+            :class:`~efficienttrack.loop.Machine` (a context manager with ``read`` and ``send``).
+        options: its keyword options (``--machine-opt key=value``).
+
+    Returns:
+        reference → a new adapter (the reference is not passed on: a real machine starts where it stands).
+    """
+    factory = load_callable(spec, "machine")
+
+    def make(ref: Reference) -> Machine:
+        try:
+            machine = factory(**options)
+        except TypeError as exc:
+            raise EfficientTrackError(f"machine '{spec}': cannot be built with options {options}: {exc}") from exc
+        missing = [name for name in ("__enter__", "__exit__", "read", "send") if not hasattr(machine, name)]
+        if missing:
+            raise EfficientTrackError(
+                f"machine '{spec}': the adapter has no {', '.join(missing)} (see efficienttrack.loop.Machine)"
+            )
+        return machine
+
+    return make
+
+
+def deploy(
+    references: Sequence[Reference],
+    runtime: LoopRuntime,
+    make_machine: Callable[[Reference], Machine],
+    limits: GuardLimits,
+    out: str | Path,
+    cfg: LoopConfig | None = None,
+    clock: Clock = MONOTONIC,
+    shadow: bool = False,
+    settings: dict[str, Any] | None = None,
+    on_done: Callable[[LoopResult], None] | None = None,
+) -> list[LoopResult]:
+    """Run the loop along each reference in turn; stop at the first run a watchdog stopped.
+
+    Args:
+        references: the references (``.name``, ``.q`` (L, 4) rad), each checked against ``limits`` before anything moves.
+        runtime: the runtime, started afresh for each reference.
+        make_machine: reference → its machine adapter (opened and closed by the loop).
+        limits: the machine's limits (joint limits of every reference sent, the rate of the adjustment).
+        out: the output folder (created): ``<reference>.jsonl`` per run and :data:`DEPLOY_JSON`.
+        cfg: the loop's timing and watchdogs.
+        clock: the loop's clock.
+        shadow: send the raw reference; only log the adjustment.
+        settings: what to record in :data:`DEPLOY_JSON` besides the loop's settings (the policy, the system, …).
+        on_done: called with each run's result as soon as it ends.
+
+    Returns:
+        One result per run started (the last one stopped early when ``results[-1].stopped``).
+    """
+    cfg = LoopConfig() if cfg is None else cfg
+    for ref in references:
+        limits.check_reference(ref.q, ref.name)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    results: list[LoopResult] = []
+    header = {**(settings or {}), "shadow": shadow, "loop": vars(cfg), "limits": limits.to_dict()}
+    for ref in references:
+        with TickLog(out / f"{ref.name}.jsonl", cfg.fsync_every) as log:
+            result = Loop(runtime, make_machine(ref), limits, cfg, clock, log, shadow).run(ref.q, ref.name)
+        results.append(result)
+        write_json(out / DEPLOY_JSON, {**header, "runs": [r.summary() for r in results]})
+        if on_done is not None:
+            on_done(result)
+        if result.stopped:
+            break
+    return results
+
+
+def deployment_parts(
+    spec: SystemSpec,
+    machine: str | None,
+    machine_options: dict[str, Any],
+    policy: str | Path | None,
+    device: str,
+    fast: bool,
+) -> tuple[LoopRuntime, Callable[[Reference], Machine], GuardLimits, Clock]:
+    """What ``efficienttrack deploy`` runs: the runtime, the machine factory, the limits and the clock.
+
+    Args:
+        spec: the simulated system (used when ``machine`` is None); with ``machine``, only its limits file counts.
+        machine: a user's adapter ``module:callable``, or None for the simulator.
+        machine_options: the adapter's keyword options.
+        policy: a policy checkpoint (``policy.pt``), or None for the raw reference alone (a = 0).
+        device: where the policy runs.
+        fast: run the simulator on a simulated clock, as fast as it computes (refused for a user's machine).
+
+    Returns:
+        The runtime, reference → machine adapter, the machine's limits, and the clock.
+    """
+    if machine is not None:
+        if fast:
+            raise EfficientTrackError(
+                "--fast runs the simulator on a simulated clock; a machine (--machine) runs in real time only"
+            )
+        if spec.limits is None:
+            raise EfficientTrackError("--machine needs --limits FILE: the joint limits and adjustment bounds of that machine")
+        if spec.system is not None or spec.plant is not None:
+            raise EfficientTrackError("give --machine SPEC or a simulated --system/--plant, not both")
+        limits, make_machine, clock = GuardLimits.load(spec.limits), load_machine(machine, machine_options), MONOTONIC
+    else:
+        system = spec.open()
+        if system.dt != DT:
+            raise EfficientTrackError(f"{system.name}: runs at dt = {system.dt} s; the loop runs at {DT} s (20 Hz)")
+        clock = SimulatedClock() if fast else MONOTONIC
+        limits = system.limits
+
+        def make_machine(ref: Reference) -> Machine:
+            return SimulatedMachine(system, ref.q[0], clock)
+
+    from efficienttrack.policy import load_policy  # torch: only here, the loop itself runs without it
+    from efficienttrack.runtime import Runtime
+
+    runtime = Runtime(None if policy is None else load_policy(policy, device), limits=limits)
+    return runtime, make_machine, limits, clock

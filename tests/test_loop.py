@@ -1,0 +1,417 @@
+"""The fixed-rate loop (efficienttrack.loop) against the toy simulator and fault-injecting adapters, on a fake clock."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from efficienttrack.cli import app
+from efficienttrack.deploy import SimulatedClock, SimulatedMachine, deploy, load_machine
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.loop import Loop, LoopConfig, Reading, TickLog
+from efficienttrack.policy import POLICY_PRESETS, AdjustmentPolicy, save_policy
+from efficienttrack.references import Reference, load_references, save_references
+from efficienttrack.runtime import Runtime, track
+from efficienttrack.systems.limits import DEFAULT_LIMITS
+from efficienttrack.systems.protocol import BatchedSystem
+from test_runtime import LinearPolicy
+from toy_system import make, sine_refs
+
+DT = 0.05
+RATE = np.asarray(DEFAULT_LIMITS.max_adjust_rate)
+
+
+class FakeClock(SimulatedClock):
+    """Simulated time that also records the sleeps; adapters ``advance`` it to take time."""
+
+    def __init__(self):
+        super().__init__(100.0)
+        self.sleeps = []
+
+    def sleep(self, seconds):
+        self.sleeps.append(seconds)
+        super().sleep(seconds)
+
+    def advance(self, seconds):
+        self.t += seconds
+
+
+class FaultyMachine(SimulatedMachine):
+    """The toy system with faults per tick k (read call k; call 0 is the start's reading).
+
+    slow_read/slow_send: seconds a read/send takes; old: stamps that many s in the past; nan/drop/raise_read: ticks
+    whose reading is NaN, None, or raises; raise_send: tick whose send raises; clamp: the machine clamps the boom.
+    """
+
+    def __init__(
+        self,
+        q0,
+        clock,
+        slow_read=None,
+        slow_send=0.0,
+        old=None,
+        nan=(),
+        drop=(),
+        raise_read=(),
+        raise_send=None,
+        clamp=None,
+        interrupt=None,
+    ):
+        super().__init__(BatchedSystem(make()), q0, clock)
+        self.slow_read = slow_read or (lambda k: 0.0)
+        self.old = old or (lambda k: 0.0)
+        self.slow_send, self.nan, self.drop, self.raise_read = slow_send, set(nan), set(drop), set(raise_read)
+        self.raise_send, self.clamp, self.interrupt = raise_send, clamp, interrupt
+        self.reads, self.sent, self.opened, self.closed = 0, [], 0, 0
+
+    def __enter__(self):
+        self.opened += 1
+        return super().__enter__()
+
+    def __exit__(self, *exc):
+        self.closed += 1
+        super().__exit__(*exc)
+
+    def read(self):
+        k, self.reads = self.reads, self.reads + 1
+        self.clock.advance(self.slow_read(k))
+        if k == self.interrupt:
+            raise KeyboardInterrupt
+        if k in self.raise_read:
+            raise OSError("CAN bus error")
+        if k in self.drop:
+            return None
+        obs, stamp = super().read()
+        if k in self.nan:
+            obs[2] = np.nan
+        return Reading(obs, stamp - self.old(k))
+
+    def send(self, q_ref):
+        if len(self.sent) == self.raise_send:
+            raise OSError("CAN bus error")
+        self.clock.advance(self.slow_send)
+        taken = super().send(q_ref)
+        if self.clamp is not None:
+            taken = taken.copy()
+            taken[0] = min(taken[0], self.clamp)
+        self.sent.append(taken)
+        return taken
+
+
+@pytest.fixture
+def ref():
+    return sine_refs([60], seed=2)[0]
+
+
+def run(ref, tmp_path, shadow=False, cfg=None, policy=True, **faults):
+    clock = FakeClock()
+    machine = FaultyMachine(ref.q[0], clock, **faults)
+    runtime = Runtime(LinearPolicy(horizon=3) if policy else None)
+    with TickLog(tmp_path / "log.jsonl", fsync_every=7) as log:
+        result = Loop(runtime, machine, DEFAULT_LIMITS, cfg, clock, log, shadow=shadow).run(ref.q, ref.name)
+    lines = [json.loads(line) for line in (tmp_path / "log.jsonl").read_text().splitlines()]
+    return result, machine, lines[:-1], lines[-1], clock
+
+
+def adjustment(machine, ref, ticks):
+    return np.array(machine.sent) - ref.q[1 : ticks + 1]
+
+
+def test_shadow_mode_sends_the_raw_reference_and_logs_the_adjustment(ref, tmp_path):
+    result, machine, ticks, end, _ = run(ref, tmp_path, shadow=True)
+    assert result.reason == "done" and result.ticks == len(ref.q) - 1 == len(ticks) == len(machine.sent)
+    np.testing.assert_array_equal(np.array(machine.sent), ref.q[1:])
+    logged = np.array([t["a"] for t in ticks])
+    assert np.abs(logged[1:]).max() > 0.01  # the policy's adjustment is computed and logged
+    assert all("shadow" in t["events"] for t in ticks) and np.all(np.array([t["a_sent"] for t in ticks]) == 0)
+    assert end["event"] == "end" and end["reason"] == "done" and end["shadow"] == len(ticks)
+    assert machine.opened == machine.closed == 1
+    for key in ("tick", "t", "lateness", "compute", "work", "age", "missed", "events", "guard", "obs", "q_des", "q_ref"):
+        assert key in ticks[0]
+
+
+def test_shadow_run_follows_the_same_path_as_the_controller_alone(ref, tmp_path):
+    """The loop's shadow run on the simulator equals Algorithm 2 without a policy (the fast path) on the same reference."""
+    _, _, ticks, _, _ = run(ref, tmp_path, shadow=True)
+    record = track(BatchedSystem(make()), None, [ref], progress=False)[0]
+    np.testing.assert_array_equal(np.array([t["obs"][:4] for t in ticks]), record.q)
+
+
+def test_armed_run_starts_and_ends_with_a_zero_and_never_jumps(ref, tmp_path):
+    result, machine, ticks, _, _ = run(ref, tmp_path)
+    a = adjustment(machine, ref, result.ticks)
+    np.testing.assert_array_equal(a[0], 0.0)  # the first reference sent is raw
+    np.testing.assert_array_equal(a[-1], 0.0)  # and the last
+    assert np.abs(a).max() > 0.05  # in between, the policy adjusts
+    assert np.all(np.abs(np.diff(a, axis=0)) <= RATE + 1e-12)  # ramps up and down within the rate
+    assert ticks[-1]["events"] == ["ramped"] and ticks[0]["events"] == ["start"]
+
+
+def test_the_policy_sees_the_references_really_sent(ref, tmp_path):
+    """In shadow mode the runtime's reference history holds the raw references (sent_instead), as in training."""
+    seen = []
+
+    class Spy(LinearPolicy):
+        def forward(self, obs_hist, qref_hist, qdes_future):
+            seen.append(qref_hist[0, -1].double().numpy().copy())
+            return super().forward(obs_hist, qref_hist, qdes_future)
+
+    clock = FakeClock()
+    machine = FaultyMachine(ref.q[0], clock)
+    Loop(Runtime(Spy(horizon=3)), machine, DEFAULT_LIMITS, clock=clock, shadow=True).run(ref.q, ref.name)
+    np.testing.assert_allclose(np.array(seen[1:]), ref.q[1:-1], atol=1e-6)
+
+
+def test_deadlines_are_absolute_and_do_not_drift(ref, tmp_path):
+    rng = np.random.default_rng(0)
+    work = rng.uniform(0.0, 0.04, 200)
+    _, _, ticks, end, clock = run(ref, tmp_path, slow_read=lambda k: work[k])
+    np.testing.assert_allclose([t["t"] for t in ticks], np.arange(len(ticks)) * DT, atol=1e-9)
+    assert "overrun" not in end and end["lateness_ms"]["max"] < 1e-6
+    # the start's read took work[0]; the last tick starts (n − 1)·dt after that, and its read takes work[n − 1]
+    assert clock.t - 100.0 == pytest.approx(work[0] + (len(ticks) - 1) * DT + work[len(ticks) - 1], abs=1e-9)
+
+
+def test_slow_adapter_overruns_hold_a_zero_then_stop(ref, tmp_path):
+    cfg = LoopConfig(hold_after=3, stop_after=6)
+    result, machine, ticks, end, _ = run(ref, tmp_path, cfg=cfg, slow_read=lambda k: 0.01 if k < 10 else 0.06)
+    assert result.reason == "overruns" and end["reason"] == "overruns" and end["error"] == "6 overruns in a row"
+    events = [t["events"] for t in ticks]
+    assert ["overrun" in e for e in events[10:]] == [False] + [True] * 6
+    assert ["hold" in e for e in events[10:]] == [False] * 3 + [True] * 4
+    a = np.array([t["q_ref"] for t in ticks]) - np.array([t["q_des"] for t in ticks])
+    np.testing.assert_array_equal(a[-4:], 0.0)  # held, and the stop's reference is raw
+    assert np.abs(a[5:10]).max() > 0 and result.ticks == len(machine.sent) == 17
+
+
+def test_a_single_overrun_is_counted_and_whole_periods_lost_are_skipped(ref, tmp_path):
+    result, machine, ticks, end, _ = run(ref, tmp_path, slow_read=lambda k: 0.13 if k == 5 else 0.0)
+    assert result.reason == "done" and end["overrun"] == 1 and end["missed_ticks"] == 1
+    late = ticks[6]  # tick 5 ended 0.13 s after its deadline: tick 6 is skipped, tick 7 runs 0.03 s late
+    assert late["tick"] == 7 and late["missed"] == 1 and late["lateness"] == pytest.approx(0.03)
+    np.testing.assert_array_equal(late["q_des"], ref.q[8])  # the reference follows the clock
+    assert len(machine.sent) == result.ticks == len(ref.q) - 2  # the reference follows the clock
+    assert "hold" not in end
+
+
+def test_stale_readings_send_raw_and_a_silent_sensor_stops(ref, tmp_path):
+    cfg = LoopConfig(stale_ticks=2, stop_stale_ticks=6)
+    old = lambda k: 0.12 if 10 <= k < 13 else (0.31 if k >= 20 else 0.0)  # noqa: E731
+    result, machine, ticks, end, _ = run(ref, tmp_path, cfg=cfg, old=old)
+    a = adjustment(machine, ref, result.ticks)
+    assert [("stale" in t["events"]) for t in ticks[9:14]] == [False, True, True, True, False]
+    np.testing.assert_array_equal(a[10:13], 0.0)
+    assert np.abs(a[13]).max() > 0
+    assert result.reason == "stale_sensor" and result.ticks == 21 and end["error"] == "last good reading 310 ms old"
+    np.testing.assert_array_equal(a[-1], 0.0)
+
+
+def test_nan_readings_fall_back_and_are_logged_as_null(ref, tmp_path):
+    result, machine, ticks, end, _ = run(ref, tmp_path, nan=(7,))
+    assert result.reason == "done" and end["nonfinite"] == 1
+    assert ticks[7]["obs"][2] is None and "obs_nonfinite" in ticks[7]["guard"] and "nonfinite" in ticks[7]["events"]
+    np.testing.assert_array_equal(adjustment(machine, ref, result.ticks)[7], 0.0)
+
+
+def test_dropped_samples_send_raw_and_a_dead_sensor_stops(ref, tmp_path):
+    result, machine, ticks, end, _ = run(ref, tmp_path, drop={4, *range(30, 100)})
+    assert "dropped" in ticks[4]["events"] and end["dropped"] == 1 + 11
+    a = adjustment(machine, ref, result.ticks)
+    np.testing.assert_array_equal(a[4], 0.0)
+    np.testing.assert_array_equal(a[30:], 0.0)
+    assert result.reason == "stale_sensor" and result.ticks == 41  # 10 periods after the last good reading (tick 29)
+
+
+def test_raising_read_sends_raw_once_stops_and_closes(ref, tmp_path):
+    result, machine, ticks, end, _ = run(ref, tmp_path, raise_read={12})
+    assert result.reason == "read_error" and end["error"] == "OSError: CAN bus error"
+    assert result.ticks == len(machine.sent) == 13 and machine.closed == 1
+    np.testing.assert_array_equal(adjustment(machine, ref, 13)[12], 0.0)
+
+
+def test_raising_send_stops_at_once_and_closes(ref, tmp_path):
+    result, machine, ticks, end, _ = run(ref, tmp_path, raise_send=9)
+    assert result.reason == "send_error" and len(machine.sent) == 9 and len(ticks) == 9 and machine.closed == 1
+
+
+def test_a_raising_runtime_sends_raw_and_stops(ref, tmp_path):
+    class Failing(Runtime):
+        def step(self, obs, q_des_future):
+            if self.steps == 6:
+                raise RuntimeError("boom")
+            return super().step(obs, q_des_future)
+
+    clock = FakeClock()
+    machine = FaultyMachine(ref.q[0], clock)
+    result = Loop(Failing(LinearPolicy(horizon=3)), machine, DEFAULT_LIMITS, clock=clock).run(ref.q, ref.name)
+    assert result.reason == "runtime_error" and result.error == "RuntimeError: boom" and result.ticks == 7
+    np.testing.assert_array_equal(adjustment(machine, ref, 7)[6], 0.0)
+
+
+def test_ctrl_c_sends_raw_and_ends_the_log(ref, tmp_path):
+    result, machine, ticks, end, _ = run(ref, tmp_path, interrupt=8)
+    assert result.reason == end["reason"] == "interrupted" and machine.closed == 1
+    np.testing.assert_array_equal(machine.sent[-1], ref.q[9])
+
+
+def test_a_machine_that_clamps_is_logged_and_the_history_follows(ref, tmp_path):
+    result, machine, ticks, end, _ = run(ref, tmp_path, clamp=ref.q[:, 0].min() + 0.05)
+    assert end["send_changed"] > 0 and result.reason == "done"
+    np.testing.assert_array_equal([t["q_ref"] for t in ticks], np.array(machine.sent))
+
+
+@pytest.mark.parametrize(
+    ("faults", "message"),
+    [
+        ({"drop": {0}}, "no finite first reading"),
+        ({"nan": {0}}, "no finite first reading"),
+        ({"raise_read": {0}}, "first read failed"),
+        ({"old": lambda k: 1.0}, "1000 ms old"),
+    ],
+)
+def test_an_unsafe_start_sends_nothing(ref, tmp_path, faults, message):
+    with pytest.raises(EfficientTrackError, match=message):
+        run(ref, tmp_path, **faults)
+
+
+def test_a_machine_away_from_the_start_sends_nothing(ref):
+    clock = FakeClock()
+    machine = FaultyMachine(ref.q[0] + np.array([0, 0.3, 0, 0]), clock)
+    with pytest.raises(EfficientTrackError, match="0.300 rad from the reference's first position"):
+        Loop(Runtime(None), machine, DEFAULT_LIMITS, clock=clock).run(ref.q, ref.name)
+    assert machine.sent == [] and machine.closed == 1
+
+
+def test_log_is_flushed_per_line_fsynced_every_n_and_never_overwritten(tmp_path, monkeypatch):
+    synced = []
+    monkeypatch.setattr("efficienttrack.loop.os.fsync", lambda fd: synced.append(fd))
+    path = tmp_path / "x.jsonl"
+    with TickLog(path, fsync_every=3) as log:
+        for i in range(7):
+            log.write({"i": i, "v": np.float64(math.nan), "a": np.arange(2)})
+            assert len(path.read_text().splitlines()) == i + 1  # on disk (flushed) before the next tick
+        assert len(synced) == 2
+    assert len(synced) == 3
+    assert json.loads(path.read_text().splitlines()[0]) == {"i": 0, "v": None, "a": [0, 1]}
+    with pytest.raises(EfficientTrackError, match="exists already"), TickLog(path):
+        pass
+
+
+def test_loop_config_refuses_settings_that_cannot_work():
+    for bad in ({"dt": 0}, {"hold_after": 0}, {"stop_after": 2, "hold_after": 3}, {"stale_ticks": 5, "stop_stale_ticks": 2}):
+        with pytest.raises(EfficientTrackError, match="loop:"):
+            LoopConfig(**bad)
+
+
+def test_runtime_sent_instead_replaces_the_last_reference():
+    runtime = Runtime(LinearPolicy(horizon=2))
+    runtime.start(np.zeros((1, 8)))
+    with pytest.raises(EfficientTrackError, match="before a step"):
+        runtime.sent_instead(np.zeros((1, 4)))
+    runtime.step(np.zeros((1, 8)), np.full((1, 2, 4), 0.1))
+    runtime.sent_instead(np.full((1, 4), 0.1))
+    np.testing.assert_array_equal(runtime._history.q_ref[0, -1], 0.1)
+    with pytest.raises(EfficientTrackError, match="finite q_ref of shape"):
+        runtime.sent_instead(np.full((1, 3), 0.1))
+
+
+def test_deploy_runs_references_in_turn_and_stops_after_a_stopped_run(tmp_path):
+    refs = sine_refs([30, 40, 35], seed=5)
+    clock = FakeClock()
+    machines = []
+
+    def make_machine(ref):
+        machines.append(FaultyMachine(ref.q[0], clock, raise_read={5} if len(machines) == 1 else ()))
+        return machines[-1]
+
+    results = deploy(refs, Runtime(None), make_machine, DEFAULT_LIMITS, tmp_path / "out", clock=clock, shadow=True)
+    assert [r.reason for r in results] == ["done", "read_error"] and len(machines) == 2
+    summary = json.loads((tmp_path / "out" / "deploy.json").read_text())
+    assert [r["name"] for r in summary["runs"]] == ["ref_00", "ref_01"] and summary["shadow"] is True
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["deploy.json", "ref_00.jsonl", "ref_01.jsonl"]
+
+
+def test_load_machine_names_a_missing_adapter_method():
+    with pytest.raises(EfficientTrackError, match="the adapter has no __enter__, __exit__, read, send"):
+        load_machine("toy_system:make", {})(sine_refs([5])[0])
+
+
+# ------------------------------------------------------------------------------------------------ the command
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(a) for a in args], env={"COLUMNS": "200"})
+
+
+class DyingMachine(SimulatedMachine):
+    """A user's adapter (``--machine test_loop:DyingMachine``): the toy system at rest, whose sensor dies after 2 reads."""
+
+    def __init__(self):
+        super().__init__(BatchedSystem(make()), np.zeros(4))
+        self.reads = 0
+
+    def read(self):
+        self.reads += 1
+        return super().read() if self.reads <= 2 else None
+
+
+@pytest.fixture
+def deploy_inputs(tmp_path):
+    """Two short generated xe75 references and an untrained tiny policy."""
+    assert invoke("refs", "generate", "--out", tmp_path / "gen", "--n", "2").exit_code == 0
+    refs = [Reference(r.name, r.q[:40]) for r in load_references(tmp_path / "gen")]
+    save_references(refs, tmp_path / "refs")
+    policy = AdjustmentPolicy(POLICY_PRESETS["tiny"])
+    torch.nn.init.normal_(policy.pi_phi.body[-1].weight, std=0.5)
+    save_policy(policy, tmp_path / "policy.pt")
+    return tmp_path / "refs", tmp_path / "policy.pt"
+
+
+def test_deploy_refuses_to_send_without_arm(deploy_inputs, tmp_path):
+    refs, policy = deploy_inputs
+    for extra in ((), ("--shadow",)):
+        result = invoke("deploy", "--refs", refs, "--policy", policy, "--out", tmp_path / "o", "--fast", *extra)
+        assert isinstance(result.exception, EfficientTrackError) and "add --arm to allow motion" in str(result.exception)
+    assert not (tmp_path / "o").exists()
+
+
+def test_deploy_on_the_simulator_in_shadow_mode_then_armed(deploy_inputs, tmp_path):
+    refs, policy = deploy_inputs
+    shadow = invoke("deploy", "--refs", refs, "--policy", policy, "--out", tmp_path / "s", "--fast", "--arm", "--shadow")
+    assert shadow.exit_code == 0, shadow.output
+    assert "ref_01: done, 39 ticks" in shadow.output and "2 run(s) done (shadow)" in shadow.output
+    lines = [json.loads(x) for x in (tmp_path / "s" / "ref_02.jsonl").read_text().splitlines()]
+    assert np.abs([t["a"] for t in lines[1:-1]]).max() > 0 and np.all(np.array([t["a_sent"] for t in lines[:-1]]) == 0)
+    armed = invoke("deploy", "--refs", refs, "--policy", policy, "--out", tmp_path / "a", "--fast", "--arm")
+    assert armed.exit_code == 0, armed.output
+    a_sent = np.array([json.loads(x)["a_sent"] for x in (tmp_path / "a" / "ref_01.jsonl").read_text().splitlines()[:-1]])
+    assert np.abs(a_sent).max() > 0 and not a_sent[0].any() and not a_sent[-1].any()
+    summary = json.loads((tmp_path / "a" / "deploy.json").read_text())
+    assert summary["shadow"] is False and [r["reason"] for r in summary["runs"]] == ["done", "done"]
+    again = invoke("deploy", "--refs", refs, "--out", tmp_path / "a", "--fast", "--arm")
+    assert isinstance(again.exception, EfficientTrackError)  # a finished deployment's logs are not overwritten
+
+
+def test_deploy_a_machine_needs_its_limits_and_real_time(deploy_inputs, tmp_path):
+    refs, _ = deploy_inputs
+    result = invoke("deploy", "--refs", refs, "--out", tmp_path / "o", "--arm", "--machine", "test_loop:DyingMachine")
+    assert "--machine needs --limits FILE" in str(result.exception)
+    (tmp_path / "lim.json").write_text("{}")
+    args = ("deploy", "--refs", refs, "--out", tmp_path / "o", "--arm", "--machine", "test_loop:DyingMachine")
+    result = invoke(*args, "--limits", tmp_path / "lim.json", "--fast")
+    assert "--fast runs the simulator" in str(result.exception)
+
+
+def test_deploy_exits_1_when_a_watchdog_stops_a_run(tmp_path):
+    save_references([Reference("rest", np.zeros((40, 4)))], tmp_path / "refs")
+    (tmp_path / "lim.json").write_text("{}")
+    result = invoke(
+        "deploy", "--refs", tmp_path / "refs", "--out", tmp_path / "o", "--arm", "--machine", "test_loop:DyingMachine",
+        "--limits", tmp_path / "lim.json", "--stale-ticks", "1", "--stop-stale-ticks", "2",
+    )  # fmt: skip
+    assert result.exit_code == 1 and "rest: stale_sensor" in result.output
+    end = json.loads((tmp_path / "o" / "rest.jsonl").read_text().splitlines()[-1])
+    assert end["reason"] == "stale_sensor" and end["ticks"] <= 5
