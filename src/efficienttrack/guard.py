@@ -21,7 +21,7 @@ bit in :attr:`Sent.guard`, and records keep them per step (``meta["guard"]``).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, Self
 
 import numpy as np
 
@@ -88,7 +88,7 @@ class GuardedRuntime:
         self._a_prev = np.zeros((0, 4))
         self._repeats = np.zeros(0, dtype=np.int64)
 
-    def __enter__(self) -> GuardedRuntime:
+    def __enter__(self) -> Self:
         """Enter the context (``start`` is still called with the first observation)."""
         return self
 
