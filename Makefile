@@ -10,6 +10,7 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	# torch first and pinned: the CPU wheel of 2.13.0 lies on disk; anything looser pulls a CUDA build.
 	$(BIN)/pip install --quiet torch==2.13.0
+	# onnx and onnxruntime (export, the torch-free runtime and its tests) come with the package's dependencies.
 	$(BIN)/pip install --quiet -e '.[test]'
 	touch $(STAMP)
 

@@ -2,9 +2,10 @@ import numpy as np
 import pytest
 import torch
 
-from efficienttrack.dataset import Sequences, initial_history, push, push_observation, push_reference
+from efficienttrack.dataset import Sequences
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.records import EpisodeRecord
+from efficienttrack.windows import initial_history, push, push_observation, push_reference
 
 
 def hand_record(T: int, base: float) -> EpisodeRecord:

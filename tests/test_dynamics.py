@@ -7,11 +7,11 @@ import pytest
 import torch
 
 from efficienttrack import dynamics
-from efficienttrack.dataset import push
 from efficienttrack.dynamics import MODEL_PRESETS, ClosedLoopModel, ModelConfig, load_model, model_error, rollout, save_model
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.records import EpisodeRecord
 from efficienttrack.training import read_scalars
+from efficienttrack.windows import push
 
 LAG_GAIN = np.array([0.3, 0.5, 0.4, 0.6])
 """Per-joint fraction of the reference error closed per step in the synthetic system."""

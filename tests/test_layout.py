@@ -14,7 +14,7 @@ LAYERS = (
     ("episode loop", {"episodes"}),
     ("collection", {"collect"}),
     ("learning", {"dataset", "nets", "training", "dynamics", "policy"}),
-    ("deployment", {"runtime", "learned_system", "next_round", "loop", "deploy"}),
+    ("deployment", {"guard", "runtime", "onnx_runtime", "export", "learned_system", "next_round", "loop", "deploy"}),
     ("reports", {"plots"}),
     ("orchestration", {"config", "stages", "rounds", "pipeline", "cli", "__main__"}),
 )

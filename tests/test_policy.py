@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 import torch
 
-from efficienttrack.dataset import initial_history, push_observation, push_reference
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.policy import (
     POLICY_PRESETS,
@@ -17,6 +16,7 @@ from efficienttrack.policy import (
     seen_lengths,
     train_policy,
 )
+from efficienttrack.windows import initial_history, push_observation, push_reference
 from test_dynamics import LAG_GAIN, lag_records, train_tiny_model
 
 

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import math
+import sys
 
 import numpy as np
-import torch
 
 
 def wrap(angle):
@@ -17,6 +17,7 @@ def wrap(angle):
     Returns:
         The same kind and shape (a float becomes a 0-d numpy float), each value in (-π, π].
     """
-    if isinstance(angle, torch.Tensor):
+    torch = sys.modules.get("torch")  # not imported here: the torch-free runtime wraps angles too
+    if torch is not None and isinstance(angle, torch.Tensor):
         return math.pi - torch.remainder(math.pi - angle, 2 * math.pi)
     return math.pi - np.remainder(math.pi - np.asarray(angle, dtype=np.float64), 2 * math.pi)

@@ -605,6 +605,26 @@ def train_policy_command(
     )
 
 
+@app.command("export")
+def export_command(
+    ctx: typer.Context,
+    policy: Annotated[Path, typer.Option("--policy", help="Policy checkpoint (policy.pt) to export.")],
+    out: Annotated[Path, typer.Option("--out", help="Export folder: policy.onnx and its contract policy.json.")],
+    force: Annotated[bool, typer.Option("--force", help="Replace an earlier export in OUT (other files are kept).")] = False,
+) -> None:
+    """Export a trained policy to ONNX (policy.onnx) with its contract (policy.json), for the torch-free runtime."""
+    from efficienttrack.export import checkpoint_source, export_policy
+    from efficienttrack.onnx_runtime import CONTRACT_FILE, ONNX_FILE
+    from efficienttrack.policy import load_policy
+
+    check_output_folder(out)
+    pi_phi = load_policy(policy, "cpu")
+    _lock(ctx, out)
+    prepare_output_folder(out, (ONNX_FILE, CONTRACT_FILE), force)
+    export_policy(pi_phi, out, checkpoint_source(policy))
+    typer.echo(f"exported {policy} to {out / ONNX_FILE} with its contract {out / CONTRACT_FILE}")
+
+
 @app.command("round")
 def round_command(
     ctx: typer.Context,

@@ -1,4 +1,4 @@
-"""Windows for multi-step training, and the rolling histories the runtime keeps exactly as training builds them.
+"""Windows for multi-step training; the runtime's rolling histories are padded the same way (:mod:`~efficienttrack.windows`).
 
 Time indexing (paper notation, T = len(record)):
 
@@ -17,7 +17,7 @@ sampling a batch is one indexing operation (on the training device).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import NamedTuple, TypeVar
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -25,71 +25,6 @@ import torch
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.records import EpisodeRecord
 from efficienttrack.windows import window_starts
-
-ArrayT = TypeVar("ArrayT", np.ndarray, torch.Tensor)
-
-
-# ------------------------------------------------------------------------------------------ rolling histories
-
-
-class History(NamedTuple):
-    """The histories the model and the policy see at time t, for N machines.
-
-    Attributes:
-        obs: (N, h, 8) [rad, rad/s], ``o_{t−h+1} … o_t`` (oldest first).
-        q_ref: (N, h, 4) rad, ``q^r_{t−h+1} … q^r_t`` (oldest first).
-    """
-
-    obs: np.ndarray
-    q_ref: np.ndarray
-
-
-def push(history: ArrayT, new: ArrayT) -> ArrayT:
-    """Drop the oldest entry of ``history`` (N, h, C) and append ``new`` (N, C); numpy or torch.
-
-    Args:
-        history: (N, h, C), oldest first.
-        new: (N, C), the newest entry.
-
-    Returns:
-        (N, h, C), the same kind of array.
-    """
-    if isinstance(history, torch.Tensor):
-        return torch.cat([history[:, 1:], new[:, None]], dim=1)
-    return np.concatenate([history[:, 1:], np.asarray(new)[:, None]], axis=1)
-
-
-def initial_history(obs0: np.ndarray, h: int) -> History:
-    """Histories at an episode start, padded as training pads them: ``o_H = [o_0]*h``, ``q^r_H = [q_0]*h``.
-
-    Use with :func:`push_observation` (each new ``o_t``, also ``o_0``) then :func:`push_reference` (the
-    reference ``q^r_{t+1}`` sent); pushing ``o_0`` onto this start leaves it unchanged.
-
-    Args:
-        obs0: (N, 8) [rad, rad/s], the measured start observation.
-        h: history length (``horizon`` of the model/policy config).
-
-    Returns:
-        The start histories, obs (N, h, 8) and q_ref (N, h, 4).
-    """
-    obs0 = np.asarray(obs0, dtype=np.float64)
-    if obs0.ndim != 2 or obs0.shape[1] != 8:
-        raise EfficientTrackError(f"initial_history: obs0 must have shape (N, 8), got {obs0.shape}")
-    if h < 1:
-        raise EfficientTrackError(f"initial_history: history length h must be ≥ 1, got {h}")
-    obs = np.repeat(obs0[:, None], h, axis=1)
-    return History(obs=obs, q_ref=obs[:, :, :4].copy())
-
-
-def push_observation(history: History, obs: np.ndarray) -> History:
-    """Append the new observation ``o_t`` (N, 8) [rad, rad/s] to ``history.obs``; q_ref is kept."""
-    return History(obs=push(history.obs, np.asarray(obs, dtype=np.float64)), q_ref=history.q_ref)
-
-
-def push_reference(history: History, q_ref: np.ndarray) -> History:
-    """Append the reference just sent, ``q^r_{t+1}`` (N, 4) rad, to ``history.q_ref``; obs is kept."""
-    return History(obs=history.obs, q_ref=push(history.q_ref, np.asarray(q_ref, dtype=np.float64)))
-
 
 # ------------------------------------------------------------------------------------------- training windows
 

@@ -31,7 +31,7 @@ import torch
 from torch import nn
 
 from efficienttrack.angles import wrap
-from efficienttrack.dataset import Sequences, push
+from efficienttrack.dataset import Sequences
 from efficienttrack.metrics import position_error
 from efficienttrack.nets import (
     MAX_HIDDEN,
@@ -55,6 +55,7 @@ from efficienttrack.training import (
     save_checkpoint,
     warm_start,
 )
+from efficienttrack.windows import push
 
 NORM_SAMPLES = 65536
 """Windows used to fit the feature and output scaling."""

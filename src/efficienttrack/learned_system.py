@@ -16,11 +16,11 @@ import numpy as np
 import torch
 
 from efficienttrack.angles import wrap
-from efficienttrack.dataset import push
 from efficienttrack.dynamics import ClosedLoopModel, load_model
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.joints import DT, N_JOINTS, OBS_DIM, SWING
 from efficienttrack.nets import resolve_device
+from efficienttrack.windows import push
 
 
 class LearnedSystem:

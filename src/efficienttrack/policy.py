@@ -29,7 +29,7 @@ import torch
 from torch import nn
 
 from efficienttrack.angles import wrap
-from efficienttrack.dataset import Sequences, push
+from efficienttrack.dataset import Sequences
 from efficienttrack.dynamics import NORM_SAMPLES, ClosedLoopModel
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.nets import (
@@ -55,6 +55,7 @@ from efficienttrack.training import (
     save_checkpoint,
     warm_start,
 )
+from efficienttrack.windows import push
 
 EVAL_CHUNK = 8192
 """Windows per batch in :func:`predicted_tracking_error`."""
