@@ -17,7 +17,14 @@ import efficienttrack
 from efficienttrack.collect import CollectConfig
 from efficienttrack.config import ROUND_DATA, RunConfig
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import check_output_file, check_output_folder, finite_json, output_lock, prepare_output_folder
+from efficienttrack.fileio import (
+    check_output_file,
+    check_output_folder,
+    finite_json,
+    os_error_text,
+    output_lock,
+    prepare_output_folder,
+)
 from efficienttrack.loop import LoopConfig
 from efficienttrack.metrics import metrics_by_path, metrics_table, rounded, write_metrics_csv
 from efficienttrack.records import RECORD_SUFFIXES, load_records, record_files, save_records
@@ -447,8 +454,11 @@ TrainForceOpt = Annotated[
 
 
 def _check_checkpoint(out: Path) -> None:
-    """Check that checkpoint ``out`` and its log folder (``OUT`` with ``.logs``) can be written."""
+    """Check that checkpoint ``out`` (a ``.pt``) and its log folder (``OUT`` with ``.logs``) can be written."""
+    from efficienttrack.training import check_checkpoint_path
+
     check_output_file(out)
+    check_checkpoint_path(out)
     check_output_folder(out.with_suffix(".logs"))
 
 
@@ -885,7 +895,9 @@ def sim_fidelity_command(
     spec = _system_spec(system, plant, pd, system_opt)
     system_view, plant_view = spec.open(), spec.open_plant()
     records = load_logs(logs, need_u=plant_view is not None, recursive=recursive)
-    if min_ref_jitter > 0 or max_ref_jitter is not None:
+    if episodes < 0:
+        raise EfficientTrackError(f"--episodes {episodes}: expected ≥ 0 episodes to plot")
+    if min_ref_jitter != 0 or max_ref_jitter is not None:
         high = math.inf if max_ref_jitter is None else max_ref_jitter
         records = select_by_jitter(records, min_ref_jitter, high, option="--min-ref-jitter/--max-ref-jitter")
     if plot is not None:
@@ -922,10 +934,12 @@ def _one_line_warning(
 
 
 def main() -> None:
-    """Entry point: run the app and turn user-facing errors into one clean line and exit code 2."""
+    """Entry point: run the app; user-facing errors and a disk or folder refusing a file give one line and exit code 2."""
     warnings.formatwarning = _one_line_warning
     try:
         app()
-    except EfficientTrackError as exc:
-        typer.secho(f"error: {exc}", fg=typer.colors.RED, err=True)
+    except (EfficientTrackError, OSError) as exc:
+        if isinstance(exc, OSError) and exc.errno is None:  # not the system refusing a file: a bug, keep its traceback
+            raise
+        typer.secho(f"error: {os_error_text(exc) if isinstance(exc, OSError) else exc}", fg=typer.colors.RED, err=True)
         sys.exit(2)

@@ -26,6 +26,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from efficienttrack.configfile import check_seed
 from efficienttrack.episodes import Sent, batches, rollout
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.progress import ProgressDisplay
@@ -62,6 +63,7 @@ class CollectConfig:
             raise EfficientTrackError(f"collect.noise_ratio: needs two weights ≥ 0, not both 0, got {self.noise_ratio}")
         if not isinstance(self.passes, int) or isinstance(self.passes, bool) or not 1 <= self.passes <= MAX_PASSES:
             raise EfficientTrackError(f"collect.passes: must be an integer in [1, {MAX_PASSES}], got {self.passes!r}")
+        check_seed(self.seed, "collect.seed")
 
     @staticmethod
     def parse_noise_ratio(text: str, option: str = "--noise-ratio") -> tuple[float, float]:
@@ -250,10 +252,13 @@ def collect(
         All records, the interaction steps (I.S.) and how many passes were resumed from disk.
 
     Raises:
-        EfficientTrackError: ``out`` holds a collection made with other settings or references.
+        EfficientTrackError: a reference outside the system's joint limits (before anything moves), or ``out`` holds a
+            collection made with other settings or references.
     """
     if not references:
         raise EfficientTrackError("collect: no references given")
+    for ref in references:
+        system.limits.check_reference(ref.q, ref.name)
     if cfg.noise_ratio[0] > 0 and not any(cfg.noisy_episodes(k, len(references)).any() for k in range(cfg.passes)):
         warnings.warn(
             f"collect: {cfg.passes} pass(es) over {len(references)} reference(s) at noisy:clean "

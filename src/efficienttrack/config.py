@@ -20,7 +20,7 @@ from typing import Any
 import yaml
 
 from efficienttrack.collect import CollectConfig
-from efficienttrack.configfile import config_from_dict, read_mapping_file
+from efficienttrack.configfile import check_seed, config_from_dict, read_mapping_file
 from efficienttrack.dynamics import MODEL_PRESETS, ModelConfig
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import atomic_write, write_json
@@ -58,6 +58,7 @@ class RunConfig:
 
     def __post_init__(self) -> None:
         """Validate the run-level fields (EfficientTrackError naming the field)."""
+        check_seed(self.seed, "RunConfig.seed")
         if not isinstance(self.rounds, int) or isinstance(self.rounds, bool) or not 1 <= self.rounds <= MAX_ROUNDS:
             raise EfficientTrackError(f"RunConfig.rounds must be an integer ≥ 1 and ≤ {MAX_ROUNDS}, got {self.rounds!r}")
         if self.round_data not in ROUND_DATA:

@@ -57,8 +57,49 @@ def read_mapping_file(path: str | Path) -> Any:
     try:
         text = path.read_text()
         return json.loads(text) if path.suffix == ".json" else yaml.load(text, Loader=ConfigLoader)
-    except (OSError, UnicodeDecodeError, yaml.YAMLError, json.JSONDecodeError) as exc:
-        raise EfficientTrackError(f"{path}: cannot read the config ({exc})") from exc
+    except OSError as exc:
+        raise EfficientTrackError(f"{path}: cannot read the config ({exc.strerror or exc})") from exc
+    except UnicodeDecodeError as exc:
+        raise EfficientTrackError(f"{path}: cannot read the config (not a text file: {exc.reason})") from exc
+    except json.JSONDecodeError as exc:
+        raise EfficientTrackError(f"{path}: cannot read the config (not valid JSON: {exc})") from exc
+    except yaml.YAMLError as exc:
+        raise EfficientTrackError(f"{path}: cannot read the config (not valid YAML: {yaml_problem(exc)})") from exc
+
+
+def yaml_problem(exc: yaml.YAMLError) -> str:
+    """PyYAML's error on one line: the problem and where (its own message spans several lines, with a caret).
+
+    Args:
+        exc: the error ``yaml.load`` raised.
+
+    Returns:
+        E.g. ``"expected ',' or ']', but got ':' (line 2, column 2)"``.
+    """
+    problem = getattr(exc, "problem", None)
+    mark = getattr(exc, "problem_mark", None)
+    if problem is None:
+        return " ".join(str(exc).split())
+    return f"{problem} (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else problem
+
+
+MAX_SEED = 2**63 - 1
+"""Largest seed: what both numpy's and torch's generators accept (neither takes a negative one)."""
+
+
+def check_seed(seed: object, source: str) -> int:
+    """``seed`` when it is an integer in ``[0, MAX_SEED]``; else an EfficientTrackError naming ``source``.
+
+    Args:
+        seed: the candidate seed.
+        source: the field or option it comes from, for the message.
+
+    Returns:
+        The seed.
+    """
+    if not isinstance(seed, int) or isinstance(seed, bool) or not 0 <= seed <= MAX_SEED:
+        raise EfficientTrackError(f"{source}: a seed must be an integer in [0, 2^63 − 1], got {seed!r}")
+    return seed
 
 
 def config_from_dict(cls: type[ConfigT], data: dict[str, Any], source: str) -> ConfigT:

@@ -68,8 +68,11 @@ def atomic_write(path: str | Path, write: Callable[[IO[Any]], object], mode: str
         The destination path.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as exc:
+        raise _naming(exc, path) from exc
     try:
         os.chmod(fd, 0o666 & ~current_umask())  # mkstemp creates 0o600; give what open() would
         with os.fdopen(fd, mode) as f:
@@ -77,10 +80,33 @@ def atomic_write(path: str | Path, write: Callable[[IO[Any]], object], mode: str
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         Path(tmp).unlink(missing_ok=True)
+        if isinstance(exc, OSError):
+            raise _naming(exc, path) from exc
         raise
     return path
+
+
+def _naming(exc: OSError, path: Path) -> OSError:
+    """``exc`` naming the destination ``path`` (not a temporary file, or no file at all as from ``fsync``)."""
+    return exc if exc.errno is None else type(exc)(exc.errno, exc.strerror, str(path))
+
+
+def os_error_text(exc: OSError) -> str:
+    """An OSError as one line naming its file, e.g. ``"/data/m.pt: No space left on device"``.
+
+    Args:
+        exc: the error (its ``filename`` when set, its ``strerror``).
+
+    Returns:
+        The message.
+    """
+    reason = exc.strerror or str(exc)
+    if exc.filename is None:
+        return reason
+    other = f" → {exc.filename2}" if exc.filename2 is not None else ""
+    return f"{exc.filename}{other}: {reason}"
 
 
 MAX_NAME_BYTES = 200

@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import atomic_write, check_file_name
+from efficienttrack.fileio import atomic_write, check_file_name, finite_json
 from efficienttrack.joints import JOINT_NAMES, MAX_ABS_ANGLE, MAX_ABS_VELOCITY
 from efficienttrack.npyfile import read_npz, read_pickled_npy
 
@@ -147,7 +147,7 @@ class EpisodeRecord:
         """Write the record to ``path`` (.npz, no pickle) atomically; return the path."""
         path = Path(path)
         arrays = {name: getattr(self, name) for name in (*JOINT_FIELDS, "t") if getattr(self, name) is not None}
-        arrays["meta_json"] = np.array(json.dumps(self.meta))
+        arrays["meta_json"] = np.array(json.dumps(finite_json(self.meta, f"{path}: meta"), allow_nan=False))
         atomic_write(path, lambda f: np.savez(f, **arrays))
         return path
 

@@ -15,6 +15,7 @@ import math
 import pickle
 import struct
 import warnings
+import zipfile
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,10 +25,11 @@ import numpy as np
 import torch
 from torch import nn
 
-from efficienttrack.configfile import config_from_dict
+from efficienttrack.configfile import check_seed, config_from_dict
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import atomic_write, write_json
 from efficienttrack.nets import check_size, resolve_device
+from efficienttrack.npyfile import MAX_EXPANDED_BYTES
 from efficienttrack.progress import ProgressDisplay
 from efficienttrack.provenance import provenance
 from efficienttrack.records import EpisodeRecord
@@ -183,6 +185,30 @@ def warm_start(network: NetworkT, init: nn.Module, what: str) -> NetworkT:
     return network
 
 
+def check_checkpoint_path(path: str | Path, option: str = "--out") -> Path:
+    """Refuse, before any training, a checkpoint path that does not end in ``.pt``.
+
+    The files that go with a checkpoint are named from it by suffix (``model.pt``: config ``model.json``, training
+    state ``model.state.pt``, logs ``model.logs/``); another suffix could make two of them one file (``--out m.json``
+    would be written over by its own config) or hide what the file is.
+
+    Args:
+        path: the checkpoint to write.
+        option: the command-line option naming it, for messages.
+
+    Returns:
+        ``path`` as a Path.
+    """
+    path = Path(path)
+    if path.suffix != ".pt":
+        clash = " (the checkpoint and its config would be one file)" if path.suffix == ".json" else ""
+        raise EfficientTrackError(
+            f"{option} {path}: a checkpoint must end in .pt{clash}; its config is written beside it as "
+            f"{path.with_suffix('.json').name}, e.g. {option} {path.with_suffix('.pt')}"
+        )
+    return path
+
+
 def config_path(path: str | Path) -> Path:
     """The JSON config that lies next to checkpoint ``path`` (``model.pt`` → ``model.json``)."""
     path = Path(path)
@@ -271,7 +297,7 @@ def load_checkpoint(
         raise EfficientTrackError(f"{path}: its config {cfg_file} is missing (a checkpoint is the .pt file plus its .json)")
     try:
         meta = json.loads(cfg_file.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
+    except (OSError, ValueError) as exc:  # ValueError: bad JSON, or not text (UnicodeDecodeError)
         raise EfficientTrackError(f"{cfg_file}: not a readable JSON config ({exc})") from exc
     if not isinstance(meta, dict) or meta.get("kind") != kind or not isinstance(meta.get("config"), dict):
         found = meta.get("kind") if isinstance(meta, dict) else type(meta).__name__
@@ -304,14 +330,32 @@ CHECKPOINT_READ_ERRORS = (
 def load_tensors(path: str | Path) -> dict[str, Any]:
     """``torch.load(path, weights_only=True)`` on CPU, with a clear error for anything but tensors and plain containers.
 
+    A checkpoint is a zip archive, and ``torch.load`` allocates every member's declared size, also of a compressed
+    member (``torch.save`` stores them uncompressed): a crafted file of a few KB could ask for gigabytes. The members
+    may together declare at most the file's own size or :data:`~efficienttrack.npyfile.MAX_EXPANDED_BYTES`, whichever
+    is larger, before anything is loaded.
+
     Args:
         path: a file written by ``torch.save``.
 
     Returns:
         The loaded dict.
     """
-    if Path(path).is_file() and Path(path).stat().st_size == 0:
+    size = Path(path).stat().st_size if Path(path).is_file() else None
+    if size == 0:
         raise EfficientTrackError(f"{path}: empty file (0 bytes), not a checkpoint")
+    if size is not None and zipfile.is_zipfile(path):
+        try:
+            with zipfile.ZipFile(path) as archive:
+                declared = sum(member.file_size for member in archive.infolist())
+        except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
+            raise EfficientTrackError(f"{path}: refused to load: a damaged checkpoint archive ({exc})") from exc
+        if declared > max(size, MAX_EXPANDED_BYTES):
+            raise EfficientTrackError(
+                f"{path}: refused to load: its {size}-byte archive expands to {declared / 2**20:.1f} MiB, more than the "
+                f"file itself or the {MAX_EXPANDED_BYTES / 2**20:.0f} MiB a compressed checkpoint may expand to "
+                "(efficienttrack.npyfile.MAX_EXPANDED_BYTES)"
+            )
     try:
         with warnings.catch_warnings():  # a damaged file can make torch warn about its pickle protocol before failing
             warnings.simplefilter("ignore", UserWarning)
@@ -501,7 +545,7 @@ class TrainLoop:
         self.module, self.optimizer = module, optimizer
         self.checkpoint = None if checkpoint is None else Path(checkpoint)
         self.progress = progress
-        self.generator = torch.Generator().manual_seed(seed)
+        self.generator = torch.Generator().manual_seed(check_seed(seed, f"{kind} training: seed"))
         self._losses = np.full(total, np.nan)
         self.start = 0
         self._config = json.dumps(dataclasses.asdict(cfg), sort_keys=True)

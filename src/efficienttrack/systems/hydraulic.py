@@ -282,6 +282,8 @@ class HydraulicParams:
             values = json.loads(path.read_text())
         except OSError as exc:
             raise EfficientTrackError(f"{path}: cannot read the simulator preset ({exc.strerror})") from exc
+        except UnicodeDecodeError as exc:
+            raise EfficientTrackError(f"{path}: not a JSON simulator preset (not a text file: {exc.reason})") from exc
         except json.JSONDecodeError as exc:
             raise EfficientTrackError(f"{path}: not valid JSON ({exc})") from exc
         missing = [f.name for f in fields(cls) if isinstance(values, dict) and f.name not in values]

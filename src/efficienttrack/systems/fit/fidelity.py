@@ -152,6 +152,8 @@ def fidelity(
     Returns:
         The comparison; angles in degrees.
     """
+    if not isinstance(stride, int) or isinstance(stride, bool) or stride < 1:
+        raise EfficientTrackError(f"fidelity: the open-loop window stride must be an integer ≥ 1 step, got {stride!r}")
     data = pad(records)
     if system.max_batch is None:
         q_sim = closed_loop_rollout(system, data)

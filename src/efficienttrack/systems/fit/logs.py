@@ -72,6 +72,8 @@ def select_by_jitter(
         high: largest jitter kept, rad.
         option: the setting the bounds come from, named in the error message.
     """
+    if not 0 <= low <= high:  # also refuses NaN
+        raise EfficientTrackError(f"{option}: needs bounds 0 ≤ low ≤ high rad, got [{low:g}, {high:g}]")
     jitter = np.array([reference_jitter(r) for r in records])
     kept = [r for r, j in zip(records, jitter, strict=True) if low <= j <= high]
     if not kept:
