@@ -66,6 +66,9 @@ COMMANDS: dict[str, str] = {
     "sim calibrate": "sim calibrate --logs {records} --start {params} --out {out_json} --max-windows 2 --max-nfev 2",
     "sim fidelity": "sim fidelity --logs {records} --plant xe75 --pd {pd} --system-opt params_file={params} "
     "--plot {out_folder}",
+    "export": "export --policy {policy} --out {out_folder}",
+    "deploy": "deploy --refs {refs} --out {out_folder} --policy {policy} --limits {limits} --arm --shadow --fast "
+    "--plant xe75 --pd {pd} --device cpu",
 }
 """Each command's arguments, a ``{slot}`` for every file or folder (a slot's kind: :data:`SLOTS`)."""
 
