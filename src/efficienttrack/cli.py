@@ -537,7 +537,7 @@ def train_model_command(
     logs = out.with_suffix(".logs")
     _lock(ctx, out, folder=False)
     result = train_model(cfg, records, device, seed, True, _training_state(out, force), logs, held, init)
-    save_model(result.model, out)
+    save_model(result.model, out, result.fingerprint)
     typer.echo(
         f"trained model on {result.windows} windows ({sum(map(len, records))} steps), {result.steps} steps in "
         f"{result.seconds:.0f} s, final loss {result.losses[-1]:.4g}; saved {out}, logs in {logs}"
@@ -596,7 +596,7 @@ def train_policy_command(
     held, logs = load_records(held_out, recursive) if held_out else [], out.with_suffix(".logs")
     _lock(ctx, out, folder=False)
     result = train_policy(cfg, g_theta, records, device, seed, True, _training_state(out, force), logs, held, init)
-    save_policy(result.policy, out)
+    save_policy(result.policy, out, result.fingerprint)
     before = predicted_tracking_error(g_theta, records, None, cfg.rollout_length)
     after = predicted_tracking_error(g_theta, records, result.policy, cfg.rollout_length)
     typer.echo(
