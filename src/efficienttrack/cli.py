@@ -733,7 +733,12 @@ def deploy_command(
         Path, typer.Option("--out", help="Output folder: <reference>.jsonl per run (a line per tick), deploy.json.")
     ],
     policy: Annotated[
-        Path | None, typer.Option("--policy", help="Policy checkpoint (policy.pt); without, the raw reference (a = 0).")
+        Path | None,
+        typer.Option(
+            "--policy",
+            help="Policy checkpoint (policy.pt), or an export folder (policy.onnx + policy.json, run in ONNX Runtime on the "
+            "CPU); without, the raw reference (a = 0).",
+        ),
     ] = None,
     arm: Annotated[bool, typer.Option("--arm", help="Allow the machine to move (nothing is sent without it).")] = False,
     shadow: Annotated[
