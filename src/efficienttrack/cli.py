@@ -203,6 +203,40 @@ def convert_command(
     typer.echo(f"wrote {len(written)} episode(s) to {out}")
 
 
+@app.command("import-rosbag")
+def import_rosbag_command(
+    bags: Annotated[list[Path], typer.Argument(help="rosbag2 folders (metadata.yaml + .db3/.mcap), one episode each.")],
+    out: Annotated[Path, typer.Option("--out", help="Destination folder; episodes are named after the bag folders.")],
+    reference: Annotated[
+        str, typer.Option("--reference", help="Topic of the references sent (Float64MultiArray or JointState) → q_ref.")
+    ],
+    desired: Annotated[
+        str | None, typer.Option("--desired", help="Topic of the desired positions → q_des (default: q_des = q_ref).")
+    ] = None,
+    joint_states: Annotated[str, typer.Option("--joint-states", help="JointState topic → q, qd.")] = "/joint_states",
+    joint: Annotated[
+        list[str] | None, typer.Option("--joint", help="JOINT=ROS_NAME, e.g. boom=boom_joint (repeatable; see docs/ros2.md).")
+    ] = None,
+    clock: Annotated[str, typer.Option("--clock", help="JointState stamps: header (header.stamp) or bag (receive time).")] = (
+        "header"
+    ),
+    max_gap: Annotated[float, typer.Option("--max-gap", help="Longest gap between two messages of a topic, s.")] = 0.25,
+    fmt: Annotated[str, typer.Option("--format", help="Output format: npz or csv.")] = "npz",
+    force: Annotated[
+        bool, typer.Option("--force", help="Write into a non-empty OUT: first delete its episode files.")
+    ] = False,
+) -> None:
+    """Import ROS 2 logs (rosbag2) as episode records on the 20 Hz grid, without ROS (docs/ros2.md)."""
+    from efficienttrack.rosbag import read_rosbag
+
+    check_output_folder(out)
+    options = {"desired": desired, "joint_states": joint_states, "joints": joint, "clock": clock, "max_gap": max_gap}
+    records = [read_rosbag(bag, reference, **options) for bag in bags]
+    prepare_output_folder(out, tuple(f"*{suffix}" for suffix in RECORD_SUFFIXES), force)
+    written = save_records(records, out, fmt)
+    typer.echo(f"wrote {len(written)} episode(s), {sum(map(len, records))} steps at 20 Hz, to {out}")
+
+
 SystemOpt = Annotated[
     str | None,
     typer.Option(
