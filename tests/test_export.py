@@ -227,7 +227,7 @@ def test_an_export_that_differs_from_the_policy_is_not_written(logged, tmp_path,
 
 
 def test_export_command(logged, tmp_path):
-    checkpoint = save_policy(logged[0], tmp_path / "policy.pt")
+    checkpoint = save_policy(logged[0], tmp_path / "policy.pt", "ab" * 32)
     out = tmp_path / "export"
 
     def invoke(*args):
@@ -237,9 +237,20 @@ def test_export_command(logged, tmp_path):
     assert result.exit_code == 0, result.output
     contract = json.loads((out / CONTRACT_FILE).read_text())
     assert contract["source"]["checkpoint"] == "policy.pt" and len(contract["source"]["weights_sha256"]) == 64
+    assert contract["source"]["training_fingerprint"] == "ab" * 32
     result = invoke(out)
     assert isinstance(result.exception, EfficientTrackError) and "not empty" in str(result.exception)
     assert invoke(out, "--force").exit_code == 0
     (tmp_path / "afile").write_text("x")
     result = invoke(tmp_path / "afile")
     assert isinstance(result.exception, EfficientTrackError) and "is a file" in str(result.exception)
+
+
+def test_a_checkpoint_saved_without_a_fingerprint_still_loads_and_exports(logged, tmp_path):
+    checkpoint = save_policy(logged[0], tmp_path / "policy.pt")
+    meta = json.loads(checkpoint.with_suffix(".json").read_text())
+    assert meta.pop("training_fingerprint") is None  # not known here; an older checkpoint lacks the field altogether
+    checkpoint.with_suffix(".json").write_text(json.dumps(meta))
+    result = CliRunner().invoke(app, ["export", "--policy", str(checkpoint), "--out", str(tmp_path / "export")])
+    assert result.exit_code == 0, result.output
+    assert json.loads((tmp_path / "export" / CONTRACT_FILE).read_text())["source"]["training_fingerprint"] is None

@@ -9,7 +9,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "src" / "efficienttrack"
 
 LAYERS = (
     ("base", {"errors", "fileio", "npyfile", "angles", "joints", "configfile", "progress", "provenance"}),
-    ("data", {"kinematics", "references", "cycles", "records", "metrics", "windows"}),
+    ("data", {"kinematics", "references", "cycles", "records", "rosbag", "metrics", "windows"}),
     ("systems", {"systems"}),
     ("episode loop", {"episodes"}),
     ("collection", {"collect"}),

@@ -2,6 +2,10 @@
 
 import json
 import math
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,6 +25,7 @@ from test_runtime import LinearPolicy
 from toy_system import make, sine_refs
 
 DT = 0.05
+SRC = Path(__file__).resolve().parents[1] / "src"
 RATE = np.asarray(DEFAULT_LIMITS.max_adjust_rate)
 
 
@@ -415,3 +420,58 @@ def test_deploy_exits_1_when_a_watchdog_stops_a_run(tmp_path):
     assert result.exit_code == 1 and "rest: stale_sensor" in result.output
     end = json.loads((tmp_path / "o" / "rest.jsonl").read_text().splitlines()[-1])
     assert end["reason"] == "stale_sensor" and end["ticks"] <= 5
+
+
+DEPLOY_WITHOUT_TORCH = """
+import json
+from efficienttrack.deploy import deploy, deployment_parts
+from efficienttrack.references import load_references
+from efficienttrack.systems.spec import SystemSpec
+
+export, refs, out = sys.argv[1:4]
+runtime, make_machine, limits, clock = deployment_parts(SystemSpec(), None, {}, export, "cpu", True)
+results = deploy(load_references(refs), runtime, make_machine, limits, out, clock=clock, shadow=True)
+print(json.dumps([r.reason for r in results]))
+assert "torch" not in sys.modules, "deploying an export imported torch"
+"""
+
+
+def test_deploy_runs_an_export_folder_in_onnx_runtime(deploy_inputs, tmp_path):
+    from efficienttrack.export import export_policy
+    from efficienttrack.policy import load_policy
+    from test_export import BLOCK_TORCH
+
+    refs, policy = deploy_inputs
+    export = export_policy(load_policy(policy), tmp_path / "export")
+    runs = {}
+    for name, given in (("pt", policy), ("onnx", export)):
+        result = invoke("deploy", "--refs", refs, "--policy", given, "--out", tmp_path / name, "--fast", "--arm", "--shadow")
+        assert result.exit_code == 0, result.output
+        runs[name] = [json.loads(x) for x in (tmp_path / name / "ref_01.jsonl").read_text().splitlines()[:-1]]
+    a_pt, a_onnx = (np.array([tick["a"] for tick in runs[name]]) for name in ("pt", "onnx"))
+    assert np.abs(a_pt).max() > 0.01  # the policy adjusts; shadow mode sends the raw reference, so both runs see the same
+    np.testing.assert_allclose(a_onnx, a_pt, rtol=0, atol=1e-5)
+    assert json.loads((tmp_path / "onnx" / "deploy.json").read_text())["policy"] == str(export)
+    # on a machine without torch: the export through the library's deploy
+    script = tmp_path / "deploy.py"
+    script.write_text(BLOCK_TORCH + DEPLOY_WITHOUT_TORCH)
+    env = {**os.environ, "PYTHONPATH": str(SRC)}
+    args = [sys.executable, str(script), str(export), str(refs), str(tmp_path / "no_torch")]
+    done = subprocess.run(args, capture_output=True, text=True, env=env, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout.splitlines()[-1]) == ["done", "done"]
+
+
+def test_deploy_refuses_a_damaged_export_folder(deploy_inputs, tmp_path):
+    refs, _ = deploy_inputs
+    (tmp_path / "export").mkdir()
+    result = invoke("deploy", "--refs", refs, "--policy", tmp_path / "export", "--out", tmp_path / "o", "--fast", "--arm")
+    assert isinstance(result.exception, EfficientTrackError) and "policy.json: no such file" in str(result.exception)
+    from efficienttrack.export import export_policy
+    from efficienttrack.policy import load_policy
+
+    export = export_policy(load_policy(deploy_inputs[1]), tmp_path / "slow")
+    contract = json.loads((export / "policy.json").read_text())
+    (export / "policy.json").write_text(json.dumps({**contract, "dt": 0.1}))
+    result = invoke("deploy", "--refs", refs, "--policy", export, "--out", tmp_path / "o", "--fast", "--arm")
+    assert isinstance(result.exception, EfficientTrackError) and "made for dt = 0.1 s" in str(result.exception)

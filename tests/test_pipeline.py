@@ -87,6 +87,8 @@ def test_run_writes_everything_and_beats_pd(finished_run):
     assert metrics["efficienttrack"]["mae_deg"] < 0.5 * metrics["pd"]["mae_deg"]
     for path in ("model.pt", "model.json", "policy.pt", "policy.json", "config.json", "run.json"):
         assert (out / path).is_file(), path
+    prints = [json.loads((out / name).read_text())["training_fingerprint"] for name in ("model.json", "policy.json")]
+    assert all(len(p) == 64 for p in prints) and prints[0] != prints[1]
     assert len(list((out / "records" / "pd").glob("*.npz"))) == 2
     # training logs: loss and learning rate every step, the held-out figure (PD on the test references) every 30 steps
     for name, tag in (("model", dynamics.HELD_OUT_TAG), ("policy", policy.HELD_OUT_TAG)):

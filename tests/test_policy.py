@@ -1,4 +1,5 @@
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -138,5 +139,12 @@ def test_cli_train_policy(model, tmp_path):
     assert result.exit_code == 0, result.output
     assert "model-predicted tracking error" in result.output
     assert load_policy(out).cfg.steps == 5
+    # what it was trained from (records, seed 0, the model trained through, no warm start) is kept beside the weights
+    from efficienttrack.dynamics import load_model
+    from efficienttrack.records import load_records
+    from efficienttrack.training import fingerprint
+
+    expected = fingerprint(load_records(tmp_path / "data"), 0, load_model(tmp_path / "model.pt"), None)
+    assert json.loads(out.with_suffix(".json").read_text())["training_fingerprint"] == expected
     result = CliRunner().invoke(app, [*args, "--preset", "huge"])
     assert result.exit_code != 0 and "--preset 'huge'" in str(result.exception)

@@ -210,6 +210,40 @@ def convert_command(
     typer.echo(f"wrote {len(written)} episode(s) to {out}")
 
 
+@app.command("import-rosbag")
+def import_rosbag_command(
+    bags: Annotated[list[Path], typer.Argument(help="rosbag2 folders (metadata.yaml + .db3/.mcap), one episode each.")],
+    out: Annotated[Path, typer.Option("--out", help="Destination folder; episodes are named after the bag folders.")],
+    reference: Annotated[
+        str, typer.Option("--reference", help="Topic of the references sent (Float64MultiArray or JointState) → q_ref.")
+    ],
+    desired: Annotated[
+        str | None, typer.Option("--desired", help="Topic of the desired positions → q_des (default: q_des = q_ref).")
+    ] = None,
+    joint_states: Annotated[str, typer.Option("--joint-states", help="JointState topic → q, qd.")] = "/joint_states",
+    joint: Annotated[
+        list[str] | None, typer.Option("--joint", help="JOINT=ROS_NAME, e.g. boom=boom_joint (repeatable; see docs/ros2.md).")
+    ] = None,
+    clock: Annotated[str, typer.Option("--clock", help="JointState stamps: header (header.stamp) or bag (receive time).")] = (
+        "header"
+    ),
+    max_gap: Annotated[float, typer.Option("--max-gap", help="Longest gap between two messages of a topic, s.")] = 0.25,
+    fmt: Annotated[str, typer.Option("--format", help="Output format: npz or csv.")] = "npz",
+    force: Annotated[
+        bool, typer.Option("--force", help="Write into a non-empty OUT: first delete its episode files.")
+    ] = False,
+) -> None:
+    """Import ROS 2 logs (rosbag2) as episode records on the 20 Hz grid, without ROS (docs/ros2.md)."""
+    from efficienttrack.rosbag import read_rosbag
+
+    check_output_folder(out)
+    options = {"desired": desired, "joint_states": joint_states, "joints": joint, "clock": clock, "max_gap": max_gap}
+    records = [read_rosbag(bag, reference, **options) for bag in bags]
+    prepare_output_folder(out, tuple(f"*{suffix}" for suffix in RECORD_SUFFIXES), force)
+    written = save_records(records, out, fmt)
+    typer.echo(f"wrote {len(written)} episode(s), {sum(map(len, records))} steps at 20 Hz, to {out}")
+
+
 SystemOpt = Annotated[
     str | None,
     typer.Option(
@@ -547,7 +581,7 @@ def train_model_command(
     logs = out.with_suffix(".logs")
     _lock(ctx, out, folder=False)
     result = train_model(cfg, records, device, seed, True, _training_state(out, force), logs, held, init)
-    save_model(result.model, out)
+    save_model(result.model, out, result.fingerprint)
     typer.echo(
         f"trained model on {result.windows} windows ({sum(map(len, records))} steps), {result.steps} steps in "
         f"{result.seconds:.0f} s, final loss {result.losses[-1]:.4g}; saved {out}, logs in {logs}"
@@ -606,7 +640,7 @@ def train_policy_command(
     held, logs = load_records(held_out, recursive) if held_out else [], out.with_suffix(".logs")
     _lock(ctx, out, folder=False)
     result = train_policy(cfg, g_theta, records, device, seed, True, _training_state(out, force), logs, held, init)
-    save_policy(result.policy, out)
+    save_policy(result.policy, out, result.fingerprint)
     before = predicted_tracking_error(g_theta, records, None, cfg.rollout_length)
     after = predicted_tracking_error(g_theta, records, result.policy, cfg.rollout_length)
     typer.echo(
@@ -743,7 +777,12 @@ def deploy_command(
         Path, typer.Option("--out", help="Output folder: <reference>.jsonl per run (a line per tick), deploy.json.")
     ],
     policy: Annotated[
-        Path | None, typer.Option("--policy", help="Policy checkpoint (policy.pt); without, the raw reference (a = 0).")
+        Path | None,
+        typer.Option(
+            "--policy",
+            help="Policy checkpoint (policy.pt), or an export folder (policy.onnx + policy.json, run in ONNX Runtime on the "
+            "CPU); without, the raw reference (a = 0).",
+        ),
     ] = None,
     arm: Annotated[bool, typer.Option("--arm", help="Allow the machine to move (nothing is sent without it).")] = False,
     shadow: Annotated[

@@ -185,8 +185,10 @@ def deployment_parts(
         spec: the simulated system (used when ``machine`` is None); with ``machine``, only its limits file counts.
         machine: a user's adapter ``module:callable``, or None for the simulator.
         machine_options: the adapter's keyword options.
-        policy: a policy checkpoint (``policy.pt``), or None for the raw reference alone (a = 0).
-        device: where the policy runs.
+        policy: a policy checkpoint (``policy.pt``, run by the torch runtime), an export folder (``policy.onnx`` and
+            ``policy.json`` of ``efficienttrack export``, run by the torch-free
+            :class:`~efficienttrack.onnx_runtime.OnnxRuntime` on the CPU), or None for the raw reference alone (a = 0).
+        device: where a checkpoint runs (an export runs on the CPU).
         fast: run the simulator on a simulated clock, as fast as it computes (refused for a user's machine).
 
     Returns:
@@ -212,6 +214,15 @@ def deployment_parts(
         def make_machine(ref: Reference) -> Machine:
             return SimulatedMachine(system, ref.q[0], clock)
 
+    if policy is not None and Path(policy).is_dir():
+        from efficienttrack.onnx_runtime import OnnxRuntime, load_onnx_policy
+
+        exported = load_onnx_policy(policy)
+        if exported.contract.dt != DT:
+            raise EfficientTrackError(
+                f"{policy}: the export was made for dt = {exported.contract.dt} s; the loop runs at {DT} s (20 Hz)"
+            )
+        return OnnxRuntime(exported, limits=limits), make_machine, limits, clock
     from efficienttrack.policy import load_policy  # torch: only here, the loop itself runs without it
     from efficienttrack.runtime import Runtime
 

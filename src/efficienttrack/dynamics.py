@@ -219,6 +219,7 @@ class ModelTrainResult(NamedTuple):
         seconds: wall time of this call (a resumed run counts only its own part).
         steps: optimizer steps in total.
         windows: training windows available (starts with a full horizon).
+        fingerprint: what it was trained from (:func:`~efficienttrack.training.fingerprint`), for its checkpoint.
     """
 
     model: ClosedLoopModel
@@ -226,6 +227,7 @@ class ModelTrainResult(NamedTuple):
     seconds: float
     steps: int
     windows: int
+    fingerprint: str
 
 
 def train_model(
@@ -296,7 +298,7 @@ def train_model(
         loop.record(step, loss.item())
 
     g_theta.eval()
-    return ModelTrainResult(g_theta, loop.losses(), time.perf_counter() - started, loop.total, len(starts))
+    return ModelTrainResult(g_theta, loop.losses(), time.perf_counter() - started, loop.total, len(starts), inputs)
 
 
 class MPE(NamedTuple):
@@ -350,9 +352,12 @@ def model_error(
     return MPE(float(mean.mean()), mean.mean(0).tolist(), mean.mean(1).tolist(), len(starts))
 
 
-def save_model(model: ClosedLoopModel, path: str | Path) -> Path:
-    """Save g_θ: state_dict at ``path`` (e.g. ``model.pt``) and its ModelConfig as JSON next to it (``model.json``)."""
-    return save_checkpoint(model, "closed_loop_model", model.cfg, path)
+def save_model(model: ClosedLoopModel, path: str | Path, fingerprint: str | None = None) -> Path:
+    """Save g_θ: state_dict at ``path`` (e.g. ``model.pt``) and its ModelConfig as JSON next to it (``model.json``).
+
+    ``fingerprint`` is what it was trained from (``ModelTrainResult.fingerprint``), kept in the JSON; None when not known.
+    """
+    return save_checkpoint(model, "closed_loop_model", model.cfg, path, fingerprint)
 
 
 def load_model(path: str | Path, device: str | torch.device = "cpu") -> ClosedLoopModel:

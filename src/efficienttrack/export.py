@@ -77,10 +77,12 @@ def checkpoint_source(path: str | Path) -> dict[str, Any]:
         path: the policy checkpoint (``policy.pt``); its JSON config lies next to it (already checked by loading it).
 
     Returns:
-        ``{"checkpoint": file name, "weights_sha256": …, "provenance": …}`` as its JSON config states them.
+        ``{"checkpoint": file name, "weights_sha256": …, "training_fingerprint": …, "provenance": …}`` as its JSON
+        config states them (``training_fingerprint`` is None for a checkpoint saved without one).
     """
     meta = json.loads(config_path(path).read_text())
-    return {"checkpoint": Path(path).name, "weights_sha256": meta.get("weights_sha256"), "provenance": meta.get("provenance")}
+    facts = ("weights_sha256", "training_fingerprint", "provenance")
+    return {"checkpoint": Path(path).name, **{name: meta.get(name) for name in facts}}
 
 
 def contract(policy: AdjustmentPolicy, onnx_sha256: str, source: dict[str, Any] | None) -> dict[str, Any]:

@@ -189,14 +189,14 @@ def next_round(
     )
     new_model = trained_model.model
     if folder is not None:
-        save_model(new_model, folder / "model.pt")
+        save_model(new_model, folder / "model.pt", trained_model.fingerprint)
     trained_policy = train_policy(
         policy_cfg, new_model, records, device, seed, progress, path("policy.state.pt"), path("policy.logs"), held_out,
         init=policy,
     )  # fmt: skip
     new_policy = trained_policy.policy
     if folder is not None:
-        save_policy(new_policy, folder / "policy.pt")
+        save_policy(new_policy, folder / "policy.pt", trained_policy.fingerprint)
 
     def mpe(network: ClosedLoopModel, episodes: Sequence[EpisodeRecord]) -> float | None:
         return model_error(network, episodes, MPE_STEPS, device).mpe_deg if episodes else None

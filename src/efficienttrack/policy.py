@@ -266,6 +266,7 @@ class PolicyTrainResult(NamedTuple):
         seconds: wall time of this call.
         steps: optimizer steps in total.
         windows: training windows available.
+        fingerprint: what it was trained from (:func:`~efficienttrack.training.fingerprint`), for its checkpoint.
     """
 
     policy: AdjustmentPolicy
@@ -273,6 +274,7 @@ class PolicyTrainResult(NamedTuple):
     seconds: float
     steps: int
     windows: int
+    fingerprint: str
 
 
 def train_policy(
@@ -352,7 +354,7 @@ def train_policy(
         loop.record(step, loss.item())
 
     pi_phi.eval()
-    return PolicyTrainResult(pi_phi, loop.losses(), time.perf_counter() - started, loop.total, len(starts))
+    return PolicyTrainResult(pi_phi, loop.losses(), time.perf_counter() - started, loop.total, len(starts), inputs)
 
 
 class TrackingError(NamedTuple):
@@ -408,9 +410,13 @@ def predicted_tracking_error(
     return TrackingError(float(per_joint.mean()), per_joint.tolist(), len(starts))
 
 
-def save_policy(policy: AdjustmentPolicy, path: str | Path) -> Path:
-    """Save π_φ: state_dict at ``path`` (e.g. ``policy.pt``) and its PolicyConfig as JSON next to it."""
-    return save_checkpoint(policy, "adjustment_policy", policy.cfg, path)
+def save_policy(policy: AdjustmentPolicy, path: str | Path, fingerprint: str | None = None) -> Path:
+    """Save π_φ: state_dict at ``path`` (e.g. ``policy.pt``) and its PolicyConfig as JSON next to it.
+
+    ``fingerprint`` is what it was trained from (``PolicyTrainResult.fingerprint``), kept in the JSON and carried into
+    an export's contract; None when not known.
+    """
+    return save_checkpoint(policy, "adjustment_policy", policy.cfg, path, fingerprint)
 
 
 def load_policy(path: str | Path, device: str | torch.device = "cpu") -> AdjustmentPolicy:

@@ -196,7 +196,7 @@ def train_stage(
     out: Path,
     log: RunLog,
     train: Callable[..., Any],
-    save: Callable[[torch.nn.Module, Path], Path],
+    save: Callable[[torch.nn.Module, Path, str], Path],
     load: Callable[[Path], torch.nn.Module],
     device: torch.device,
 ) -> tuple[torch.nn.Module, dict[str, Any]]:
@@ -208,8 +208,8 @@ def train_stage(
         out: the run folder.
         log: where to note that the stage is done.
         train: the trainer with everything but ``checkpoint`` and ``log_dir`` bound; returns a result whose first
-            field is the network and which has ``seconds``.
-        save: writes the network to a path.
+            field is the network and which has ``seconds`` and ``fingerprint``.
+        save: writes the network to a path, with the fingerprint of what it was trained from.
         load: reads it back.
         device: where the loaded network goes.
 
@@ -219,7 +219,7 @@ def train_stage(
     facts = stages.done(name, ("seconds", "log"))
     if facts is None:
         result = train(checkpoint=out / "checkpoints" / f"{name}.ckpt", log_dir=out / LOGS / name)
-        save(result[0], out / f"{name}.pt")
+        save(result[0], out / f"{name}.pt", result.fingerprint)
         facts = stages.finish(name, {"seconds": result.seconds, "log": f"{LOGS}/{name}"})
     log.print(f"{name} trained ({facts['seconds']:.0f} s{', earlier run' if name in stages.skipped else ''})")
     return load(out / f"{name}.pt").to(device), facts

@@ -217,17 +217,20 @@ def config_path(path: str | Path) -> Path:
     return path.with_suffix(".json")
 
 
-def save_checkpoint(module: nn.Module, kind: str, config: Any, path: str | Path) -> Path:
+def save_checkpoint(module: nn.Module, kind: str, config: Any, path: str | Path, fingerprint: str | None = None) -> Path:
     """Write ``module``'s state_dict (``torch.save``) and its config as JSON next to it, both atomically.
 
-    The JSON holds ``kind``, ``config``, ``weights_sha256`` and ``provenance`` (:func:`~efficienttrack.provenance.provenance`,
-    with the device the module lies on).
+    The JSON holds ``kind``, ``config``, ``weights_sha256``, ``training_fingerprint`` and ``provenance``
+    (:func:`~efficienttrack.provenance.provenance`, with the device the module lies on). Checkpoints written before
+    ``training_fingerprint`` existed load all the same.
 
     Args:
         module: the network (its buffers, e.g. feature scaling, are part of the state_dict).
         kind: what it is (``"closed_loop_model"``, ``"adjustment_policy"``), checked on load.
         config: the frozen config dataclass it was built from.
         path: checkpoint file, e.g. ``model.pt``; the config goes to ``model.json``.
+        fingerprint: what the network was trained from (:func:`fingerprint`: the records, the seed, the networks it
+            trained through or started from), the same digest its training state holds; None when not known.
 
     Returns:
         The checkpoint path.
@@ -242,6 +245,7 @@ def save_checkpoint(module: nn.Module, kind: str, config: Any, path: str | Path)
         "kind": kind,
         "config": dataclasses.asdict(config),
         "weights_sha256": _file_sha256(path),
+        "training_fingerprint": fingerprint,
         "provenance": provenance(device),
     }
     write_json(config_path(path), meta)
