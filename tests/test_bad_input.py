@@ -43,6 +43,7 @@ from efficienttrack.systems.pd import PD_PRESETS
 from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.training import load_tensors
 from test_records import make_record
+from test_rosbag import references, states, write_bag
 from toy_system import LagSystem, sine_refs
 
 COMMANDS: dict[str, str] = {
@@ -67,6 +68,7 @@ COMMANDS: dict[str, str] = {
     "sim fidelity": "sim fidelity --logs {records} --plant xe75 --pd {pd} --system-opt params_file={params} "
     "--plot {out_folder}",
     "export": "export --policy {policy} --out {out_folder}",
+    "import-rosbag": "import-rosbag {bag} --reference /cmd --out {out_folder}",
     "deploy": "deploy --refs {refs} --out {out_folder} --policy {policy} --limits {limits} --arm --shadow --fast "
     "--plant xe75 --pd {pd} --device cpu",
 }
@@ -84,6 +86,7 @@ SLOTS: dict[str, str] = {
     "pd": "pd",
     "limits": "limits",
     "params": "params",
+    "bag": "bag",
     "out_folder": "out_folder",
     "out_pt": "out_checkpoint",
     "out_png": "out_file",
@@ -342,6 +345,14 @@ BAD: dict[str, dict[str, Variant]] = {
         "NaN": None,  # from the good file, below
         "wrong-typed field": None,
     },
+    "bag": {
+        "missing": _missing,
+        "empty folder": _directory,
+        "a file": _write("cycle.db3", RANDOM),
+        "random metadata": _in_folder(_write("metadata.yaml", RANDOM)),
+        "no reference topic": lambda tmp, good: write_bag(tmp / "bag", {"/joint_states": states()}),
+        "no joint states": lambda tmp, good: write_bag(tmp / "bag", {"/cmd": references()}),
+    },
     "out_folder": {"a file": _existing_file, "under a file": _under_a_file, "damaged resume files": _damaged_run},
     "out_checkpoint": {
         "a folder": _directory,
@@ -420,6 +431,7 @@ def good(tmp_path_factory) -> dict[str, Path]:
         "limits": root / "limits.yaml",
         "params": root / "params.json",
         "bomb": root / "bomb.pt",
+        "bag": write_bag(root / "cycle_01", {"/joint_states": states(), "/cmd": references()}),
     }
 
 

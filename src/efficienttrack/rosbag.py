@@ -156,7 +156,7 @@ def read_rosbag(
     try:
         with AnyReader([bag], default_typestore=get_typestore(Stores.LATEST)) as reader:
             topics = {role: _read_topic(reader, bag, topic, role, names, clock) for role, topic in wanted.items()}
-    except (AnyReaderError, ReaderError, FileNotFoundError, OSError) as exc:
+    except (AnyReaderError, ReaderError, OSError, UnicodeDecodeError) as exc:
         raise EfficientTrackError(f"{bag}: not a readable rosbag2 log ({exc})") from exc
     for role, topic in wanted.items():
         _check_stamps(topics[role], bag, topic, max_gap)
