@@ -563,7 +563,7 @@ def test_atomic_write_names_the_destination_and_a_bug_keeps_its_traceback(tmp_pa
     def bug(*args, **kwargs):
         raise OSError("not the system: a bug")  # no errno
 
-    monkeypatch.setattr(cli, "metrics_by_path", bug)
+    monkeypatch.setattr(cli.data, "metrics_by_path", bug)
     with pytest.raises(OSError, match="a bug"):
         run_main(["metrics", str(tmp_path)], monkeypatch, capsys)
 

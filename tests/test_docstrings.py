@@ -40,7 +40,7 @@ def _is_protocol(cls: type | None) -> bool:
 def _is_typer_command(module: types.ModuleType, name: str) -> bool:
     # Typer commands of the CLI: each option carries a ``help=`` text, which ``--help`` shows and which is the
     # user-facing documentation of that parameter; the docstring is the command summary and need not repeat them.
-    return module.__name__ == "efficienttrack.cli" and name.endswith("_command")
+    return module.__name__.startswith("efficienttrack.cli.") and name.endswith("_command")
 
 
 def _targets() -> Iterator[Target]:
@@ -90,7 +90,7 @@ def test_walk_finds_functions_and_methods() -> None:
     assert "efficienttrack.records.EpisodeRecord.load" in names  # classmethod
     assert "efficienttrack.systems.protocol.BatchedSystem.__init__" in names  # hand-written constructor
     assert "efficienttrack.systems.hydraulic.HydraulicParams.__init__" not in names  # dataclass-generated
-    assert "efficienttrack.cli.parse_options" in names
+    assert "efficienttrack.cli.common.parse_options" in names
     assert not any(n.startswith("efficienttrack.cli.") and n.endswith("_command") for n in names)
 
 

@@ -1,0 +1,125 @@
+"""What the commands share: the Typer app, the options several commands take, and the helpers behind them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.fileio import output_lock
+
+TABLE_WIDTH = 132
+"""Characters the columns of a metrics table take besides its row labels."""
+
+app = typer.Typer(
+    help="EfficientTrack: high-precision excavator trajectory tracking from learned closed-loop dynamics.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    add_completion=False,
+)
+
+RecursiveOpt = Annotated[
+    bool, typer.Option("--recursive", "-r", help="Read subfolders too (a folder alone means the episodes directly in it).")
+]
+
+SystemOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--system",
+        help="Closed-loop system: built-in name (xe75; learned with --system-opt model=CKPT) or module.path:callable.",
+    ),
+]
+
+PlantOpt = Annotated[
+    str | None, typer.Option("--plant", help="Plant (PWM level) wrapped with the PD controller: xe75 or module.path:callable.")
+]
+
+PdOpt = Annotated[str, typer.Option("--pd", help="PD gains for --plant: preset name (xe75) or a JSON file.")]
+
+SystemOpts = Annotated[list[str] | None, typer.Option("--system-opt", help="key=value option of the system (repeatable).")]
+
+LimitsOpt = Annotated[
+    Path | None,
+    typer.Option("--limits", help="YAML/JSON of the guard's joint limits and adjustment bounds (amends the system's)."),
+]
+
+DeviceOpt = Annotated[str, typer.Option("--device", help="auto, cpu or cuda.")]
+
+ThreadsOpt = Annotated[
+    int,
+    typer.Option("--threads", help="torch CPU threads (1: fastest for cpu-preset networks on 2 shared cores; 0: default)."),
+]
+
+
+def parse_options(pairs: list[str] | None, flag: str = "--system-opt") -> dict[str, object]:
+    """Turn repeated ``key=value`` strings into keyword options (numbers and booleans parsed).
+
+    Args:
+        pairs: the ``key=value`` strings as given on the command line (``None`` when the option was not used).
+        flag: the option's name, used in error messages.
+
+    Returns:
+        ``{key: value}``, each value an int, float or bool where it parses as one, else the string.
+
+    Raises:
+        EfficientTrackError: a string without ``=`` or with an empty key.
+    """
+    options: dict[str, object] = {}
+    for pair in pairs or []:
+        key, sep, raw = pair.partition("=")
+        if not sep or not key:
+            raise EfficientTrackError(f"{flag} '{pair}': expected key=value")
+        value: object = raw
+        if raw.lower() in ("true", "false"):
+            value = raw.lower() == "true"
+        else:
+            for cast in (int, float):
+                try:
+                    value = cast(raw)
+                    break
+                except ValueError:
+                    continue
+        options[key] = value
+    return options
+
+
+def _system_spec(system: str | None, plant: str | None, pd: str, options: list[str] | None, limits: Path | None = None):
+    """The system the ``--system``/``--plant``/``--pd``/``--system-opt``/``--limits`` options name, not yet opened."""
+    from efficienttrack.systems.spec import SystemSpec
+
+    return SystemSpec(
+        system=system,
+        plant=plant,
+        pd=pd,
+        options=tuple(parse_options(options).items()),
+        limits=None if limits is None else str(limits),
+    )
+
+
+def _lock(ctx: typer.Context, out: Path, folder: bool = True) -> None:
+    """Hold the lock of output ``out`` (a folder, else a checkpoint) until the command ``ctx`` ends, however it ends."""
+    ctx.with_resource(output_lock(out, folder=folder))
+
+
+def _set_threads(threads: int) -> None:
+    """Let torch use ``threads`` CPU threads (the ``--threads`` option; 0 leaves torch's default)."""
+    import torch
+
+    if threads < 0:
+        raise EfficientTrackError(f"--threads {threads}: expected ≥ 0")
+    if threads:
+        torch.set_num_threads(threads)
+
+
+def wide_console(label_width: int = 8) -> Console:
+    """A console wide enough for a metrics table whose row labels are ``label_width`` characters long.
+
+    Figures are never cropped or folded, also on a narrow terminal or when the output is not a terminal.
+
+    Args:
+        label_width: length of the longest row label (a method name or a path).
+    """
+    return Console(width=max(Console().width, TABLE_WIDTH + label_width))

@@ -1,0 +1,130 @@
+"""Commands that take a trained policy to a machine: ``export`` (ONNX) and ``deploy`` (the fixed-rate loop)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from efficienttrack.cli.common import (
+    LimitsOpt,
+    PdOpt,
+    PlantOpt,
+    SystemOpt,
+    SystemOpts,
+    _lock,
+    _system_spec,
+    app,
+    parse_options,
+)
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.fileio import check_output_folder, prepare_output_folder
+from efficienttrack.loop import LoopConfig
+
+LOOP = LoopConfig()
+"""Where the ``deploy`` options take their defaults from."""
+
+
+@app.command("export")
+def export_command(
+    ctx: typer.Context,
+    policy: Annotated[Path, typer.Option("--policy", help="Policy checkpoint (policy.pt) to export.")],
+    out: Annotated[Path, typer.Option("--out", help="Export folder: policy.onnx and its contract policy.json.")],
+    force: Annotated[bool, typer.Option("--force", help="Replace an earlier export in OUT (other files are kept).")] = False,
+) -> None:
+    """Export a trained policy to ONNX (policy.onnx) with its contract (policy.json), for the torch-free runtime."""
+    from efficienttrack.export import checkpoint_source, export_policy
+    from efficienttrack.onnx_runtime import CONTRACT_FILE, ONNX_FILE
+    from efficienttrack.policy import load_policy
+
+    check_output_folder(out)
+    pi_phi = load_policy(policy, "cpu")
+    _lock(ctx, out)
+    prepare_output_folder(out, (ONNX_FILE, CONTRACT_FILE), force)
+    export_policy(pi_phi, out, checkpoint_source(policy))
+    typer.echo(f"exported {policy} to {out / ONNX_FILE} with its contract {out / CONTRACT_FILE}")
+
+
+@app.command("deploy")
+def deploy_command(
+    ctx: typer.Context,
+    refs: Annotated[Path, typer.Option("--refs", help="Folder of reference trajectories (.npy/.csv, rad), run in turn.")],
+    out: Annotated[
+        Path, typer.Option("--out", help="Output folder: <reference>.jsonl per run (a line per tick), deploy.json.")
+    ],
+    policy: Annotated[
+        Path | None,
+        typer.Option(
+            "--policy",
+            help="Policy checkpoint (policy.pt), or an export folder (policy.onnx + policy.json, run in ONNX Runtime on the "
+            "CPU); without, the raw reference (a = 0).",
+        ),
+    ] = None,
+    arm: Annotated[bool, typer.Option("--arm", help="Allow the machine to move (nothing is sent without it).")] = False,
+    shadow: Annotated[
+        bool, typer.Option("--shadow", help="Compute and log the adjustment, send the raw reference (run this first).")
+    ] = False,
+    system: SystemOpt = None,
+    plant: PlantOpt = None,
+    pd: PdOpt = "xe75",
+    system_opt: SystemOpts = None,
+    limits: LimitsOpt = None,
+    machine: Annotated[
+        str | None, typer.Option("--machine", help="A real machine's adapter, module.path:callable (needs --limits).")
+    ] = None,
+    machine_opt: Annotated[
+        list[str] | None, typer.Option("--machine-opt", help="key=value option of the adapter (repeatable).")
+    ] = None,
+    fast: Annotated[
+        bool, typer.Option("--fast", help="Simulator only: a simulated clock, as fast as it computes (no real-time timing).")
+    ] = False,
+    hold_after: Annotated[int, typer.Option("--hold-after", help="Overruns in a row from which a = 0.")] = LOOP.hold_after,
+    stop_after: Annotated[int, typer.Option("--stop-after", help="Overruns in a row that stop the run.")] = LOOP.stop_after,
+    stale_ticks: Annotated[
+        float, typer.Option("--stale-ticks", help="A reading older than this many periods: a = 0.")
+    ] = LOOP.stale_ticks,
+    stop_stale_ticks: Annotated[
+        float, typer.Option("--stop-stale-ticks", help="The last good reading older than this many periods: stop.")
+    ] = LOOP.stop_stale_ticks,
+    device: Annotated[str, typer.Option("--device", help="cpu, cuda or auto.")] = "cpu",
+    force: Annotated[bool, typer.Option("--force", help="Write into a non-empty OUT: first delete its logs.")] = False,
+) -> None:
+    """The policy at 20 Hz on absolute deadlines against the simulator or a machine, with watchdogs; a log per tick.
+
+    Nothing is sent without --arm, because even shadow mode moves the machine (along the raw reference). Start with
+    --arm --shadow; every run starts and ends with a = 0. Exit code 1 when a watchdog stopped a run.
+    """
+    from efficienttrack.deploy import DEPLOY_OUTPUTS, deploy, deployment_parts
+    from efficienttrack.references import load_references
+
+    if not arm:
+        raise EfficientTrackError(
+            "deploy sends references to the machine: add --arm to allow motion "
+            "(with --shadow the adjustment is only logged and the raw reference is sent; start there)"
+        )
+    check_output_folder(out)
+    cfg = LoopConfig(hold_after=hold_after, stop_after=stop_after, stale_ticks=stale_ticks, stop_stale_ticks=stop_stale_ticks)
+    references = load_references(refs)
+    spec = _system_spec(system, plant, pd, system_opt, limits)
+    runtime, make_machine, machine_limits, clock = deployment_parts(
+        spec, machine, parse_options(machine_opt, "--machine-opt"), policy, device, fast
+    )
+    _lock(ctx, out)
+    prepare_output_folder(out, DEPLOY_OUTPUTS, force)
+    settings = {"policy": None if policy is None else str(policy), "machine": machine, "system": spec.to_dict(), "fast": fast}
+
+    def report(result) -> None:
+        s = result.summary()
+        late = s.get("lateness_ms", {})
+        typer.echo(
+            f"{result.name}: {result.reason}, {result.ticks} ticks, lateness p99 {late.get('p99', 0):.2f} ms "
+            f"max {late.get('max', 0):.2f} ms, overruns {s.get('overrun', 0)}, stale {s.get('stale', 0)}, "
+            f"fallbacks {s.get('fallback', 0)}" + (f" ({result.error})" if result.error else "")
+        )
+
+    results = deploy(references, runtime, make_machine, machine_limits, out, cfg, clock, shadow, settings, report)
+    if results[-1].stopped:
+        typer.secho(f"stopped: {results[-1].name}: {results[-1].reason}; logs in {out}", fg=typer.colors.RED, err=True)
+        raise typer.Exit(1)
+    typer.echo(f"{len(results)} run(s) done ({'shadow' if shadow else 'armed'}); logs in {out}")
