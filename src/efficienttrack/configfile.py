@@ -139,7 +139,7 @@ def _coerce(hint: Any, value: Any, where: str) -> Any:
         (inner,) = [option for option in options if option is not type(None)]
         return _coerce(inner, value, where)
     if origin is tuple:
-        if not isinstance(value, list | tuple) or not all(map(_finite_number, value)):
+        if not isinstance(value, list | tuple) or not all(map(is_finite_number, value)):
             raise EfficientTrackError(f"{where} must be a list of finite numbers, got {value!r}")
         return tuple(float(v) for v in value)
     if hint is bool:
@@ -151,7 +151,7 @@ def _coerce(hint: Any, value: Any, where: str) -> Any:
             raise EfficientTrackError(f"{where} must be an integer, got {value!r}")
         return value
     if hint is float:
-        if not _finite_number(value):
+        if not is_finite_number(value):
             raise EfficientTrackError(f"{where} must be a finite number, got {value!r}")
         return float(value)
     if hint is str:
@@ -161,8 +161,8 @@ def _coerce(hint: Any, value: Any, where: str) -> Any:
     raise EfficientTrackError(f"{where}: unsupported config type {hint}")
 
 
-def _finite_number(value: Any) -> bool:
-    """True for an int or float that is a finite float (not a bool, not NaN/±inf, not an int beyond the float range)."""
+def is_finite_number(value: Any) -> bool:
+    """True when ``value`` is an int or float that is finite as a float (not a bool, NaN, ±inf or a huge int)."""
     if not isinstance(value, int | float) or isinstance(value, bool):
         return False
     try:

@@ -12,7 +12,6 @@ logged PWM exactly.
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -20,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from efficienttrack.angles import wrap
+from efficienttrack.configfile import is_finite_number
 from efficienttrack.errors import EfficientTrackError
 
 
@@ -46,11 +46,11 @@ class PDGains:
         """
         for name in ("kp", "kd", "sign"):
             values = getattr(self, name)
-            if not isinstance(values, tuple | list) or len(values) != 4 or not all(map(_is_number, values)):
+            if not isinstance(values, tuple | list) or len(values) != 4 or not all(map(is_finite_number, values)):
                 raise EfficientTrackError(f"PD gains: field '{name}' needs 4 numbers (boom, arm, bucket, swing): {values!r}")
             object.__setattr__(self, name, tuple(float(v) for v in values))
         for name in ("c", "u_max"):
-            if not _is_number(getattr(self, name)):
+            if not is_finite_number(getattr(self, name)):
                 raise EfficientTrackError(f"PD gains: field '{name}' needs one number, got {getattr(self, name)!r}")
             object.__setattr__(self, name, float(getattr(self, name)))
         for name in ("kp", "kd"):
@@ -114,16 +114,6 @@ class PDGains:
     def to_dict(self) -> dict[str, Any]:
         """JSON-serializable fields."""
         return asdict(self)
-
-
-def _is_number(value: Any) -> bool:
-    """True for a finite int or float (not a bool, a string, NaN/inf or an int beyond the float range)."""
-    if not isinstance(value, int | float) or isinstance(value, bool):
-        return False
-    try:
-        return math.isfinite(value)
-    except OverflowError:
-        return False
 
 
 XE75_PD = PDGains(kp=(5000.0, 1000.0, 1000.0, 500.0), kd=(15006.0, 6016.0, 4284.0, 7000.0), sign=(-1.0, -1.0, -1.0, 1.0))
