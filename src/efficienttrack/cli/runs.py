@@ -34,7 +34,7 @@ RunForceOpt = Annotated[
     ),
 ]
 
-PresetOpt = Annotated[str, typer.Option("--preset", help="Settings preset: paper, cpu or tiny.")]
+PresetOpt = Annotated[str, typer.Option("--preset", help="Settings preset: paper, cpu, fastset or tiny.")]
 
 ConfigOpt = Annotated[Path | None, typer.Option("--config", help="YAML/JSON overriding preset fields.")]
 
