@@ -245,3 +245,12 @@ def test_the_package_imports_without_gymnasium():
     code = "import sys; sys.modules['gymnasium'] = None; import efficienttrack; print('envs' in dir(efficienttrack))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=os.environ.copy())
     assert out.stdout.strip() == "False"  # imported, and registered nothing
+
+
+def test_the_vector_env_takes_one_reference_per_sub_environment(short):
+    vec = TrackingVectorEnv(3, refs=short)
+    obs, info = vec.reset(seed=0, options={"reference": [2, "short_0", 1]})
+    assert list(info["reference"]) == ["short_2", "short_0", "short_1"]
+    np.testing.assert_allclose(obs[:, Q_NEXT], np.stack([short[2].q[1], short[0].q[1], short[1].q[1]]), atol=1e-6)
+    with pytest.raises(EfficientTrackError, match="one entry per sub-environment"):
+        vec.reset(options={"reference": [0, 1]})
