@@ -50,7 +50,7 @@ def toward_next(obs: np.ndarray) -> np.ndarray:
     return np.tanh(10.0 * (obs[:, Q_NEXT] - obs[:, Q_T]))
 
 
-@pytest.mark.filterwarnings("ignore:.*Box observation space m.* infinity")  # unbounded by design: any system
+@pytest.mark.filterwarnings("ignore:.*Box observation space m.*infinity")  # unbounded by design: any system
 @pytest.mark.parametrize("env_id", [CLOSED_LOOP_ID, OPEN_LOOP_ID])
 def test_both_ids_pass_gymnasiums_check_env(env_id, short):
     env = gymnasium.make(env_id, refs=short)
