@@ -120,7 +120,7 @@ class TrackingVectorEnv(VectorEnv):
         choice = options.get("reference")
         if choice is None or isinstance(choice, str | int | np.integer):
             per_env = [None if choice is None else {"reference": choice}] * self.num_envs
-        elif len(choice) == self.num_envs:
+        elif isinstance(choice, Sequence | np.ndarray) and len(choice) == self.num_envs:
             per_env = [{"reference": c} for c in choice]
         else:
             raise EfficientTrackError(f"reset options: 'reference' needs one entry per sub-environment ({self.num_envs})")
