@@ -61,6 +61,8 @@ def test_vec_env_equals_single_environments():
             assert ("terminal_observation" in infos[i]) == bool(dones[i])
         for i in range(n):
             assert ours.reset_infos[i].keys() == singles.reset_infos[i].keys()
+            for key, value in ours.reset_infos[i].items():
+                np.testing.assert_array_equal(value, singles.reset_infos[i][key], err_msg=key)
         ended += int(dones.sum())
     assert ended >= n  # every environment finished at least one episode
 
