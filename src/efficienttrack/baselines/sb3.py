@@ -12,28 +12,25 @@ interaction steps, which is how the paper counts I.S. and what SB3's ``num_times
 
 from __future__ import annotations
 
-import time
 from collections.abc import Sequence
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 
+from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_eval_points, check_refs
 from efficienttrack.baselines.settings import PPOSettings, SACSettings, method_settings
 from efficienttrack.baselines.vec_env import SB3VecEnv
 from efficienttrack.configfile import check_seed
 from efficienttrack.envs.core import open_system
-from efficienttrack.envs.evaluation import evaluate
 from efficienttrack.envs.vector import TrackingVectorEnv
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import atomic_write, check_output_folder, output_lock, write_json
-from efficienttrack.metrics import MIN_STEPS, compute_metrics
+from efficienttrack.fileio import atomic_write, check_output_folder, output_lock
+from efficienttrack.metrics import MIN_STEPS
 from efficienttrack.progress import ProgressDisplay
 from efficienttrack.references import Reference
-from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.systems.spec import SystemSpec
 
 LOOPS = ("closed", "open")
@@ -42,94 +39,8 @@ LOOPS = ("closed", "open")
 MAX_SB3_SEED = 2**32 - 1025
 """Largest seed: SB3 seeds numpy's legacy generator (< 2^32) and gives environment i the seed + i."""
 
-CURVE_FILE = "curve.json"
-"""The curve's file in the output folder, rewritten atomically after every evaluation point."""
-
 MODEL_FILE = "model.zip"
 """The final model, saved with SB3's ``save`` for the user's own use; efficienttrack never loads it."""
-
-
-def default_eval_points(budget: int) -> list[int]:
-    """The interaction counts 1, 2, 5 × 10^k up to ``budget``, and ``budget`` itself.
-
-    Args:
-        budget: the training budget in interaction steps (≥ 1).
-
-    Returns:
-        Increasing counts, e.g. ``[1, 2, 5, 10, 20, 50, 100, 200, 500, 1000, 1500]`` for 1500.
-    """
-    points = {m * 10**k for k in range(len(str(budget))) for m in (1, 2, 5)}
-    return sorted(p for p in points | {budget} if p <= budget)
-
-
-def check_eval_points(eval_at: Sequence[int] | None, budget: int) -> list[int]:
-    """The evaluation points, checked, sorted and without repeats (:func:`default_eval_points` when None).
-
-    Args:
-        eval_at: interaction counts at which to evaluate, each in ``[1, budget]``, or None.
-        budget: the training budget in interaction steps.
-
-    Returns:
-        The increasing counts.
-
-    Raises:
-        EfficientTrackError: a count that is not an integer, < 1, or beyond the budget, or none at all.
-    """
-    if eval_at is None:
-        return default_eval_points(budget)
-    points = list(eval_at)
-    if not points:
-        raise EfficientTrackError("eval_at: no evaluation point given")
-    for point in points:
-        if not isinstance(point, int | np.integer) or isinstance(point, bool) or not 1 <= point <= budget:
-            raise EfficientTrackError(f"eval_at: each point must be an integer in [1, budget = {budget}], got {point!r}")
-    return sorted({int(p) for p in points})
-
-
-class _Recorder:
-    """The curve of one training run: measures points, writes ``curve.json``, shows progress."""
-
-    def __init__(
-        self,
-        header: dict[str, Any],
-        path: Path,
-        system: BatchedSystem,
-        test_refs: list[Reference],
-        progress: ProgressDisplay | None,
-        budget: int,
-    ) -> None:
-        self.header, self.path, self.system, self.test_refs, self.progress = header, path, system, test_refs, progress
-        self.curve: list[dict[str, Any]] = []
-        self.start = time.perf_counter()
-        self.evaluating = 0.0
-        """Seconds spent evaluating, left out of the wall time."""
-        label = f"{header['method']} {header['loop']} (steps)"
-        self.task = None if progress is None else progress.add_task(label, total=budget)
-        write_json(path, {**header, "curve": self.curve})
-
-    def measure(self, model: BaseAlgorithm, count: int) -> None:
-        """Evaluate ``model``'s deterministic policy on the test references; append the point and write the file."""
-        began = time.perf_counter()
-        act = lambda obs: model.predict(obs, deterministic=True)[0]  # noqa: E731
-        records = evaluate(act, self.test_refs, loop=self.header["loop"], system=self.system)
-        metrics = compute_metrics(records)
-        self.curve.append(
-            {"interaction_steps": count, "wall_seconds": began - self.start - self.evaluating, "metrics": metrics}
-        )
-        write_json(self.path, {**self.header, "curve": self.curve})
-        self.evaluating += time.perf_counter() - began
-        if self.progress is not None and self.task is not None:
-            self.progress.update(self.task, mae_deg=metrics["mae_deg"])
-
-    def show(self, count: int) -> None:
-        """Show the interaction count on the progress display."""
-        if self.progress is not None and self.task is not None:
-            self.progress.update(self.task, completed=count)
-
-    def close(self) -> None:
-        """Stop showing the task."""
-        if self.progress is not None and self.task is not None:
-            self.progress.remove_task(self.task)
 
 
 class _Curve(BaseCallback):
@@ -139,7 +50,7 @@ class _Curve(BaseCallback):
     moves in steps of N, so points reached in the same step are measured once, at that step's count.
     """
 
-    def __init__(self, points: list[int], budget: int, recorder: _Recorder) -> None:
+    def __init__(self, points: list[int], budget: int, recorder: CurveRecorder) -> None:
         super().__init__()
         self.points, self.budget, self.recorder = list(points), budget, recorder
 
@@ -147,21 +58,9 @@ class _Curve(BaseCallback):
         count = self.num_timesteps
         if self.points and count >= self.points[0]:
             self.points = [p for p in self.points if p > count]
-            self.recorder.measure(self.model, count)
+            self.recorder.measure(lambda obs: self.model.predict(obs, deterministic=True)[0], count)
         self.recorder.show(count)
         return count < self.budget
-
-
-def _check_refs(refs: Sequence[Reference], name: str, min_steps: int = 2) -> list[Reference]:
-    refs = list(refs)
-    if not refs:
-        raise EfficientTrackError(f"{name}: no references given")
-    for ref in refs:
-        if not isinstance(ref, Reference):
-            raise EfficientTrackError(f"{name}: expected References (efficienttrack.references), got {type(ref).__name__}")
-        if len(ref) < min_steps:
-            raise EfficientTrackError(f"{name}: reference '{ref.name}' has {len(ref)} steps, needs at least {min_steps}")
-    return refs
 
 
 def train_baseline(
@@ -225,7 +124,7 @@ def train_baseline(
         raise EfficientTrackError(f"seed: SB3 needs a seed in [0, {MAX_SB3_SEED}], got {seed}")
     if not isinstance(system, SystemSpec):
         raise EfficientTrackError(f"system: expected a SystemSpec (efficienttrack.systems.spec), got {type(system).__name__}")
-    train_refs, test_refs = _check_refs(train_refs, "train_refs"), _check_refs(test_refs, "test_refs", MIN_STEPS)
+    train_refs, test_refs = check_refs(train_refs, "train_refs"), check_refs(test_refs, "test_refs", MIN_STEPS)
     folder = check_output_folder(folder, "folder")
     header = {
         "method": method,
@@ -236,7 +135,7 @@ def train_baseline(
         "settings": asdict(settings),
     }
     with output_lock(folder / CURVE_FILE, "folder", folder=False):
-        recorder = _Recorder(header, folder / CURVE_FILE, open_system(loop, system), test_refs, progress, budget)
+        recorder = CurveRecorder(header, folder / CURVE_FILE, open_system(loop, system), test_refs, progress, budget)
         env = SB3VecEnv(TrackingVectorEnv(settings.n_envs, loop=loop, system=system, refs=train_refs))
         try:
             model = settings.build(env, seed)

@@ -1,0 +1,149 @@
+"""What every baseline's curve shares: the evaluation points, the held-out measurement, and ``curve.json``.
+
+A baseline trains for a budget of interaction steps and, when its count first reaches each evaluation point, runs its
+deterministic policy on the held-out references (:func:`efficienttrack.envs.evaluate`) and scores it with
+:func:`efficienttrack.metrics.compute_metrics`: the same episodes and metrics as EfficientTrack's evaluation.
+:class:`CurveRecorder` keeps those points and rewrites ``curve.json`` after each, so a long run loses nothing.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from efficienttrack.envs.evaluation import evaluate
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.fileio import write_json
+from efficienttrack.metrics import compute_metrics
+from efficienttrack.progress import ProgressDisplay
+from efficienttrack.references import Reference
+from efficienttrack.systems.protocol import BatchedSystem
+
+CURVE_FILE = "curve.json"
+"""The curve's file in the output folder, rewritten atomically after every evaluation point."""
+
+
+def default_eval_points(budget: int) -> list[int]:
+    """The interaction counts 1, 2, 5 × 10^k up to ``budget``, and ``budget`` itself.
+
+    Args:
+        budget: the training budget in interaction steps (≥ 1).
+
+    Returns:
+        Increasing counts, e.g. ``[1, 2, 5, 10, 20, 50, 100, 200, 500, 1000, 1500]`` for 1500.
+    """
+    points = {m * 10**k for k in range(len(str(budget))) for m in (1, 2, 5)}
+    return sorted(p for p in points | {budget} if p <= budget)
+
+
+def check_eval_points(eval_at: Sequence[int] | None, budget: int) -> list[int]:
+    """The evaluation points, checked, sorted and without repeats (:func:`default_eval_points` when None).
+
+    Args:
+        eval_at: interaction counts at which to evaluate, each in ``[1, budget]``, or None.
+        budget: the training budget in interaction steps.
+
+    Returns:
+        The increasing counts.
+
+    Raises:
+        EfficientTrackError: a count that is not an integer, < 1, or beyond the budget, or none at all.
+    """
+    if eval_at is None:
+        return default_eval_points(budget)
+    points = list(eval_at)
+    if not points:
+        raise EfficientTrackError("eval_at: no evaluation point given")
+    for point in points:
+        if not isinstance(point, int | np.integer) or isinstance(point, bool) or not 1 <= point <= budget:
+            raise EfficientTrackError(f"eval_at: each point must be an integer in [1, budget = {budget}], got {point!r}")
+    return sorted({int(p) for p in points})
+
+
+class CurveRecorder:
+    """The curve of one training run: measures points, writes ``curve.json``, shows progress.
+
+    Args:
+        header: what the run is (``method``, ``loop``, ``seed``, ``budget``, ``system``, ``settings``), written with
+            the curve.
+        path: the curve's file (``curve.json``), rewritten atomically after every point.
+        system: the checked system the test references run on (for the loop in ``header["loop"]``).
+        test_refs: the held-out references every point is measured on.
+        progress: a display to show the interaction count and the last MAE on, or None.
+        budget: the run's budget in interaction steps (the progress bar's total).
+    """
+
+    def __init__(
+        self,
+        header: dict[str, Any],
+        path: Path,
+        system: BatchedSystem,
+        test_refs: list[Reference],
+        progress: ProgressDisplay | None,
+        budget: int,
+    ) -> None:
+        self.header, self.path, self.system, self.test_refs, self.progress = header, path, system, test_refs, progress
+        self.curve: list[dict[str, Any]] = []
+        self.start = time.perf_counter()
+        self.evaluating = 0.0
+        """Seconds spent evaluating, left out of the wall time."""
+        label = f"{header['method']} {header['loop']} (steps)"
+        self.task = None if progress is None else progress.add_task(label, total=budget)
+        write_json(path, {**header, "curve": self.curve})
+
+    def measure(self, act: Callable[[np.ndarray], np.ndarray], count: int) -> None:
+        """Run the deterministic policy ``act`` on the test references; append the point and write the file.
+
+        Args:
+            act: observations (N, 332) float32 → actions (N, 4) in [−1, 1] (:func:`efficienttrack.envs.evaluate`).
+            count: the interaction steps trained so far.
+        """
+        began = time.perf_counter()
+        records = evaluate(act, self.test_refs, loop=self.header["loop"], system=self.system)
+        metrics = compute_metrics(records)
+        self.curve.append(
+            {"interaction_steps": count, "wall_seconds": began - self.start - self.evaluating, "metrics": metrics}
+        )
+        write_json(self.path, {**self.header, "curve": self.curve})
+        self.evaluating += time.perf_counter() - began
+        if self.progress is not None and self.task is not None:
+            self.progress.update(self.task, mae_deg=metrics["mae_deg"])
+
+    def show(self, count: int) -> None:
+        """Show the interaction count on the progress display."""
+        if self.progress is not None and self.task is not None:
+            self.progress.update(self.task, completed=count)
+
+    def close(self) -> None:
+        """Stop showing the task."""
+        if self.progress is not None and self.task is not None:
+            self.progress.remove_task(self.task)
+
+
+def check_refs(refs: Sequence[Reference], name: str, min_steps: int = 2) -> list[Reference]:
+    """The references as a list, each a :class:`Reference` of at least ``min_steps`` steps.
+
+    Args:
+        refs: the references given.
+        name: the argument's name, for errors.
+        min_steps: fewest positions a reference may have.
+
+    Returns:
+        The references.
+
+    Raises:
+        EfficientTrackError: none given, something else than a Reference, or a reference that is too short.
+    """
+    refs = list(refs)
+    if not refs:
+        raise EfficientTrackError(f"{name}: no references given")
+    for ref in refs:
+        if not isinstance(ref, Reference):
+            raise EfficientTrackError(f"{name}: expected References (efficienttrack.references), got {type(ref).__name__}")
+        if len(ref) < min_steps:
+            raise EfficientTrackError(f"{name}: reference '{ref.name}' has {len(ref)} steps, needs at least {min_steps}")
+    return refs
