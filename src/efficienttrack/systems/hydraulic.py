@@ -520,6 +520,35 @@ class HydraulicExcavator:
         self.state = state._replace(q=q, qd=qd)
         return self._obs()
 
+    def reset_machines(self, index: np.ndarray, q0: np.ndarray) -> np.ndarray:
+        """Reset some of the N machines at rest at ``q0``; the others keep their state (a vector env's autoreset).
+
+        Args:
+            index: (K,) int, which machines (of a batched reset).
+            q0: (K, 4) rad, their start positions.
+
+        Returns:
+            (K, 8) [rad, rad/s], their observations.
+        """
+        if self.state is None or self._single:
+            raise EfficientTrackError("hydraulic simulator: reset_machines needs a batched reset (N, 4) first")
+        index = np.asarray(index, dtype=np.int64)
+        q0 = np.asarray(q0, dtype=np.float64)
+        if q0.shape != (len(index), N_JOINTS):
+            raise EfficientTrackError(
+                f"hydraulic simulator: reset_machines expects q0 of shape ({len(index)}, 4), got {q0.shape}"
+            )
+        fresh = initial_state(q0, self.params)
+        q, qd = within_limits(fresh.q, fresh.qd, self.params)
+        fresh = fresh._replace(q=q, qd=qd)
+        merged = []
+        for old, new in zip(self.state, fresh, strict=True):
+            field = old.copy()
+            field[index] = new
+            merged.append(field)
+        self.state = HydraulicState(*merged)
+        return observe(fresh, self.params, self._rng if self.sensor_noise else None)
+
     def step(self, u: np.ndarray) -> np.ndarray:
         """Apply PWM ``u`` (4,)/(N, 4) for one period; return obs (8,)/(N, 8)."""
         if self.state is None:

@@ -140,6 +140,7 @@ class ClosedLoop:
         self.last_command: np.ndarray | None = None
         self._q: np.ndarray | None = None
         self._e_prev: np.ndarray | None = None
+        self._restarted: np.ndarray | None = None
 
     @property
     def limits(self) -> Any:
@@ -151,14 +152,42 @@ class ClosedLoop:
         obs = np.asarray(self.plant.reset(q0), dtype=np.float64)
         self._q = obs[..., :4]
         self._e_prev = None
+        self._restarted = None
         self.last_command = None
+        return obs
+
+    def reset_machines(self, index: np.ndarray, q0: np.ndarray) -> np.ndarray:
+        """Reset some of the N machines at ``q0`` (the plant's ``reset_machines``); the others keep running.
+
+        Their next step is an episode's first (``e_prev = e``), exactly as after :meth:`reset`.
+
+        Args:
+            index: (K,) int, which machines (of a batched reset).
+            q0: (K, 4) rad, their start positions.
+
+        Returns:
+            (K, 8) [rad, rad/s], their observations.
+        """
+        if self._q is None or self._q.ndim != 2:
+            raise EfficientTrackError("ClosedLoop.reset_machines needs a batched reset (N, 4) first")
+        if not callable(getattr(self.plant, "reset_machines", None)):
+            raise EfficientTrackError("ClosedLoop.reset_machines: the plant cannot reset single machines (no reset_machines)")
+        index = np.asarray(index, dtype=np.int64)
+        obs = np.asarray(self.plant.reset_machines(index, q0), dtype=np.float64)
+        self._q = self._q.copy()
+        self._q[index] = obs[:, :4]
+        self._restarted = np.zeros(len(self._q), dtype=bool) if self._restarted is None else self._restarted.copy()
+        self._restarted[index] = True
         return obs
 
     def step(self, q_ref: np.ndarray) -> np.ndarray:
         """Track ``q_ref`` (4,)/(N, 4) rad for one step; return obs (8,)/(N, 8)."""
         if self._q is None:
             raise EfficientTrackError("ClosedLoop.step called before reset")
-        u, e = self.gains.step(q_ref, self._q, self._e_prev)
+        e_prev = self._e_prev
+        if self._restarted is not None and e_prev is not None:  # machines restarted by reset_machines: e_prev = e
+            e_prev = np.where(self._restarted[:, None], wrap(np.asarray(q_ref, dtype=np.float64) - self._q), e_prev)
+        u, e = self.gains.step(q_ref, self._q, e_prev)
         obs = np.asarray(self.plant.step(u), dtype=np.float64)
-        self._e_prev, self._q, self.last_command = e, obs[..., :4], u
+        self._e_prev, self._q, self.last_command, self._restarted = e, obs[..., :4], u, None
         return obs

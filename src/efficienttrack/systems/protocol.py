@@ -24,7 +24,10 @@ time. A closed-loop system may expose ``last_command`` (the PWM it applied in th
 ``(4,)``/``(N, 4)``); it is recorded when present. It may expose ``limits`` (a
 :class:`~efficienttrack.systems.limits.GuardLimits` or a mapping of its fields): the joint limits and adjustment
 bounds the runtime guard enforces; without it the guard uses
-:data:`~efficienttrack.systems.limits.DEFAULT_LIMITS`.
+:data:`~efficienttrack.systems.limits.DEFAULT_LIMITS`. A batched system may offer
+``reset_machines(index (K,), q0 (K, 4)) -> obs (K, 8)``: reset some machines while the others keep
+their state; the vector environment (:mod:`efficienttrack.envs`) needs it to start one sub-environment's
+next episode while the others run on (the built-in simulator and PD loop have it).
 
 Loading a system by name or import path: :mod:`efficienttrack.systems.spec`.
 """
@@ -109,6 +112,43 @@ class BatchedSystem:
         self._check_batch(len(q0))
         self._n = len(q0)
         return self._checked(self.system.reset(q0 if self.batched else q0[0]), "reset")
+
+    @property
+    def resets_machines(self) -> bool:
+        """Whether some machines can be reset while the others run on (:meth:`reset_machines`)."""
+        return self.max_batch == 1 or callable(getattr(self.system, "reset_machines", None))
+
+    def reset_machines(self, index: np.ndarray, q0: np.ndarray) -> np.ndarray:
+        """Reset the machines ``index`` (K,) at ``q0`` (K, 4) rad, the others keep running → their obs (K, 8).
+
+        All N at once is a plain :meth:`reset`; otherwise the system's own ``reset_machines`` does it.
+        """
+        index = np.asarray(index, dtype=np.int64)
+        q0 = np.asarray(q0, dtype=np.float64)
+        if (
+            q0.shape != (len(index), N_JOINTS)
+            or len(np.unique(index)) != len(index)
+            or np.any((index < 0) | (index >= self._n))
+        ):
+            raise EfficientTrackError(
+                f"{self.name}: reset_machines expects distinct indices below N = {self._n} and q0 of shape (K, 4), "
+                f"got {index.tolist()} and {q0.shape}"
+            )
+        if len(index) == self._n:
+            return self.reset(q0[np.argsort(index)])[index]
+        if not self.resets_machines:
+            raise EfficientTrackError(f"{self.name}: cannot reset single machines of a batch (it has no 'reset_machines')")
+        obs = self.system.reset_machines(index, q0)
+        try:
+            obs = np.asarray(obs, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise EfficientTrackError(f"{self.name}: reset_machines returned something that is not a numeric array") from exc
+        if obs.shape != (len(index), OBS_DIM) or not np.all(np.isfinite(obs)):
+            raise EfficientTrackError(
+                f"{self.name}: reset_machines returned obs of shape {obs.shape} (expected ({len(index)}, 8)) "
+                "or non-finite values"
+            )
+        return obs
 
     def step(self, x: np.ndarray) -> np.ndarray:
         """Step N machines with ``x`` (N, 4) (PWM or q_ref) → obs (N, 8)."""

@@ -1,0 +1,205 @@
+"""The settings of the Stable-Baselines3 baselines: one frozen dataclass per method, presets ``full`` and ``quick``.
+
+``full`` is the paper's setup where the paper states it (PPO: 16 parallel environments; SAC: a replay buffer of
+100,000 transitions) and Stable-Baselines3's own defaults (SB3 2.x, ``MlpPolicy``) for everything else; each field's
+docstring says which. ``quick`` shrinks networks, rollouts and batches so that a few thousand interaction steps take
+seconds on a CPU (tests and smoke runs; its curves say nothing about the methods).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from stable_baselines3 import PPO, SAC
+from stable_baselines3.common.vec_env import VecEnv
+
+from efficienttrack.errors import EfficientTrackError
+
+
+def _check_count(value: object, field: str) -> None:
+    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+        raise EfficientTrackError(f"{field}: must be an integer ≥ 1, got {value!r}")
+
+
+def _check_positive(value: object, field: str) -> None:
+    if not isinstance(value, int | float) or isinstance(value, bool) or not (math.isfinite(value) and value > 0):
+        raise EfficientTrackError(f"{field}: must be a finite number > 0, got {value!r}")
+
+
+def _check_fraction(value: object, field: str) -> None:
+    if not isinstance(value, int | float) or isinstance(value, bool) or not 0 <= value <= 1:
+        raise EfficientTrackError(f"{field}: must be a number in [0, 1], got {value!r}")
+
+
+def _check_common(settings: PPOSettings | SACSettings, name: str) -> None:
+    _check_count(settings.n_envs, f"{name}.n_envs")
+    _check_count(settings.batch_size, f"{name}.batch_size")
+    _check_positive(settings.learning_rate, f"{name}.learning_rate")
+    _check_fraction(settings.gamma, f"{name}.gamma")
+    if not settings.net_arch:
+        raise EfficientTrackError(f"{name}.net_arch: needs at least one hidden layer, got {settings.net_arch!r}")
+    for width in settings.net_arch:
+        _check_count(width, f"{name}.net_arch")
+    if not isinstance(settings.device, str) or not settings.device:
+        raise EfficientTrackError(f"{name}.device: must be 'auto', 'cpu', 'cuda' or 'cuda:<i>', got {settings.device!r}")
+
+
+@dataclass(frozen=True)
+class PPOSettings:
+    """Settings of PPO (SB3's ``PPO`` with an ``MlpPolicy``): the paper's where it gives them, SB3's defaults otherwise."""
+
+    n_envs: int = 16
+    """Parallel environments stepping together (the paper: 16 workers; SB3 has no default, it takes the env given)."""
+    n_steps: int = 2048
+    """Steps per environment in one rollout, so a rollout is ``n_envs · n_steps`` interaction steps (SB3 default)."""
+    batch_size: int = 64
+    """Minibatch size of the updates (SB3 default)."""
+    n_epochs: int = 10
+    """Passes over each rollout (SB3 default)."""
+    learning_rate: float = 3e-4
+    """Adam learning rate, constant (SB3 default)."""
+    gamma: float = 0.99
+    """Discount factor (SB3 default)."""
+    gae_lambda: float = 0.95
+    """λ of generalized advantage estimation (SB3 default)."""
+    clip_range: float = 0.2
+    """PPO's clip range ε (SB3 default)."""
+    ent_coef: float = 0.0
+    """Entropy bonus coefficient (SB3 default)."""
+    vf_coef: float = 0.5
+    """Value-loss coefficient (SB3 default)."""
+    max_grad_norm: float = 0.5
+    """Gradient-norm clip (SB3 default)."""
+    net_arch: tuple[int, ...] = (64, 64)
+    """Hidden layers of the policy and (separately) of the value network, tanh (SB3's default ``MlpPolicy``)."""
+    device: str = "auto"
+    """Torch device: ``"auto"`` takes CUDA when present, else the CPU (SB3 default)."""
+
+    def __post_init__(self) -> None:
+        """Check the values (EfficientTrackError naming the field)."""
+        _check_common(self, "ppo")
+        _check_count(self.n_steps, "ppo.n_steps")
+        _check_count(self.n_epochs, "ppo.n_epochs")
+        if self.n_steps * self.n_envs < 2:
+            raise EfficientTrackError("ppo.n_steps: a rollout (n_steps · n_envs) needs at least 2 steps")
+        _check_fraction(self.gae_lambda, "ppo.gae_lambda")
+        _check_positive(self.clip_range, "ppo.clip_range")
+        for field in ("ent_coef", "vf_coef"):
+            value = getattr(self, field)
+            if not isinstance(value, int | float) or not (math.isfinite(value) and value >= 0):
+                raise EfficientTrackError(f"ppo.{field}: must be a finite number ≥ 0, got {value!r}")
+        _check_positive(self.max_grad_norm, "ppo.max_grad_norm")
+
+    def build(self, env: VecEnv, seed: int) -> PPO:
+        """A fresh SB3 ``PPO`` with these settings on ``env``, seeded (SB3 seeds Python, numpy, torch and the env).
+
+        Args:
+            env: the vectorized environment; its ``num_envs`` must equal :attr:`n_envs`.
+            seed: the seed.
+
+        Returns:
+            The untrained model.
+        """
+        options = {k: v for k, v in asdict(self).items() if k not in ("n_envs", "net_arch", "device")}
+        policy_kwargs = {"net_arch": list(self.net_arch)}
+        return PPO("MlpPolicy", env, seed=seed, device=self.device, policy_kwargs=policy_kwargs, verbose=0, **options)
+
+
+@dataclass(frozen=True)
+class SACSettings:
+    """Settings of SAC (SB3's ``SAC`` with an ``MlpPolicy``): the paper's where it gives them, SB3's defaults otherwise."""
+
+    n_envs: int = 1
+    """Parallel environments (the paper does not say; one, as SB3's SAC examples use)."""
+    buffer_size: int = 100_000
+    """Replay buffer capacity in transitions (the paper: 100,000; SB3's default is 1,000,000)."""
+    learning_starts: int = 100
+    """Interaction steps of random actions before the first update (SB3 default)."""
+    batch_size: int = 256
+    """Minibatch size of each update (SB3 default)."""
+    learning_rate: float = 3e-4
+    """Adam learning rate of actor, critics and entropy coefficient (SB3 default)."""
+    gamma: float = 0.99
+    """Discount factor (SB3 default)."""
+    tau: float = 0.005
+    """Polyak coefficient of the target critics (SB3 default)."""
+    train_freq: int = 1
+    """Environment steps (per environment) between updates (SB3 default)."""
+    gradient_steps: int = 1
+    """Gradient steps per update (SB3 default)."""
+    ent_coef: float | None = None
+    """Entropy coefficient α; None learns it from an initial 1.0 towards the target entropy −dim(A) (SB3's ``"auto"``)."""
+    net_arch: tuple[int, ...] = (256, 256)
+    """Hidden layers of the actor and of each critic, ReLU (SB3's default for SAC)."""
+    device: str = "auto"
+    """Torch device: ``"auto"`` takes CUDA when present, else the CPU (SB3 default)."""
+
+    def __post_init__(self) -> None:
+        """Check the values (EfficientTrackError naming the field)."""
+        _check_common(self, "sac")
+        for field in ("buffer_size", "train_freq", "gradient_steps"):
+            _check_count(getattr(self, field), f"sac.{field}")
+        if not isinstance(self.learning_starts, int) or isinstance(self.learning_starts, bool) or self.learning_starts < 0:
+            raise EfficientTrackError(f"sac.learning_starts: must be an integer ≥ 0, got {self.learning_starts!r}")
+        _check_fraction(self.tau, "sac.tau")
+        if self.ent_coef is not None:
+            _check_positive(self.ent_coef, "sac.ent_coef")
+
+    def build(self, env: VecEnv, seed: int) -> SAC:
+        """A fresh SB3 ``SAC`` with these settings on ``env``, seeded (SB3 seeds Python, numpy, torch and the env).
+
+        Args:
+            env: the vectorized environment; its ``num_envs`` must equal :attr:`n_envs`.
+            seed: the seed.
+
+        Returns:
+            The untrained model.
+        """
+        options: dict[str, Any] = {k: v for k, v in asdict(self).items() if k not in ("n_envs", "net_arch", "device")}
+        options["ent_coef"] = "auto" if self.ent_coef is None else self.ent_coef
+        policy_kwargs = {"net_arch": list(self.net_arch)}
+        return SAC("MlpPolicy", env, seed=seed, device=self.device, policy_kwargs=policy_kwargs, verbose=0, **options)
+
+
+PPO_PRESETS: dict[str, PPOSettings] = {
+    "full": PPOSettings(),
+    "quick": PPOSettings(n_envs=4, n_steps=32, batch_size=32, n_epochs=2, net_arch=(32, 32)),
+}
+"""PPO's presets: ``full`` (the paper's 16 environments, SB3's defaults) and ``quick`` (tiny, for tests)."""
+
+SAC_PRESETS: dict[str, SACSettings] = {
+    "full": SACSettings(),
+    "quick": SACSettings(buffer_size=10_000, learning_starts=50, batch_size=32, net_arch=(32, 32)),
+}
+"""SAC's presets: ``full`` (the paper's 100,000-transition buffer, SB3's defaults) and ``quick`` (tiny, for tests)."""
+
+PRESETS: dict[str, dict[str, PPOSettings] | dict[str, SACSettings]] = {"ppo": PPO_PRESETS, "sac": SAC_PRESETS}
+"""Presets by method name, then preset name."""
+
+
+def method_settings(method: str, preset: str | PPOSettings | SACSettings = "full") -> PPOSettings | SACSettings:
+    """The settings of ``method`` by preset name, or ``preset`` itself when it is a settings object of that method.
+
+    Args:
+        method: ``"ppo"`` or ``"sac"``.
+        preset: ``"full"``, ``"quick"``, or a :class:`PPOSettings` / :class:`SACSettings` of the method.
+
+    Returns:
+        The settings.
+
+    Raises:
+        EfficientTrackError: an unknown method or preset, or settings of the other method.
+    """
+    if method not in PRESETS:
+        raise EfficientTrackError(f"method '{method}': unknown baseline (known: {', '.join(PRESETS)})")
+    presets = PRESETS[method]
+    if isinstance(preset, str):
+        if preset not in presets:
+            raise EfficientTrackError(f"preset '{preset}': unknown for {method} (known: {', '.join(presets)})")
+        return presets[preset]
+    expected = type(presets["full"])
+    if not isinstance(preset, expected):
+        raise EfficientTrackError(f"preset: {method} takes a preset name or {expected.__name__}, got {type(preset).__name__}")
+    return preset

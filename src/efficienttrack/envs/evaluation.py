@@ -1,0 +1,103 @@
+"""A deterministic agent on every reference once, all at once on the batched system, as episode records to score.
+
+:func:`evaluate` is how a baseline trained on the environments is measured exactly like EfficientTrack: the agent
+sees the environments' observations (:func:`efficienttrack.envs.core.observe`), its actions are applied as the
+environments apply them (:class:`efficienttrack.envs.core.ActionMap`), and the episodes run in the one episode loop
+(:func:`efficienttrack.episodes.rollout`), so that :func:`efficienttrack.metrics.compute_metrics` scores the records.
+With ``act`` returning zeros the closed loop is the PD controller alone, record for record.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from efficienttrack.envs.core import (
+    FUTURE,
+    HISTORY,
+    ActionMap,
+    RefsArg,
+    check_actions,
+    observe,
+    open_system,
+    resolve_references,
+)
+from efficienttrack.episodes import STEP_TIMEOUT, Sent, batches, rollout
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.records import EpisodeRecord
+from efficienttrack.systems.protocol import BatchedSystem
+from efficienttrack.systems.spec import SystemSpec
+from efficienttrack.windows import History, push_observation, push_reference
+
+Act = Callable[[np.ndarray], np.ndarray]
+"""A deterministic agent: observations (N, D) float32 → actions (N, 4) in [−1, 1] (anything ``np.asarray`` takes)."""
+
+
+class _AgentDriver:
+    """The driver of :func:`rollout` that asks the agent for each step's action, keeping the environments' histories."""
+
+    def __init__(self, act: Act, actions: ActionMap, history: int, future: int) -> None:
+        self._act = act
+        self._actions = actions
+        self._h, self._f = history, future
+        self._history: History | None = None
+
+    def start(self, obs0: np.ndarray) -> None:
+        self._history = self._actions.start_history(obs0, self._h)
+
+    def step(self, obs: np.ndarray, q_des_future: np.ndarray) -> Sent:
+        history = push_observation(self._history, obs)
+        n = len(obs)
+        a = check_actions(self._act(observe(history, q_des_future[:, : self._f])), n)
+        command = self._actions.command(a, q_des_future[:, 0])
+        self._history = push_reference(history, command.remembered)
+        return Sent(q_ref=command.sent, adjustment=command.adjustment, fallback=np.zeros(n, dtype=bool))
+
+
+def evaluate(
+    act: Act,
+    refs: RefsArg,
+    loop: str = "closed",
+    system: SystemSpec | BatchedSystem | None = None,
+    history: int = HISTORY,
+    future: int = FUTURE,
+    step_timeout: float | None = STEP_TIMEOUT,
+) -> list[EpisodeRecord]:
+    """Run a deterministic agent on every reference once, all together on the batched system.
+
+    Args:
+        act: observations (N, D) float32 → actions (N, 4) in [−1, 1] (clipped into it); N = the references run
+            together.
+        refs: a folder of references, a list of :class:`~efficienttrack.references.Reference`, or None for the
+            environments' default (8 generated loading cycles, seed 0).
+        loop: ``"closed"`` (the action adjusts the PD controller's reference) or ``"open"`` (the action is PWM / 1000).
+        system: the spec of the system (default ``SystemSpec()``, the built-in ``xe75``), or the already-opened system
+            to step (the closed loop, or the plant for the open loop).
+        history: h, as the agent was trained with.
+        future: F, as the agent was trained with.
+        step_timeout: seconds a system step may take (:func:`~efficienttrack.episodes.rollout`); None: no limit.
+
+    Returns:
+        One record per reference, in order: q, qd (T, 4) measured; q_ref (T, 4) rad, the reference sent (closed loop)
+        or the desired position q*_{t+1} (open loop); q_des (T, 4) rad; u (T, 4) PWM (the PD controller's, or the
+        agent's), None when the system does not expose it; t (T,) s; meta ``name``, ``loop``, ``fallbacks`` (0).
+    """
+    refs = resolve_references(refs)
+    system = open_system(loop, SystemSpec() if system is None else system) if not isinstance(system, BatchedSystem) else system
+    if history < 1 or future < 1:
+        raise EfficientTrackError(f"history and future must be ≥ 1, got {history} and {future}")
+    actions = ActionMap(loop, system)
+    if actions.loop == "closed":
+        for ref in refs:
+            system.limits.check_reference(ref.q, ref.name)
+    records: list[EpisodeRecord] = []
+    for part in batches(system, len(refs)):
+        driver = _AgentDriver(act, actions, history, future)
+        part_records = rollout(system, [ref.q for ref in refs[part]], driver, future, step_timeout=step_timeout)
+        for record, ref in zip(part_records, refs[part], strict=True):
+            if actions.loop == "open":  # what was sent is the PWM; the reference is the desired position
+                record.u, record.q_ref = record.q_ref, record.q_des.copy()
+            record.meta.update(name=ref.name, loop=actions.loop)
+        records += part_records
+    return records

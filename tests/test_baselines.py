@@ -1,0 +1,164 @@
+"""The SB3 baselines: the VecEnv adapter equals N single environments, PPO and SAC train and give seeded curves."""
+
+import io
+import json
+import math
+
+import numpy as np
+import pytest
+from gymnasium.vector import SyncVectorEnv
+from stable_baselines3.common.vec_env import DummyVecEnv
+
+from efficienttrack.baselines import PPOSettings, SACSettings, SB3VecEnv, default_eval_points, method_settings, train_baseline
+from efficienttrack.cycles import generate_references
+from efficienttrack.envs import TrackingEnv, TrackingVectorEnv
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.metrics import METRIC_KEYS
+from efficienttrack.progress import ProgressDisplay
+from efficienttrack.references import Reference
+from efficienttrack.systems.spec import SystemSpec
+
+TINY_PPO = PPOSettings(n_envs=2, n_steps=16, batch_size=16, n_epochs=1, net_arch=(8,), device="cpu")
+TINY_SAC = SACSettings(buffer_size=1000, learning_starts=20, batch_size=8, net_arch=(8,), device="cpu")
+
+
+@pytest.fixture(scope="module")
+def refs():
+    """Two training and two test references, cut short (40 and 30 steps) to keep training and evaluation fast."""
+    cycles = generate_references(4, seed=1)
+    return [Reference(r.name, r.q[:40]) for r in cycles[:2]], [Reference(r.name, r.q[:30]) for r in cycles[2:]]
+
+
+def test_default_eval_points():
+    assert default_eval_points(1500) == [1, 2, 5, 10, 20, 50, 100, 200, 500, 1000, 1500]
+    assert default_eval_points(1000) == [1, 2, 5, 10, 20, 50, 100, 200, 500, 1000]
+    assert default_eval_points(1) == [1]
+
+
+def test_vec_env_equals_single_environments():
+    refs = [Reference(r.name, r.q[: 12 + 3 * i]) for i, r in enumerate(generate_references(3, seed=2))]
+    n = 3
+    ours = SB3VecEnv(TrackingVectorEnv(n, refs=refs))
+    singles = DummyVecEnv([lambda: TrackingEnv(refs=refs) for _ in range(n)])
+    ours.seed(7)
+    singles.seed(7)
+    np.testing.assert_array_equal(ours.reset(), singles.reset())
+    assert ours.observation_space == singles.observation_space and ours.action_space == singles.action_space
+    actions = np.random.default_rng(0).uniform(-1, 1, (40, n, 4)).astype(np.float32)
+    ended = 0
+    for a in actions:
+        obs, rewards, dones, infos = ours.step(a)
+        obs_s, rewards_s, dones_s, infos_s = singles.step(a)
+        np.testing.assert_array_equal(obs, obs_s)
+        np.testing.assert_allclose(rewards, rewards_s, rtol=1e-6)
+        assert rewards.dtype == np.float32 and dones.dtype == bool and obs.shape == (n, 332)
+        np.testing.assert_array_equal(dones, dones_s)
+        for i in range(n):
+            assert infos[i].keys() == infos_s[i].keys()
+            for key, value in infos[i].items():
+                np.testing.assert_array_equal(value, infos_s[i][key], err_msg=key)
+            assert infos[i]["TimeLimit.truncated"] == bool(dones[i])  # a reference's end is a truncation
+            assert ("terminal_observation" in infos[i]) == bool(dones[i])
+        for i in range(n):
+            assert ours.reset_infos[i].keys() == singles.reset_infos[i].keys()
+        ended += int(dones.sum())
+    assert ended >= n  # every environment finished at least one episode
+
+
+def test_vec_env_needs_same_step_autoreset():
+    with pytest.raises(EfficientTrackError, match="SAME_STEP"):
+        SB3VecEnv(SyncVectorEnv([lambda: TrackingEnv() for _ in range(2)]))
+
+
+def finite(metrics):
+    return all(math.isfinite(metrics[key]) for key in METRIC_KEYS if key != "per_joint_mae_deg")
+
+
+QUICK_RUNS = [("ppo", [1, 64, 256], [4, 64, 256]), ("sac", [1, 60, 200], [1, 60, 200])]
+"""(method, eval_at, the interaction counts measured): PPO's quick preset steps 4 environments at a time."""
+
+
+@pytest.mark.parametrize(("method", "eval_at", "measured"), QUICK_RUNS)
+def test_quick_preset_trains_on_the_closed_loop(refs, tmp_path, method, eval_at, measured):
+    train, test = refs
+    budget = measured[-1]
+    curve = train_baseline(method, "closed", SystemSpec(), train, test, budget, 0, tmp_path, preset="quick", eval_at=eval_at)
+    assert [p["interaction_steps"] for p in curve] == measured
+    assert all(finite(p["metrics"]) and p["metrics"]["episodes"] == len(test) for p in curve)
+    walls = [p["wall_seconds"] for p in curve]
+    assert walls == sorted(walls) and walls[0] >= 0
+    written = json.loads((tmp_path / "curve.json").read_text())
+    assert (written["method"], written["loop"], written["seed"]) == (method, "closed", 0)
+    assert written["curve"] == json.loads(json.dumps(curve))
+    assert written["settings"]["n_envs"] == method_settings(method, "quick").n_envs
+    assert (tmp_path / "model.zip").stat().st_size > 0
+
+
+def test_open_loop_trains_with_default_points_and_progress(refs, tmp_path):
+    train, test = refs
+    stream = io.StringIO()
+    with ProgressDisplay(stream=stream, interval=0) as bar:
+        curve = train_baseline("ppo", "open", SystemSpec(plant="xe75"), train, test, 40, 1, tmp_path, TINY_PPO, progress=bar)
+    # default points 1, 2, 5, 10, 20, 40, met when the count (2 environments) first reaches them
+    assert [p["interaction_steps"] for p in curve] == [2, 6, 10, 20, 40]
+    assert all(finite(p["metrics"]) for p in curve)
+    assert "ppo open (steps) 40/40 mae_deg" in stream.getvalue()
+
+
+@pytest.mark.parametrize("method", ["ppo", "sac"])
+def test_same_seed_same_curve(refs, tmp_path, method):
+    train, test = refs
+    settings, budget = (TINY_PPO, 48) if method == "ppo" else (TINY_SAC, 40)  # past PPO's first update, SAC's first steps
+
+    def metrics(seed, name):
+        curve = train_baseline(method, "closed", SystemSpec(), train, test, budget, seed, tmp_path / name, settings, [budget])
+        return curve[-1]["metrics"]
+
+    first = metrics(3, "a")
+    assert metrics(3, "b") == first
+    assert metrics(4, "c") != first
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"method": "td3"}, "method 'td3': unknown"),
+        ({"loop": "half"}, "loop 'half': unknown"),
+        ({"budget": 0}, "budget: must be an integer ≥ 1"),
+        ({"budget": 2.5}, "budget: must be an integer ≥ 1"),
+        ({"eval_at": [5, 101]}, r"eval_at: each point must be an integer in \[1, budget = 100\], got 101"),
+        ({"eval_at": []}, "eval_at: no evaluation point given"),
+        ({"preset": "huge"}, "preset 'huge': unknown for ppo"),
+        ({"preset": TINY_SAC}, "ppo takes a preset name or PPOSettings, got SACSettings"),
+        ({"seed": -1}, "seed: a seed must be an integer"),
+        ({"train_refs": []}, "train_refs: no references given"),
+    ],
+)
+def test_bad_input_is_refused_before_training(refs, tmp_path, change, message):
+    args = {"method": "ppo", "loop": "closed", "system": SystemSpec(), "train_refs": refs[0], "test_refs": refs[1]}
+    args |= {"budget": 100, "seed": 0, "folder": tmp_path / "out", "preset": "quick", "eval_at": None} | change
+    with pytest.raises(EfficientTrackError, match=message):
+        train_baseline(**args)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    ("settings", "message"),
+    [
+        (lambda: PPOSettings(n_envs=0), "ppo.n_envs: must be an integer ≥ 1"),
+        (lambda: PPOSettings(gamma=1.5), r"ppo.gamma: must be a number in \[0, 1\]"),
+        (lambda: PPOSettings(net_arch=()), "ppo.net_arch: needs at least one hidden layer"),
+        (lambda: SACSettings(learning_rate=float("nan")), "sac.learning_rate: must be a finite number > 0"),
+        (lambda: SACSettings(learning_starts=-1), "sac.learning_starts: must be an integer ≥ 0"),
+        (lambda: SACSettings(ent_coef=0.0), "sac.ent_coef: must be a finite number > 0"),
+    ],
+)
+def test_bad_settings_name_the_field(settings, message):
+    with pytest.raises(EfficientTrackError, match=message):
+        settings()
+
+
+def test_presets_keep_the_papers_settings():
+    assert method_settings("ppo").n_envs == 16
+    assert method_settings("sac").buffer_size == 100_000
+    assert method_settings("ppo", "quick").n_envs < 16 and method_settings("sac", "quick").net_arch == (32, 32)
