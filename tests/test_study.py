@@ -39,11 +39,11 @@ def tiny_study(refs, budget=None):
 
 @pytest.fixture(scope="module")
 def finished(tmp_path_factory, refs):
-    """PD and EfficientTrack (one collection pass) run in this process."""
+    """PD, EfficientTrack (one collection pass) and PPO (closed and open loop, the quick settings) run in this process."""
     out = tmp_path_factory.mktemp("study")
     study = tiny_study(refs)
     lines = []
-    result = run_study(study, make_jobs(study, ["pd", "efficienttrack"]), out, log=lines.append)
+    result = run_study(study, make_jobs(study, ["pd", "efficienttrack", "ppo"], ["closed", "open"]), out, log=lines.append)
     return out, study, result, lines
 
 
@@ -99,15 +99,15 @@ def test_sb3_methods_are_registered_with_both_loops():
 
 def test_study_writes_table_json_and_figure(finished):
     out, study, result, lines = finished
-    assert result.ran == ("pd-closed-s0", "efficienttrack-closed-s0") and not result.failed and not result.skipped
-    assert lines[0].endswith("2 jobs, 0 finished earlier (skipped), 2 to run (local)")
-    assert "efficienttrack-closed-s0 done in" in lines[-1] and "at 118 interaction steps" in lines[-1]
+    names = ("pd-closed-s0", "efficienttrack-closed-s0", "ppo-closed-s0", "ppo-open-s0")
+    assert result.ran == names and not result.failed and not result.skipped
+    assert lines[0].endswith("4 jobs, 0 finished earlier (skipped), 4 to run (local)")
+    assert lines[2].startswith("[2/4] efficienttrack-closed-s0 done in") and lines[2].endswith("at 118 interaction steps")
     entries = json.loads((out / "study.json").read_text())
     assert [(e["method"], e["loop"], e["seeds"]) for e in entries] == [
-        ("pd", "closed", [0]),
-        ("efficienttrack", "closed", [0]),
-    ]
-    pd, et = entries
+        ("pd", "closed", [0]), ("efficienttrack", "closed", [0]), ("ppo", "closed", [0]), ("ppo", "open", [0])
+    ]  # fmt: skip
+    pd, et, ppo, _ = entries
     assert pd["interaction_steps"] == 0 and pd["interaction_hours"] == 0
     assert et["interaction_steps"] == 118 and et["interaction_hours"] == pytest.approx(118 / 20 / 3600)
     for entry in entries:
@@ -116,6 +116,8 @@ def test_study_writes_table_json_and_figure(finished):
         assert entry["episodes"] == 1 and len(entry["per_joint_mae_deg"]) == 4
         assert entry["mae_deg"] == min(p["mae_deg"] for p in entry["curves"][0]["points"])
     assert et["mae_deg"] != pd["mae_deg"]
+    # PPO (4 environments, the quick preset) is evaluated at 1, 2, 5, 10, 20, 50, 100 steps, as multiples of 4, and at 118
+    assert [p["interaction_steps"] for p in ppo["curve"]] == [4, 8, 12, 20, 52, 100, 120]
     # the job's own record of its curve, and the run folder of its one pass count
     job = json.loads((out / "jobs" / "efficienttrack-closed-s0" / "result.json").read_text())
     assert [p["passes"] for p in job["curve"]] == [1] and job["seed"] == 0
@@ -124,7 +126,9 @@ def test_study_writes_table_json_and_figure(finished):
     config = json.loads((out / "study_config.json").read_text())
     assert config["budget"] == 118 and config["preset"] == "quick" and config["system"]["system"] == "xe75"
     table = (out / "study.md").read_text()
-    assert "| PD | closed | 1 | 0 |" in table and "| EfficientTrack | closed | 1 | 118 |" in table
+    assert (
+        "| PD | closed | 1 | 0 |" in table and "| EfficientTrack | closed | 1 | 118 |" in table and "| PPO | open |" in table
+    )
     header = (out / "study.csv").read_text().splitlines()[0].split(",")
     assert header[:4] == ["method", "loop", "seeds", "interaction_steps"] and {f"{m}_std" for m in METRICS} <= set(header)
     assert (out / "study.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -208,8 +212,9 @@ def test_ray_executor_on_a_local_instance(finished, refs, tmp_path):
     result = run_study(study, make_jobs(study, ["pd", "efficienttrack"]), tmp_path, executor="ray", log=lambda line: None)
     assert not ray.is_initialized()
     assert sorted(result.ran) == ["efficienttrack-closed-s0", "pd-closed-s0"] and not result.failed
-    local = {e["method"]: e["mae_deg"] for e in finished[2].report.entries}
-    assert {e["method"]: e["mae_deg"] for e in result.report.entries} == pytest.approx(local)  # seeded: as in this process
+    local = {e["method"]: e["mae_deg"] for e in finished[2].report.entries if e["loop"] == "closed"}
+    ray_maes = {e["method"]: e["mae_deg"] for e in result.report.entries}
+    assert ray_maes == pytest.approx({name: local[name] for name in ray_maes})  # seeded: as in this process
     assert (tmp_path / "study.png").is_file() and (tmp_path / "jobs" / "efficienttrack-closed-s0" / "job.log").is_file()
 
 

@@ -29,6 +29,7 @@ from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import write_json
 from efficienttrack.metrics import compute_metrics, rounded
 from efficienttrack.pipeline import run_pipeline
+from efficienttrack.progress import ProgressDisplay
 from efficienttrack.runtime import track
 from efficienttrack.study.jobs import LOOPS, STUDY_PRESETS, Job, Study, check_seeds
 
@@ -181,7 +182,7 @@ def run_sb3(job: Job, folder: Path) -> list[Point]:
 
     Args:
         job: the job (``job.method`` is the algorithm).
-        folder: the job's folder (the baseline's own files go there).
+        folder: the job's folder (the baseline's ``curve.json`` and ``model.zip`` go there).
 
     Returns:
         The baseline's curve: its deterministic policy on the test references at its evaluation interaction counts.
@@ -189,17 +190,19 @@ def run_sb3(job: Job, folder: Path) -> list[Point]:
     from efficienttrack.baselines.sb3 import train_baseline
 
     study = job.study
-    return train_baseline(
-        method=job.method,
-        loop=job.loop,
-        system=study.system,
-        train_refs=list(study.train),
-        test_refs=list(study.test),
-        budget=study.budget,
-        seed=job.seed,
-        folder=folder,
-        preset=STUDY_PRESETS[study.preset].baselines,
-    )
+    with ProgressDisplay() as progress:  # plain lines in the job's log
+        return train_baseline(
+            method=job.method,
+            loop=job.loop,
+            system=study.system,
+            train_refs=list(study.train),
+            test_refs=list(study.test),
+            budget=study.budget,
+            seed=job.seed,
+            folder=folder,
+            preset=STUDY_PRESETS[study.preset].baselines,
+            progress=progress,
+        )
 
 
 SB3_MODULES = ("stable_baselines3", "efficienttrack.baselines.sb3")
