@@ -1,0 +1,91 @@
+"""The ``study`` command: methods × loops × seeds on one system and one train/test split, locally or on Ray."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from efficienttrack.cli.common import LimitsOpt, PdOpt, PlantOpt, SystemOpt, SystemOpts, _lock, _system_spec, app
+from efficienttrack.cli.sim import parse_ints
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.fileio import check_output_folder, prepare_output_folder
+
+
+def _names(text: str, flag: str) -> list[str]:
+    """``a,b`` → ``["a", "b"]``; an empty item is an error naming ``flag``."""
+    names = [item.strip() for item in text.split(",")]
+    if not all(names):
+        raise EfficientTrackError(f"{flag} '{text}': expected comma-separated names, e.g. pd,efficienttrack")
+    return names
+
+
+@app.command("study")
+def study_command(
+    ctx: typer.Context,
+    out: Annotated[Path, typer.Option("--out", help="Study folder; rerunning skips the finished jobs.")],
+    train_refs: Annotated[Path | None, typer.Option("--train-refs", help="Folder of training references.")] = None,
+    test_refs: Annotated[Path | None, typer.Option("--test-refs", help="Folder of held-out test references.")] = None,
+    system: SystemOpt = None,
+    plant: PlantOpt = None,
+    pd: PdOpt = "xe75",
+    system_opt: SystemOpts = None,
+    limits: LimitsOpt = None,
+    methods: Annotated[
+        str | None,
+        typer.Option("--methods", help="Comma-separated: pd, efficienttrack, sac, ppo (default: every one available here)."),
+    ] = None,
+    loops: Annotated[
+        str, typer.Option("--loops", help="closed and/or open (open: only methods that have it; needs a plant).")
+    ] = "closed",
+    seeds: Annotated[str, typer.Option("--seeds", help="Comma-separated seeds, one job per method, loop and seed.")] = "0",
+    budget: Annotated[
+        int | None, typer.Option("--budget", help="Interaction steps per job (default: quick 20,000, full 200,000).")
+    ] = None,
+    preset_name: Annotated[str, typer.Option("--preset", help="quick (tiny networks, minutes) or full.")] = "full",
+    executor: Annotated[str, typer.Option("--executor", help="local (this machine) or ray.")] = "local",
+    jobs: Annotated[int, typer.Option("--jobs", help="Jobs at once (local processes, or CPUs of a local Ray instance).")] = 1,
+    address: Annotated[
+        str | None, typer.Option("--address", help="HOST:PORT of a running Ray cluster's head (default: a local instance).")
+    ] = None,
+    threads: Annotated[int, typer.Option("--threads", help="torch CPU threads of each job (0: torch's default).")] = 1,
+    report_only: Annotated[
+        bool, typer.Option("--report-only", help="Run nothing: rebuild the table, study.json and figure from OUT's jobs.")
+    ] = False,
+    force: Annotated[
+        bool,
+        typer.Option("--force", help="Start afresh: delete OUT's earlier study (its jobs and report; other files are kept)."),
+    ] = False,
+) -> None:
+    """Compare methods on one system: each job trains one method with one seed; table, study.json and figure in OUT.
+
+    Jobs run one after the other here by default, in a process pool with --jobs N, or on Ray with --executor ray.
+    Each job writes its own folder OUT/jobs/<method>-<loop>-s<seed>/; a rerun skips the finished ones, and the
+    report is rebuilt from the folders. Exit code 1 when a job failed (the others still ran).
+    """
+    from efficienttrack.references import load_references
+    from efficienttrack.study import make_jobs, make_study, report, run_study
+    from efficienttrack.study.jobs import STUDY_CONFIG
+    from efficienttrack.study.run import STUDY_OUTPUTS
+
+    if report_only:
+        typer.echo(report(out).markdown)
+        return
+    if train_refs is None or test_refs is None:
+        raise EfficientTrackError(f"{'--train-refs' if train_refs is None else '--test-refs'}: needed to run a study")
+    check_output_folder(out)
+    spec = _system_spec(system, plant, pd, system_opt, limits)
+    study = make_study(spec, load_references(train_refs), load_references(test_refs), budget, preset_name)
+    names = None if methods is None else _names(methods, "--methods")
+    job_list = make_jobs(study, names, _names(loops, "--loops"), parse_ints(seeds, "--seeds"))
+    _lock(ctx, out)
+    resumable = (out / STUDY_CONFIG).exists() or all(entry.name in STUDY_OUTPUTS for entry in out.iterdir())
+    if force or not resumable:
+        prepare_output_folder(out, STUDY_OUTPUTS, force)
+    result = run_study(study, job_list, out, executor, jobs, threads, address, log=typer.echo)
+    typer.echo(result.report.markdown)
+    typer.echo(f"table, study.json and figure in {out}")
+    if result.failed:
+        typer.secho(f"{len(result.failed)} job(s) failed: {', '.join(result.failed)}", fg=typer.colors.RED, err=True)
+        raise typer.Exit(1)

@@ -1,0 +1,199 @@
+"""What a study is: one system, one train/test split, an interaction budget, and its jobs (method × loop × seed).
+
+A job is one method trained with one seed in one loop (``closed``: the policy adjusts the PD controller's
+reference; ``open``: the policy sends PWM), evaluated on the held-out references at regular interaction counts,
+giving a curve of test metrics against interaction steps. Each job owns the folder ``OUT/jobs/<method>-<loop>-s<seed>/``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from efficienttrack.config import PRESETS, RunConfig
+from efficienttrack.configfile import check_seed
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.references import Reference
+from efficienttrack.systems.spec import SystemSpec
+
+LOOPS = ("closed", "open")
+"""Closed loop: the policy adjusts the PD controller's reference; open loop: the policy sends PWM to the plant."""
+STUDY_CONFIG = "study_config.json"
+"""What a study folder is (system, references, budget, preset): a rerun must match it."""
+JOBS = "jobs"
+"""The folder of the jobs' folders inside a study folder."""
+RESULT = "result.json"
+"""Written last by a finished job: a rerun skips the job."""
+ERROR = "error.json"
+"""Written by a failed job (removed when it succeeds on a rerun)."""
+
+
+@dataclass(frozen=True)
+class StudyPreset:
+    """The sizes of a study's methods."""
+
+    run: str
+    """EfficientTrack's settings: a name of :data:`efficienttrack.config.PRESETS`."""
+    baselines: str
+    """The baselines' settings: the name of their presets (``quick``, ``full``) in :mod:`efficienttrack.baselines`."""
+    budget: int
+    """Interaction steps per job when the study gives none."""
+
+
+STUDY_PRESETS: dict[str, StudyPreset] = {
+    "quick": StudyPreset(run="tiny", baselines="quick", budget=20_000),
+    "full": StudyPreset(run="cpu", baselines="full", budget=200_000),
+}
+"""``quick``: tiny networks, minutes (the tests); ``full``: the ``cpu`` preset, and the baselines' full settings."""
+
+
+@dataclass(frozen=True, eq=False)
+class Study:
+    """One system, one train/test split, an interaction budget per job, and the settings of the methods.
+
+    Attributes:
+        system: the closed-loop system (and the plant under it, for the open loop).
+        train: the training references, each q (L_i, 4) rad.
+        test: the held-out references the methods are scored on.
+        budget: interaction steps each job may spend (training interactions with the system).
+        preset: a name of :data:`STUDY_PRESETS`.
+        run_config: EfficientTrack's settings (the preset's ``run`` preset; its seed and passes are set per job).
+    """
+
+    system: SystemSpec
+    train: tuple[Reference, ...]
+    test: tuple[Reference, ...]
+    budget: int
+    preset: str
+    run_config: RunConfig
+
+    def __post_init__(self) -> None:
+        """Check the references, the budget and the preset (EfficientTrackError naming the option)."""
+        if not self.train or not self.test:
+            raise EfficientTrackError("study: needs at least one training (--train-refs) and one test reference (--test-refs)")
+        if not isinstance(self.budget, int) or isinstance(self.budget, bool) or self.budget < 1:
+            raise EfficientTrackError(f"--budget {self.budget!r}: expected a number of interaction steps ≥ 1")
+        if self.preset not in STUDY_PRESETS:
+            raise EfficientTrackError(f"--preset '{self.preset}': unknown, choose one of {', '.join(STUDY_PRESETS)}")
+
+    @property
+    def steps_per_pass(self) -> int:
+        """Interaction steps of one collection pass over the training references: Σ (L_i − 1)."""
+        return sum(len(ref) - 1 for ref in self.train)
+
+    def identity(self) -> dict[str, Any]:
+        """What the study is, as ``study_config.json`` records it (a rerun into the same folder must match).
+
+        Methods, loops and seeds are not part of it: a rerun may add jobs to a study.
+
+        Returns:
+            ``{"system", "train_references", "test_references": {name: length}, "references_sha256", "budget",
+            "preset", "run_config"}``.
+        """
+        digest = hashlib.sha256()
+        for ref in (*self.train, *self.test):
+            digest.update(ref.name.encode() + b"\0" + ref.q.tobytes())
+        return {
+            "system": self.system.to_dict(),
+            "train_references": {ref.name: len(ref) for ref in self.train},
+            "test_references": {ref.name: len(ref) for ref in self.test},
+            "references_sha256": digest.hexdigest(),
+            "budget": self.budget,
+            "preset": self.preset,
+            "run_config": self.run_config.to_dict(),
+        }
+
+
+def make_study(
+    system: SystemSpec,
+    train: list[Reference] | tuple[Reference, ...],
+    test: list[Reference] | tuple[Reference, ...],
+    budget: int | None = None,
+    preset: str = "full",
+    run_config: RunConfig | None = None,
+) -> Study:
+    """A study with the preset's defaults filled in.
+
+    Args:
+        system: the closed-loop system.
+        train: training references, each q (L_i, 4) rad.
+        test: held-out references.
+        budget: interaction steps per job (None: the preset's).
+        preset: ``quick`` or ``full`` (:data:`STUDY_PRESETS`).
+        run_config: EfficientTrack's settings (None: the preset's ``run`` preset).
+
+    Returns:
+        The study.
+
+    Raises:
+        EfficientTrackError: an unknown preset, a budget < 1, no references.
+    """
+    if preset not in STUDY_PRESETS:
+        raise EfficientTrackError(f"--preset '{preset}': unknown, choose one of {', '.join(STUDY_PRESETS)}")
+    sizes = STUDY_PRESETS[preset]
+    return Study(
+        system=system,
+        train=tuple(train),
+        test=tuple(test),
+        budget=sizes.budget if budget is None else budget,
+        preset=preset,
+        run_config=PRESETS[sizes.run] if run_config is None else run_config,
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class Job:
+    """One method, one loop, one seed of a study.
+
+    Attributes:
+        method: a name of :data:`efficienttrack.study.methods.METHODS`.
+        loop: ``closed`` or ``open``.
+        seed: the seed of everything random in the job (training, collection noise).
+        study: the study it belongs to.
+    """
+
+    method: str
+    loop: str
+    seed: int
+    study: Study
+
+    @property
+    def name(self) -> str:
+        """``<method>-<loop>-s<seed>``: the job's folder name."""
+        return f"{self.method}-{self.loop}-s{self.seed}"
+
+
+def job_folder(out: str | Path, name: str) -> Path:
+    """The folder of job ``name`` in study folder ``out``.
+
+    Args:
+        out: the study folder.
+        name: the job's name (:attr:`Job.name`).
+
+    Returns:
+        ``out/jobs/<name>``.
+    """
+    return Path(out) / JOBS / name
+
+
+def check_seeds(seeds: list[int] | tuple[int, ...]) -> tuple[int, ...]:
+    """The seeds, checked: integers ≥ 0, at least one, no repeats.
+
+    Args:
+        seeds: the seeds given.
+
+    Returns:
+        The seeds as a tuple, in the order given.
+
+    Raises:
+        EfficientTrackError: no seed, a repeated one, or one that is not an integer in [0, 2^63 − 1] (naming ``--seeds``).
+    """
+    if not seeds:
+        raise EfficientTrackError("--seeds: give at least one seed")
+    for seed in seeds:
+        check_seed(seed, "--seeds")
+    if len(set(seeds)) != len(seeds):
+        raise EfficientTrackError(f"--seeds {','.join(map(str, seeds))}: a seed is repeated")
+    return tuple(seeds)

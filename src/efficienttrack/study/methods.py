@@ -1,0 +1,278 @@
+"""The methods a study compares, by name, and the jobs they give: each runs one job and returns its curve.
+
+A method is a function ``run(job, folder) -> curve``: it trains with ``job.seed`` in ``job.loop`` within
+``job.study.budget`` interaction steps, writing what it likes under ``folder``, and returns the test metrics of the
+held-out references at regular interaction counts, as a list of points::
+
+    {"interaction_steps": int, "wall_seconds": float, "metrics": compute_metrics(...) of the test episodes, ...}
+
+``pd`` (the PD controller alone, one point at 0 interactions), ``efficienttrack`` (the whole pipeline after 1, 2, 5,
+10 … collection passes) and the Stable-Baselines3 baselines ``sac`` and ``ppo``
+(:func:`efficienttrack.baselines.sb3.train_baseline`), the latter where that module can be imported.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+
+from efficienttrack.collect import MAX_PASSES
+from efficienttrack.config import with_overrides
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.fileio import write_json
+from efficienttrack.metrics import compute_metrics, rounded
+from efficienttrack.pipeline import run_pipeline
+from efficienttrack.progress import ProgressDisplay
+from efficienttrack.runtime import track
+from efficienttrack.study.jobs import LOOPS, STUDY_PRESETS, Job, Study, check_seeds
+
+Point = dict[str, Any]
+"""One point of a curve: ``{"interaction_steps", "wall_seconds", "metrics", ...}`` (see the module docstring)."""
+
+
+@dataclass(frozen=True)
+class Method:
+    """A method of the study.
+
+    Attributes:
+        name: its name on the command line (``--methods``), in job names and in ``study.json``.
+        label: its name in the table and the figure.
+        run: ``run(job, folder) -> list of points`` (see the module docstring).
+        loops: the loops it has (``closed``, ``open``).
+        seeded: its outcome depends on the seed (else one job, with the first seed, stands for all).
+        requires: modules that must be importable for it to be available.
+        check: ``check(study)`` raises an EfficientTrackError (naming the option) when the method cannot run in the
+            study, before any job runs; None: it can always run.
+    """
+
+    name: str
+    label: str
+    run: Callable[[Job, Path], list[Point]]
+    loops: tuple[str, ...]
+    seeded: bool = True
+    requires: tuple[str, ...] = ()
+    check: Callable[[Study], None] | None = None
+
+    def available(self) -> bool:
+        """Whether every module in ``requires`` can be imported here (checked without importing them)."""
+        for module in self.requires:
+            try:
+                if importlib.util.find_spec(module) is None:
+                    return False
+            except ImportError:  # a parent package is missing
+                return False
+        return True
+
+
+def point(interaction_steps: int, wall_seconds: float, metrics: dict[str, Any], **extra: Any) -> Point:
+    """A point of a curve.
+
+    Args:
+        interaction_steps: training interactions with the system so far.
+        wall_seconds: wall time the method took to get there.
+        metrics: :func:`~efficienttrack.metrics.compute_metrics` of the test episodes.
+        **extra: further facts of the point (e.g. ``passes``).
+
+    Returns:
+        ``{"interaction_steps", "wall_seconds", "metrics", **extra}``.
+    """
+    return {"interaction_steps": int(interaction_steps), "wall_seconds": round(float(wall_seconds), 2), "metrics": metrics,
+            **extra}  # fmt: skip
+
+
+def run_pd(job: Job, folder: Path) -> list[Point]:
+    """The PD controller alone on the test references: one point at 0 interaction steps.
+
+    Args:
+        job: the job (its study's system and test references).
+        folder: the job's folder (nothing is written there but the result).
+
+    Returns:
+        One point.
+    """
+    start = time.perf_counter()
+    records = track(job.study.system.open(), None, job.study.test, progress=False, description="pd")
+    return [point(0, time.perf_counter() - start, rounded(compute_metrics(records)))]
+
+
+def pass_counts(budget: int, steps_per_pass: int) -> list[int]:
+    """The collection passes EfficientTrack is run with: 1, 2, 5, 10, 20, 50 … while their steps fit the budget.
+
+    Args:
+        budget: interaction steps allowed.
+        steps_per_pass: interaction steps of one pass (Σ (L_i − 1) over the training references), ≥ 1.
+
+    Returns:
+        The pass counts p (≤ ``collect.MAX_PASSES``) with p · steps_per_pass ≤ budget, ascending; empty when not even
+        one pass fits.
+    """
+    counts, scale = [], 1
+    while True:
+        for p in (scale, 2 * scale, 5 * scale):
+            if p > MAX_PASSES or p * steps_per_pass > budget:
+                return counts
+            counts.append(p)
+        scale *= 10
+
+
+def check_passes(study: Study) -> None:
+    """Refuse a budget that allows not even one collection pass over the training references (EfficientTrack's minimum).
+
+    Args:
+        study: the study.
+
+    Raises:
+        EfficientTrackError: the budget is smaller than one pass (naming ``--budget``).
+    """
+    if not pass_counts(study.budget, study.steps_per_pass):
+        raise EfficientTrackError(
+            f"--budget {study.budget}: less than one collection pass over the training references "
+            f"({study.steps_per_pass} interaction steps), which EfficientTrack needs"
+        )
+
+
+def run_efficienttrack(job: Job, folder: Path) -> list[Point]:
+    """EfficientTrack (closed loop): the whole pipeline once per pass count of :func:`pass_counts`, each in its folder.
+
+    ``folder/passes_<p>/`` is a run folder (:func:`~efficienttrack.pipeline.run_pipeline`, which resumes) with the
+    study's ``run_config``, ``job.seed`` as the seed of training and of the collection noise, and ``p`` collection
+    passes; its point is written to ``folder/passes_<p>/point.json`` when the run is finished, and read from there on a
+    rerun.
+
+    Args:
+        job: the job.
+        folder: the job's folder.
+
+    Returns:
+        One point per pass count: the test metrics of EfficientTrack at the run's interaction steps, with ``passes``
+        and the run's guard ``warning`` (None, or why the figures are mostly the PD controller's).
+
+    Raises:
+        EfficientTrackError: the budget allows not even one collection pass.
+    """
+    study = job.study
+    check_passes(study)
+    base = with_overrides(study.run_config, seed=job.seed)
+    curve = []
+    for passes in pass_counts(study.budget, study.steps_per_pass):
+        run_folder = folder / f"passes_{passes}"
+        done = run_folder / "point.json"
+        if done.exists():
+            curve.append(json.loads(done.read_text()))
+            continue
+        start = time.perf_counter()
+        cfg = replace(base, collect=replace(base.collect, passes=passes))
+        result = run_pipeline(study.system, study.train, study.test, run_folder, cfg, Console(quiet=True), 0, "study")
+        m = result.metrics
+        curve.append(point(m["interaction_steps"], time.perf_counter() - start, m["efficienttrack"], passes=passes,
+                           warning=m["warning"]))  # fmt: skip
+        write_json(done, curve[-1])
+    return curve
+
+
+def run_sb3(job: Job, folder: Path) -> list[Point]:
+    """A Stable-Baselines3 baseline (``sac`` or ``ppo``): :func:`efficienttrack.baselines.sb3.train_baseline`.
+
+    Args:
+        job: the job (``job.method`` is the algorithm).
+        folder: the job's folder (the baseline's ``curve.json`` and ``model.zip`` go there).
+
+    Returns:
+        The baseline's curve: its deterministic policy on the test references at its evaluation interaction counts.
+    """
+    from efficienttrack.baselines.sb3 import train_baseline
+
+    study = job.study
+    with ProgressDisplay() as progress:  # plain lines in the job's log
+        return train_baseline(
+            method=job.method,
+            loop=job.loop,
+            system=study.system,
+            train_refs=list(study.train),
+            test_refs=list(study.test),
+            budget=study.budget,
+            seed=job.seed,
+            folder=folder,
+            preset=STUDY_PRESETS[study.preset].baselines,
+            progress=progress,
+        )
+
+
+SB3_MODULES = ("stable_baselines3", "efficienttrack.baselines.sb3")
+"""What the SB3 baselines need."""
+METHODS: dict[str, Method] = {
+    "pd": Method("pd", "PD", run_pd, ("closed",), seeded=False),
+    "efficienttrack": Method("efficienttrack", "EfficientTrack", run_efficienttrack, ("closed",), check=check_passes),
+    "sac": Method("sac", "SAC", run_sb3, LOOPS, requires=SB3_MODULES),
+    "ppo": Method("ppo", "PPO", run_sb3, LOOPS, requires=SB3_MODULES),
+}
+"""The methods by name, in the order the reports list them."""
+
+
+def available_methods() -> list[str]:
+    """The names of the methods that can run here (their modules import), in registry order."""
+    return [name for name, method in METHODS.items() if method.available()]
+
+
+def make_jobs(
+    study: Study, methods: Sequence[str] | None = None, loops: Sequence[str] = ("closed",), seeds: Sequence[int] = (0,)
+) -> list[Job]:
+    """The jobs of a study: every method × each of its loops among ``loops`` × seeds.
+
+    A method without a loop asked for gets no job in it; an unseeded method (``pd``) gets one job, with the first seed.
+    The open loop needs a PWM-level plant (``--plant``, or a built-in system's own).
+
+    Args:
+        study: the study.
+        methods: method names (None: every available one).
+        loops: ``closed`` and/or ``open``.
+        seeds: the seeds.
+
+    Returns:
+        The jobs, method by method in the order given, then loop, then seed.
+
+    Raises:
+        EfficientTrackError: an unknown or unavailable method, one that cannot run in the study (its ``check``), an
+            unknown loop, a bad seed, the open loop without a plant, or no job at all (each naming its option).
+    """
+    names = available_methods() if methods is None else list(methods)
+    for name in names:
+        if name not in METHODS:
+            raise EfficientTrackError(f"--methods {name}: unknown method, choose from {', '.join(METHODS)}")
+        if not METHODS[name].available():
+            raise EfficientTrackError(
+                f"--methods {name}: not available here (needs {', '.join(METHODS[name].requires)}); "
+                f"available: {', '.join(available_methods())}"
+            )
+    if not names or len(set(names)) != len(names):
+        raise EfficientTrackError(f"--methods {','.join(names)}: give each method once, at least one")
+    for loop in loops:
+        if loop not in LOOPS:
+            raise EfficientTrackError(f"--loops {loop}: unknown loop, choose from {', '.join(LOOPS)}")
+    for name in names:
+        if METHODS[name].check is not None:
+            METHODS[name].check(study)
+    seeds = check_seeds(tuple(seeds))
+    jobs = [
+        Job(name, loop, seed, study)
+        for name in names
+        for loop in dict.fromkeys(loops)
+        if loop in METHODS[name].loops
+        for seed in (seeds if METHODS[name].seeded else seeds[:1])
+    ]
+    if not jobs:
+        raise EfficientTrackError(
+            f"--methods {','.join(names)} --loops {','.join(loops)}: none of these methods has these loops"
+        )
+    if any(job.loop == "open" for job in jobs) and study.system.open_plant() is None:
+        raise EfficientTrackError(
+            f"--loops open: the system {study.system.system_name} has no PWM-level plant under it; name one with --plant"
+        )
+    return jobs

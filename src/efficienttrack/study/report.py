@@ -1,0 +1,279 @@
+"""A study's report, rebuilt from its jobs' folders every time: table (Markdown, CSV), ``study.json`` and the figure.
+
+Each method and loop is reported at its best point, as the paper's Table I does ("when the model converges to the
+optimal value"): for each seed the point of its curve with the lowest test MAE, then the mean and the standard
+deviation over the seeds (sample standard deviation; null with one seed) of that point's interaction steps (I.S.),
+interaction time (I.T. = I.S. / 20 Hz, hours), the wall time to reach it and every metric of
+:func:`~efficienttrack.metrics.compute_metrics`.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import matplotlib.pyplot as plt
+import numpy as np
+
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.fileio import atomic_write, write_csv, write_json
+from efficienttrack.metrics import METRIC_KEYS, interaction_hours
+from efficienttrack.study.jobs import ERROR, JOBS, LOOPS, RESULT
+from efficienttrack.study.methods import METHODS
+
+METRICS = METRIC_KEYS[2:-1]
+"""Table I's metrics: MAE, RMSE, FMAE, 1st/2nd-order smoothness (°), ETD-MAE, ETD-FMAE (cm)."""
+FIELDS = ("interaction_steps", "interaction_hours", "wall_seconds", *METRICS)
+"""What the report gives as mean ± std over seeds, at each seed's best point."""
+COLUMNS = {
+    "interaction_steps": ("I.S.", ",.0f"),
+    "interaction_hours": ("I.T. (h)", ".3f"),
+    "wall_seconds": ("wall (s)", ".0f"),
+    "mae_deg": ("MAE (°)", ".2f"),
+    "rmse_deg": ("RMSE (°)", ".2f"),
+    "fmae_deg": ("FMAE (°)", ".2f"),
+    "smt1_deg": ("1st oSMT (°)", ".3f"),
+    "smt2_deg": ("2nd oSMT (°)", ".3f"),
+    "etd_mae_cm": ("ETD-MAE (cm)", ".2f"),
+    "etd_fmae_cm": ("ETD-FMAE (cm)", ".2f"),
+}
+"""Column heading and number format of each field in ``study.md``."""
+OUTPUTS = ("study.json", "study.md", "study.csv", "study.png")
+"""The report's files in the study folder."""
+
+
+@dataclass(frozen=True)
+class Report:
+    """A study's report.
+
+    Attributes:
+        entries: the content of ``study.json``, one entry per method and loop.
+        failed: job name → error, of the jobs with an ``error.json`` and no result.
+        markdown: the content of ``study.md``.
+        paths: the files written.
+    """
+
+    entries: list[dict[str, Any]]
+    failed: dict[str, str]
+    markdown: str
+    paths: tuple[Path, ...]
+
+
+def read_result(path: Path) -> dict[str, Any] | None:
+    """A job's ``result.json``, or None when it is missing or not a finished job's result (unreadable, truncated).
+
+    Args:
+        path: the file.
+
+    Returns:
+        The result (with ``method``, ``loop``, ``seed`` and a non-empty ``curve``), or None.
+    """
+    try:
+        result = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    keys = ("method", "loop", "seed", "curve")
+    if not isinstance(result, dict) or any(key not in result for key in keys) or not result["curve"]:
+        return None
+    return result
+
+
+def _stats(values: Sequence[float]) -> tuple[float | None, float | None]:
+    """Mean and sample standard deviation (None for a single value; both None without values)."""
+    if not values:
+        return None, None
+    return float(np.mean(values)), (float(np.std(values, ddof=1)) if len(values) > 1 else None)
+
+
+def _label(method: str) -> str:
+    """The method's name in the table and the figure."""
+    return METHODS[method].label if method in METHODS else method
+
+
+def _order(key: tuple[str, str]) -> tuple[int, str, int]:
+    """Sort key of a (method, loop): the registry's order (others after, by name), then closed before open."""
+    method, loop = key
+    rank = list(METHODS).index(method) if method in METHODS else len(METHODS)
+    return rank, method, LOOPS.index(loop) if loop in LOOPS else len(LOOPS)
+
+
+def _flat(p: dict[str, Any]) -> dict[str, Any]:
+    """A curve point as the report shows it: interaction steps and hours, wall time, then the metrics."""
+    return {
+        "interaction_steps": p["interaction_steps"],
+        "interaction_hours": interaction_hours(p["interaction_steps"]),
+        "wall_seconds": p.get("wall_seconds"),
+        **p["metrics"],
+    }
+
+
+def _mean_point(steps: int, maes: list[float]) -> dict[str, Any]:
+    """A point of the mean curve: the seeds' MAE at ``steps`` interaction steps, mean and std."""
+    mae, std = _stats(maes)
+    return {"interaction_steps": steps, "interaction_hours": interaction_hours(steps), "mae_deg": mae, "mae_deg_std": std,
+            "seeds": len(maes)}  # fmt: skip
+
+
+def summarize(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One entry per method and loop: the mean ± std over seeds of each seed's best point, and the curves.
+
+    Args:
+        results: the jobs' ``result.json`` contents.
+
+    Returns:
+        Entries ordered as :data:`~efficienttrack.study.methods.METHODS`, closed loop first: ``{"method", "loop",
+        "seeds": [int], "interaction_steps", "interaction_hours", "wall_seconds", "mae_deg", "rmse_deg", "fmae_deg",
+        "smt1_deg", "smt2_deg", "etd_mae_cm", "etd_fmae_cm" (means) and each with ``_std``, "per_joint_mae_deg": [4],
+        "episodes", "steps": the test set, "best": [per seed: the best point], "curve": [the mean over seeds at each
+        interaction count: {"interaction_steps", "interaction_hours", "mae_deg", "mae_deg_std", "seeds"}],
+        "curves": [{"seed", "points": [each point: interaction steps and hours, wall seconds, metrics]}]}``.
+    """
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for result in results:
+        groups.setdefault((result["method"], result["loop"]), []).append(result)
+    entries = []
+    for (method, loop), group in sorted(groups.items(), key=lambda item: _order(item[0])):
+        group = sorted(group, key=lambda r: r["seed"])
+        curves = [{"seed": r["seed"], "points": [_flat(p) for p in r["curve"]]} for r in group]
+        best = [{"seed": c["seed"], **min(c["points"], key=lambda p: p["mae_deg"])} for c in curves]
+        entry: dict[str, Any] = {"method": method, "loop": loop, "seeds": [c["seed"] for c in curves]}
+        for field in FIELDS:
+            entry[field], entry[f"{field}_std"] = _stats([b[field] for b in best if b[field] is not None])
+        entry["per_joint_mae_deg"] = np.mean([b["per_joint_mae_deg"] for b in best], axis=0).tolist()
+        entry["episodes"], entry["steps"] = best[0].get("episodes"), best[0].get("steps")
+        entry["best"] = best
+        by_steps: dict[int, list[float]] = {}
+        for c in curves:
+            for p in c["points"]:
+                by_steps.setdefault(p["interaction_steps"], []).append(p["mae_deg"])
+        entry["curve"] = [_mean_point(steps, maes) for steps, maes in sorted(by_steps.items())]
+        entry["curves"] = curves
+        entries.append(entry)
+    return entries
+
+
+def _cell(mean: float | None, std: float | None, fmt: str) -> str:
+    if mean is None:
+        return "–"
+    return f"{mean:{fmt}}" if std is None else f"{mean:{fmt}} ± {std:{fmt}}"
+
+
+def markdown_table(entries: Sequence[dict[str, Any]], failed: dict[str, str]) -> str:
+    """The report as Markdown: one row per method and loop (mean ± std over seeds), and the failed jobs.
+
+    Args:
+        entries: :func:`summarize`'s entries.
+        failed: job name → error.
+
+    Returns:
+        The text of ``study.md``.
+    """
+    headers = ["method", "loop", "seeds", *(COLUMNS[field][0] for field in FIELDS)]
+    lines = [
+        "# Study: each method at its best point (lowest test MAE), mean ± std over seeds",
+        "",
+        "| " + " | ".join(headers) + " |",
+        "|" + "|".join("---" if i < 2 else "---:" for i in range(len(headers))) + "|",
+    ]
+    for e in entries:
+        cells = [_label(e["method"]), e["loop"], str(len(e["seeds"]))]
+        cells += [_cell(e[field], e[f"{field}_std"], COLUMNS[field][1]) for field in FIELDS]
+        lines.append("| " + " | ".join(cells) + " |")
+    if not entries:
+        lines.append("")
+        lines.append("No job has finished yet.")
+    lines += ["", "I.S.: training interaction steps; I.T.: I.S. at 20 Hz in hours; wall: time to the best point; "
+              "metrics on the held-out test references."]  # fmt: skip
+    if failed:
+        lines += ["", "## Failed jobs", "", *(f"- `{name}`: {error}" for name, error in sorted(failed.items()))]
+    return "\n".join(lines) + "\n"
+
+
+def plot_study(entries: Sequence[dict[str, Any]], path: str | Path) -> Path:
+    """MAE against interaction time, as the paper's figure: one line per method and loop, a star at its minimum.
+
+    Closed loop in the dark, open loop in the light shade of the method's hue; a method evaluated only without
+    training (PD) is a horizontal line. The x axis is logarithmic.
+
+    Args:
+        entries: :func:`summarize`'s entries (their ``curve``).
+        path: PNG to write.
+
+    Returns:
+        The path written.
+    """
+    palette = plt.get_cmap("tab20")  # pairs of a dark and a light shade of each hue
+    fig, ax = plt.subplots(figsize=(8, 4.8), layout="constrained")
+    drawn = False
+    for e in entries:
+        trained = [p for p in e["curve"] if p["interaction_steps"] > 0]
+        label = _label(e["method"])
+        if not trained:
+            mae = e["curve"][0]["mae_deg"]
+            ax.axhline(mae, color="k", ls="--", lw=1, label=f"{label} ({mae:.2f}°)")
+            continue
+        hue = 2 * _order((e["method"], e["loop"]))[0] % 20
+        color = palette(hue if e["loop"] == "closed" else hue + 1)
+        x = np.array([p["interaction_hours"] for p in trained])
+        y = np.array([p["mae_deg"] for p in trained])
+        ax.plot(x, y, "o-", color=color, ms=3, label=f"{label} ({e['loop']} loop)")
+        ax.plot(x[np.argmin(y)], y.min(), "*", color=color, ms=16, markeredgecolor="k", zorder=3)
+        drawn = True
+    if drawn:
+        ax.set_xscale("log")
+    ax.set_ylim(bottom=0)
+    ax.set_xlabel("interaction time (h, at 20 Hz)")
+    ax.set_ylabel("test MAE (°)")
+    ax.set_title("MAE against interaction time (★ the best point)")
+    ax.grid(alpha=0.3, which="both")
+    if entries:
+        ax.legend(fontsize=8)
+    try:
+        return atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100))
+    finally:
+        plt.close(fig)
+
+
+def report(out: str | Path) -> Report:
+    """Rebuild the study's report from its jobs' folders: ``study.json``, ``study.md``, ``study.csv``, ``study.png``.
+
+    Args:
+        out: the study folder (``out/jobs/<name>/result.json`` of each finished job).
+
+    Returns:
+        The report.
+
+    Raises:
+        EfficientTrackError: ``out`` holds no study (no ``jobs`` folder).
+    """
+    out = Path(out)
+    if not (out / JOBS).is_dir():
+        raise EfficientTrackError(f"--out {out}: no study here (no {JOBS}/ folder)")
+    results, failed = [], {}
+    for folder in sorted(path for path in (out / JOBS).iterdir() if path.is_dir()):
+        result = read_result(folder / RESULT)
+        if result is not None:
+            results.append(result)
+        elif (folder / ERROR).exists():
+            try:
+                failed[folder.name] = str(json.loads((folder / ERROR).read_text())["error"])
+            except (OSError, ValueError, KeyError, TypeError):
+                failed[folder.name] = f"unreadable {ERROR}"
+    entries = summarize(results)
+    markdown = markdown_table(entries, failed)
+    header = ["method", "loop", "seeds", *(name for field in FIELDS for name in (field, f"{field}_std"))]
+    rows = ([e["method"], e["loop"], " ".join(map(str, e["seeds"])), *(e[name] for name in header[3:])] for e in entries)
+    paths = (
+        write_json(out / "study.json", entries),
+        atomic_write(out / "study.md", lambda f: f.write(markdown), mode="w"),
+        write_csv(out / "study.csv", header, rows),
+        plot_study(entries, out / "study.png"),
+    )
+    return Report(entries, failed, markdown, paths)

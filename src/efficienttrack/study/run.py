@@ -1,0 +1,132 @@
+"""Run a study: claim its folder, skip the finished jobs, run the others on an executor, rebuild the report.
+
+Study folder layout::
+
+    OUT/study_config.json          what the study is (system, references, budget, preset): a rerun must match
+    OUT/jobs/<method>-<loop>-s<seed>/
+        result.json                written last by the finished job: a rerun skips it
+        error.json                 why it failed (a rerun runs it again)
+        job.log                    what it printed
+        ...                        the method's own files (EfficientTrack: passes_<p>/, one run folder per pass count)
+    OUT/study.json, study.md, study.csv, study.png   the report (:func:`efficienttrack.study.report.report`)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.provenance import claim_folder
+from efficienttrack.study.executors import EXECUTORS, Outcome, run_local, run_ray
+from efficienttrack.study.jobs import JOBS, RESULT, STUDY_CONFIG, Job, Study, job_folder
+from efficienttrack.study.report import OUTPUTS, Report, read_result, report
+
+STUDY_OUTPUTS = (STUDY_CONFIG, JOBS, *OUTPUTS)
+"""What a study writes in its folder: a fresh start (``--force``) deletes these."""
+
+
+@dataclass(frozen=True)
+class StudyResult:
+    """Outcome of :func:`run_study`.
+
+    Attributes:
+        out: the study folder.
+        ran: names of the jobs that ran and finished now.
+        skipped: names of the jobs found finished and skipped.
+        failed: job name → error, of the jobs that failed now.
+        report: the rebuilt report (every finished job in the folder).
+    """
+
+    out: Path
+    ran: tuple[str, ...]
+    skipped: tuple[str, ...]
+    failed: dict[str, str]
+    report: Report
+
+
+def progress_line(outcome: Outcome, count: int, total: int) -> str:
+    """One line saying how a job ended, e.g. ``[2/6] efficienttrack-closed-s0 done in 41 s: best MAE 0.52° at 35,440 I.S.``.
+
+    Args:
+        outcome: the job's outcome.
+        count: how many jobs have ended, this one included.
+        total: jobs to run.
+
+    Returns:
+        The line.
+    """
+    if outcome.result is None:
+        return f"[{count}/{total}] {outcome.name} FAILED: {outcome.error}"
+    best = min(outcome.result["curve"], key=lambda p: p["metrics"]["mae_deg"])
+    return (
+        f"[{count}/{total}] {outcome.name} done in {outcome.result['wall_seconds']:.0f} s: "
+        f"best MAE {best['metrics']['mae_deg']:.2f}° at {best['interaction_steps']:,} interaction steps"
+    )
+
+
+def run_study(
+    study: Study,
+    jobs: Sequence[Job],
+    out: str | Path,
+    executor: str = "local",
+    workers: int = 1,
+    threads: int = 1,
+    address: str | None = None,
+    log: Callable[[str], None] = print,
+) -> StudyResult:
+    """Run the jobs not finished yet, each in its own folder, then rebuild the report from every job folder.
+
+    Args:
+        study: the study (``OUT/study_config.json`` records it; a folder holding another study is refused).
+        jobs: its jobs (:func:`~efficienttrack.study.methods.make_jobs`).
+        out: the study folder (see the module docstring).
+        executor: ``local`` (this process, or a process pool with ``workers`` > 1) or ``ray``.
+        workers: jobs at once: processes of the local pool, or CPUs of a local Ray instance (× ``threads``).
+        threads: torch CPU threads of each job (0: torch's default).
+        address: a Ray cluster's ``HOST:PORT`` (``ray`` only; None: a local instance).
+        log: where the progress lines go.
+
+    Returns:
+        What ran, what was skipped, what failed, and the report.
+
+    Raises:
+        EfficientTrackError: an unknown executor, ``workers`` < 1, ``threads`` < 0, ``address`` without Ray, a job of
+            another study, ``out`` holding another study, or Ray unable to start or connect.
+    """
+    if executor not in EXECUTORS:
+        raise EfficientTrackError(f"--executor {executor}: unknown, choose one of {', '.join(EXECUTORS)}")
+    if not isinstance(workers, int) or workers < 1:
+        raise EfficientTrackError(f"--jobs {workers}: expected a number of jobs at once ≥ 1")
+    if not isinstance(threads, int) or threads < 0:
+        raise EfficientTrackError(f"--threads {threads}: expected ≥ 0")
+    if address is not None and executor != "ray":
+        raise EfficientTrackError(f"--address {address}: only with --executor ray")
+    if any(job.study is not study for job in jobs):
+        raise EfficientTrackError("run_study: every job must belong to the study given")
+    out = Path(out).resolve()  # as the workers of a cluster see it, on a shared file system
+    claim_folder(
+        out / STUDY_CONFIG,
+        study.identity(),
+        "this folder holds a study of another system, references, budget or preset; use another --out, or --force to "
+        "start afresh",
+    )
+    (out / JOBS).mkdir(exist_ok=True)
+    todo = [job for job in jobs if read_result(job_folder(out, job.name) / RESULT) is None]
+    skipped = tuple(job.name for job in jobs if job not in todo)
+    log(f"study {out}: {len(jobs)} jobs, {len(skipped)} finished earlier (skipped), {len(todo)} to run ({executor})")
+    ended: list[Outcome] = []
+
+    def on_done(outcome: Outcome) -> None:
+        ended.append(outcome)
+        log(progress_line(outcome, len(ended), len(todo)))
+
+    if todo:
+        if executor == "local":
+            run_local(todo, out, workers, threads, on_done)
+        else:
+            run_ray(todo, out, threads, address, workers * max(threads, 1), on_done)
+    failed = {o.name: o.error or "" for o in ended if o.result is None}
+    ran = tuple(o.name for o in ended if o.result is not None)
+    return StudyResult(out, ran, skipped, failed, report(out))

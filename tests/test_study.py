@@ -1,0 +1,244 @@
+"""The study runner: the job list, a tiny study locally, in a process pool and on Ray, reruns, reports, failures, the CLI."""
+
+import json
+import math
+import shutil
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from efficienttrack.cli import app
+from efficienttrack.config import PRESETS
+from efficienttrack.cycles import generate_references
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.references import Reference, save_references
+from efficienttrack.study import METHODS, Job, available_methods, make_jobs, make_study, report, run_study
+from efficienttrack.study.jobs import LOOPS
+from efficienttrack.study.methods import Method, pass_counts, point
+from efficienttrack.study.report import FIELDS, METRICS
+from efficienttrack.systems.spec import SystemSpec
+
+TINY = PRESETS["tiny"]
+FAST = replace(TINY, device="cpu", model=replace(TINY.model, steps=30), policy=replace(TINY.policy, steps=30))
+"""The quick preset's EfficientTrack settings, with fewer training steps: a run takes a few seconds."""
+
+
+@pytest.fixture(scope="module")
+def refs():
+    """Two short training references and one test reference (60 steps of generated loading cycles)."""
+    cycles = [Reference(r.name, r.q[:60]) for r in generate_references(3, seed=1)]
+    return cycles[:2], cycles[2:]
+
+
+def tiny_study(refs, budget=None):
+    train, test = refs
+    return make_study(SystemSpec(), train, test, budget=budget or 2 * 59, preset="quick", run_config=FAST)
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory, refs):
+    """PD, EfficientTrack (one collection pass) and PPO (closed and open loop, the quick settings) run in this process."""
+    out = tmp_path_factory.mktemp("study")
+    study = tiny_study(refs)
+    lines = []
+    result = run_study(study, make_jobs(study, ["pd", "efficienttrack", "ppo"], ["closed", "open"]), out, log=lines.append)
+    return out, study, result, lines
+
+
+def failing(job, folder):
+    raise RuntimeError("the simulator exploded")
+
+
+def not_finite(job, folder):
+    return [point(10, 1.0, {"mae_deg": math.nan})]
+
+
+def test_pass_counts_follow_1_2_5_within_the_budget():
+    assert pass_counts(1000, 100) == [1, 2, 5, 10]
+    assert pass_counts(999, 100) == [1, 2, 5]
+    assert pass_counts(99, 100) == []
+    assert pass_counts(10**9, 1)[-1] == 1000  # collect.MAX_PASSES
+
+
+def test_job_list(refs, monkeypatch):
+    study = tiny_study(refs)
+    jobs = make_jobs(study, ["pd", "efficienttrack"], ["closed", "open"], [0, 1, 2])
+    # PD is deterministic: one job stands for every seed; EfficientTrack has no open loop
+    assert [job.name for job in jobs] == ["pd-closed-s0", *(f"efficienttrack-closed-s{s}" for s in range(3))]
+    assert {job.study for job in jobs} == {study}
+    assert [job.method for job in make_jobs(study)] == available_methods()
+    for args, message in [
+        ((["pd", "tdmpc"],), "--methods tdmpc: unknown"),
+        ((["pd", "pd"],), "--methods pd,pd: give each method once"),
+        ((["pd"], ["sideways"]), "--loops sideways: unknown"),
+        ((["pd"], ["open"]), "none of these methods has these loops"),
+        ((["pd"], ["closed"], [0, 0]), "--seeds 0,0: a seed is repeated"),
+        ((["pd"], ["closed"], [-1]), "--seeds: a seed must be"),
+    ]:
+        with pytest.raises(EfficientTrackError, match=message):
+            make_jobs(study, *args)
+    with pytest.raises(EfficientTrackError, match="--budget 100: less than one collection pass .*118"):
+        make_jobs(tiny_study(refs, budget=100), ["efficienttrack"])
+    # the open loop needs a PWM-level plant: the built-in xe75 has one, a reference-level system does not
+    monkeypatch.setitem(METHODS, "fake", Method("fake", "Fake", failing, LOOPS))
+    assert [job.name for job in make_jobs(study, ["fake"], ["closed", "open"])] == ["fake-closed-s0", "fake-open-s0"]
+    toy = replace(study, system=SystemSpec(system="toy_system:make"))
+    with pytest.raises(EfficientTrackError, match="--loops open: the system toy_system:make has no PWM-level plant"):
+        make_jobs(toy, ["fake"], ["open"])
+    with pytest.raises(EfficientTrackError, match="--preset 'huge'"):
+        make_study(SystemSpec(), *refs, preset="huge")
+
+
+def test_sb3_methods_are_registered_with_both_loops():
+    for name in ("sac", "ppo"):
+        assert METHODS[name].loops == LOOPS
+        assert "efficienttrack.baselines.sb3" in METHODS[name].requires
+
+
+def test_study_writes_table_json_and_figure(finished):
+    out, study, result, lines = finished
+    names = ("pd-closed-s0", "efficienttrack-closed-s0", "ppo-closed-s0", "ppo-open-s0")
+    assert result.ran == names and not result.failed and not result.skipped
+    assert lines[0].endswith("4 jobs, 0 finished earlier (skipped), 4 to run (local)")
+    assert lines[2].startswith("[2/4] efficienttrack-closed-s0 done in") and lines[2].endswith("at 118 interaction steps")
+    entries = json.loads((out / "study.json").read_text())
+    assert [(e["method"], e["loop"], e["seeds"]) for e in entries] == [
+        ("pd", "closed", [0]), ("efficienttrack", "closed", [0]), ("ppo", "closed", [0]), ("ppo", "open", [0])
+    ]  # fmt: skip
+    pd, et, ppo, _ = entries
+    assert pd["interaction_steps"] == 0 and pd["interaction_hours"] == 0
+    assert et["interaction_steps"] == 118 and et["interaction_hours"] == pytest.approx(118 / 20 / 3600)
+    for entry in entries:
+        for field in FIELDS:
+            assert math.isfinite(entry[field]) and entry[f"{field}_std"] is None  # one seed: no spread
+        assert entry["episodes"] == 1 and len(entry["per_joint_mae_deg"]) == 4
+        assert entry["mae_deg"] == min(p["mae_deg"] for p in entry["curves"][0]["points"])
+    assert et["mae_deg"] != pd["mae_deg"]
+    # PPO (4 environments, the quick preset) is evaluated at 1, 2, 5, 10, 20, 50, 100 steps, as multiples of 4, and at 118
+    assert [p["interaction_steps"] for p in ppo["curve"]] == [4, 8, 12, 20, 52, 100, 120]
+    # the job's own record of its curve, and the run folder of its one pass count
+    job = json.loads((out / "jobs" / "efficienttrack-closed-s0" / "result.json").read_text())
+    assert [p["passes"] for p in job["curve"]] == [1] and job["seed"] == 0
+    assert job["curve"][0]["metrics"]["mae_deg"] == pytest.approx(et["mae_deg"])
+    assert (out / "jobs" / "efficienttrack-closed-s0" / "passes_1" / "policy.pt").is_file()
+    config = json.loads((out / "study_config.json").read_text())
+    assert config["budget"] == 118 and config["preset"] == "quick" and config["system"]["system"] == "xe75"
+    table = (out / "study.md").read_text()
+    assert (
+        "| PD | closed | 1 | 0 |" in table and "| EfficientTrack | closed | 1 | 118 |" in table and "| PPO | open |" in table
+    )
+    header = (out / "study.csv").read_text().splitlines()[0].split(",")
+    assert header[:4] == ["method", "loop", "seeds", "interaction_steps"] and {f"{m}_std" for m in METRICS} <= set(header)
+    assert (out / "study.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_rerun_skips_finished_jobs_and_refuses_another_study(finished, refs):
+    out, study, _, _ = finished
+    results = sorted((out / "jobs").glob("*/result.json"))
+    before = [path.stat().st_mtime_ns for path in results]
+    rerun = run_study(study, make_jobs(study, ["pd", "efficienttrack"]), out, log=lambda line: None)
+    assert rerun.skipped == ("pd-closed-s0", "efficienttrack-closed-s0") and rerun.ran == ()
+    assert [path.stat().st_mtime_ns for path in results] == before
+    other = tiny_study(refs, budget=1000)
+    with pytest.raises(EfficientTrackError, match="study_config.json: this folder holds a study of another"):
+        run_study(other, make_jobs(other, ["pd"]), out)
+
+
+def test_report_is_rebuilt_from_the_folders(finished, tmp_path):
+    out = tmp_path / "copy"
+    shutil.copytree(finished[0], out)
+    for name in ("study.json", "study.md", "study.csv", "study.png"):
+        (out / name).unlink()
+    # a second seed, found only as a folder: its MAE 1° higher at the same interaction steps
+    seed0 = json.loads((out / "jobs" / "efficienttrack-closed-s0" / "result.json").read_text())
+    seed1 = {**seed0, "seed": 1, "curve": [{**p, "metrics": {**p["metrics"], "mae_deg": p["metrics"]["mae_deg"] + 1}}
+                                           for p in seed0["curve"]]}  # fmt: skip
+    (out / "jobs" / "efficienttrack-closed-s1").mkdir()
+    (out / "jobs" / "efficienttrack-closed-s1" / "result.json").write_text(json.dumps(seed1))
+    (out / "jobs" / "broken-closed-s0").mkdir()
+    (out / "jobs" / "broken-closed-s0" / "error.json").write_text(json.dumps({"error": "ValueError: bad"}))
+    rebuilt = report(out)
+    assert all(path.is_file() for path in rebuilt.paths)
+    et = rebuilt.entries[1]
+    mae0 = seed0["curve"][0]["metrics"]["mae_deg"]
+    assert et["seeds"] == [0, 1] and et["mae_deg"] == pytest.approx(mae0 + 0.5)
+    assert et["mae_deg_std"] == pytest.approx(np.std([mae0, mae0 + 1], ddof=1))
+    assert et["curve"][0]["seeds"] == 2 and et["curve"][0]["mae_deg"] == pytest.approx(mae0 + 0.5)
+    assert rebuilt.failed == {"broken-closed-s0": "ValueError: bad"}
+    assert "`broken-closed-s0`: ValueError: bad" in (out / "study.md").read_text()
+    assert json.loads((out / "study.json").read_text()) == json.loads(json.dumps(rebuilt.entries))
+    with pytest.raises(EfficientTrackError, match="no study here"):
+        report(tmp_path / "nothing")
+
+
+def test_a_failing_job_is_reported_and_the_others_finish(refs, tmp_path, monkeypatch):
+    monkeypatch.setitem(METHODS, "boom", Method("boom", "Boom", failing, ("closed",)))
+    monkeypatch.setitem(METHODS, "nan", Method("nan", "NaN", not_finite, ("closed",)))
+    study = tiny_study(refs)
+    lines = []
+    result = run_study(study, make_jobs(study, ["boom", "pd", "nan"]), tmp_path, log=lines.append)
+    assert result.ran == ("pd-closed-s0",)
+    assert result.failed == {
+        "boom-closed-s0": "RuntimeError: the simulator exploded",
+        "nan-closed-s0": "point 0 of the curve: 'metrics' must hold a finite 'mae_deg', got nan",
+    }
+    assert "[1/3] boom-closed-s0 FAILED: RuntimeError: the simulator exploded" in lines
+    assert (
+        "the simulator exploded" in json.loads((tmp_path / "jobs" / "boom-closed-s0" / "error.json").read_text())["traceback"]
+    )
+    assert not (tmp_path / "jobs" / "boom-closed-s0" / "result.json").exists()
+    assert [e["method"] for e in result.report.entries] == ["pd"] and set(result.report.failed) == set(result.failed)
+    # a rerun runs the failed jobs again, and only them
+    rerun = run_study(study, make_jobs(study, ["boom", "pd"]), tmp_path, log=lambda line: None)
+    assert rerun.skipped == ("pd-closed-s0",) and list(rerun.failed) == ["boom-closed-s0"]
+
+
+def test_process_pool_runs_jobs_in_spawned_workers(refs, tmp_path):
+    study = tiny_study(refs)
+    jobs = [Job("pd", "closed", seed, study) for seed in (0, 1)]
+    result = run_study(study, jobs, tmp_path, workers=2, log=lambda line: None)
+    assert sorted(result.ran) == ["pd-closed-s0", "pd-closed-s1"] and not result.failed
+    maes = [json.loads((tmp_path / "jobs" / name / "result.json").read_text())["curve"][0]["metrics"]["mae_deg"]
+            for name in result.ran]  # fmt: skip
+    assert maes[0] == maes[1]
+
+
+def test_ray_executor_on_a_local_instance(finished, refs, tmp_path):
+    ray = pytest.importorskip("ray")
+    study = tiny_study(refs)
+    # no ray.init here: the study starts a local instance (1 CPU, a 200 MB object store, no dashboard) and stops it
+    result = run_study(study, make_jobs(study, ["pd", "efficienttrack"]), tmp_path, executor="ray", log=lambda line: None)
+    assert not ray.is_initialized()
+    assert sorted(result.ran) == ["efficienttrack-closed-s0", "pd-closed-s0"] and not result.failed
+    local = {e["method"]: e["mae_deg"] for e in finished[2].report.entries if e["loop"] == "closed"}
+    ray_maes = {e["method"]: e["mae_deg"] for e in result.report.entries}
+    assert ray_maes == pytest.approx({name: local[name] for name in ray_maes})  # seeded: as in this process
+    assert (tmp_path / "study.png").is_file() and (tmp_path / "jobs" / "efficienttrack-closed-s0" / "job.log").is_file()
+
+
+def test_cli_study(refs, tmp_path, monkeypatch):
+    monkeypatch.setitem(METHODS, "boom", Method("boom", "Boom", failing, ("closed",)))
+    save_references(refs[0], tmp_path / "train")
+    save_references(refs[1], tmp_path / "test")
+    out = tmp_path / "study"
+    common = ["study", "--train-refs", tmp_path / "train", "--test-refs", tmp_path / "test", "--out", out, "--preset", "quick"]
+    result = CliRunner().invoke(app, [str(a) for a in [*common, "--methods", "pd,boom"]], env={"COLUMNS": "200"})
+    assert result.exit_code == 1, result.output  # a job failed; the other finished and the report is written
+    assert "pd-closed-s0 done in" in result.output and "boom-closed-s0 FAILED: RuntimeError" in result.output
+    assert [e["method"] for e in json.loads((out / "study.json").read_text())] == ["pd"]
+    again = CliRunner().invoke(app, ["study", "--out", str(out), "--report-only"])
+    assert again.exit_code == 0 and "| PD | closed |" in again.output
+    for extra, message in [
+        (["--methods", "pd", "--executor", "slurm"], "--executor slurm: unknown"),
+        (["--methods", "pd", "--address", "10.0.0.1:6379"], "--address 10.0.0.1:6379: only with --executor ray"),
+        (["--methods", "pd", "--jobs", "0"], "--jobs 0"),
+        (["--methods", "pd", "--seeds", "a"], "--seeds 'a'"),
+        (["--methods", "pd", "--budget", "5000"], "holds a study of another system, references, budget"),
+    ]:
+        refused = CliRunner().invoke(app, [str(a) for a in [*common, *extra]])
+        assert isinstance(refused.exception, EfficientTrackError) and message in str(refused.exception), refused.output
+    forced = CliRunner().invoke(app, [str(a) for a in [*common, "--methods", "pd", "--budget", "5000", "--force"]])
+    assert forced.exit_code == 0 and json.loads((out / "study_config.json").read_text())["budget"] == 5000
+    assert not (out / "jobs" / "boom-closed-s0").exists()
