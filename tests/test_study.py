@@ -235,6 +235,7 @@ def test_cli_study(refs, tmp_path, monkeypatch):
         (["--methods", "pd", "--address", "10.0.0.1:6379"], "--address 10.0.0.1:6379: only with --executor ray"),
         (["--methods", "pd", "--jobs", "0"], "--jobs 0"),
         (["--methods", "pd", "--seeds", "a"], "--seeds 'a'"),
+        (["--methods", "pd", "--method-budget", "sac"], "--method-budget 'sac': expected METHOD=STEPS"),
         (["--methods", "pd", "--budget", "5000"], "holds a study of another system, references, budget"),
     ]:
         refused = CliRunner().invoke(app, [str(a) for a in [*common, *extra]])
@@ -242,3 +243,15 @@ def test_cli_study(refs, tmp_path, monkeypatch):
     forced = CliRunner().invoke(app, [str(a) for a in [*common, "--methods", "pd", "--budget", "5000", "--force"]])
     assert forced.exit_code == 0 and json.loads((out / "study_config.json").read_text())["budget"] == 5000
     assert not (out / "jobs" / "boom-closed-s0").exists()
+
+
+def test_a_method_budget_replaces_the_study_budget_for_that_method(refs):
+    train, test = refs
+    study = make_study(SystemSpec(), train, test, budget=2 * 59, preset="quick", run_config=FAST, method_budgets={"ppo": 64})
+    jobs = {job.method: job for job in make_jobs(study, ["efficienttrack", "ppo"])}
+    assert jobs["ppo"].budget == 64 and jobs["efficienttrack"].budget == 2 * 59
+    assert study.identity()["method_budgets"] == {"ppo": 64}
+    with pytest.raises(EfficientTrackError, match="--method-budget efficienttrack=50: less than one collection pass"):
+        make_jobs(make_study(SystemSpec(), train, test, 2 * 59, "quick", FAST, {"efficienttrack": 50}), ["efficienttrack"])
+    with pytest.raises(EfficientTrackError, match="--method-budget nope=…: unknown method"):
+        make_jobs(make_study(SystemSpec(), train, test, 2 * 59, "quick", FAST, {"nope": 50}), ["pd"])

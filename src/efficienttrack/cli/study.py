@@ -21,6 +21,17 @@ def _names(text: str, flag: str) -> list[str]:
     return names
 
 
+def _method_budgets(items: list[str]) -> dict[str, int]:
+    """``["sac=50000", ...]`` → ``{"sac": 50000}``; a malformed item is an error naming ``--method-budget``."""
+    budgets = {}
+    for item in items:
+        method, _, steps = item.partition("=")
+        if not method.strip() or not steps.strip().isdigit():
+            raise EfficientTrackError(f"--method-budget '{item}': expected METHOD=STEPS, e.g. sac=50000")
+        budgets[method.strip()] = int(steps)
+    return budgets
+
+
 @app.command("study")
 def study_command(
     ctx: typer.Context,
@@ -42,6 +53,10 @@ def study_command(
     seeds: Annotated[str, typer.Option("--seeds", help="Comma-separated seeds, one job per method, loop and seed.")] = "0",
     budget: Annotated[
         int | None, typer.Option("--budget", help="Interaction steps per job (default: quick 20,000, full 200,000).")
+    ] = None,
+    method_budget: Annotated[
+        list[str] | None,
+        typer.Option("--method-budget", help="METHOD=N: that method's interaction steps instead of --budget (repeatable)."),
     ] = None,
     preset_name: Annotated[str, typer.Option("--preset", help="quick (tiny networks, minutes) or full.")] = "full",
     executor: Annotated[str, typer.Option("--executor", help="local (this machine) or ray.")] = "local",
@@ -76,7 +91,8 @@ def study_command(
         raise EfficientTrackError(f"{'--train-refs' if train_refs is None else '--test-refs'}: needed to run a study")
     check_output_folder(out)
     spec = _system_spec(system, plant, pd, system_opt, limits)
-    study = make_study(spec, load_references(train_refs), load_references(test_refs), budget, preset_name)
+    budgets = _method_budgets(method_budget or [])
+    study = make_study(spec, load_references(train_refs), load_references(test_refs), budget, preset_name, None, budgets)
     names = None if methods is None else _names(methods, "--methods")
     job_list = make_jobs(study, names, _names(loops, "--loops"), parse_ints(seeds, "--seeds"))
     _lock(ctx, out)

@@ -77,7 +77,7 @@ def execute(job: Job, out: Path, threads: int = 1) -> Outcome:
     """Run one job in this process, in ``out/jobs/<name>/``; what every executor runs, once per job.
 
     What the method prints goes to the folder's ``job.log``. On success ``result.json`` is written last:
-    ``{"job", "method", "loop", "seed", "curve": [point, ...] sorted by interaction steps, "wall_seconds",
+    ``{"job", "method", "loop", "seed", "budget", "curve": [point, ...] sorted by interaction steps, "wall_seconds",
     "provenance"}``; on failure ``error.json`` (``{"job", "error", "traceback"}``). torch uses ``threads`` CPU
     threads while the job runs.
 
@@ -110,6 +110,7 @@ def execute(job: Job, out: Path, threads: int = 1) -> Outcome:
         "method": job.method,
         "loop": job.loop,
         "seed": job.seed,
+        "budget": job.budget,
         "curve": curve,
         "wall_seconds": round(wall, 2),
         "provenance": provenance(wall_seconds=wall),

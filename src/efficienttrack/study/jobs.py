@@ -60,6 +60,8 @@ class Study:
         budget: interaction steps each job may spend (training interactions with the system).
         preset: a name of :data:`STUDY_PRESETS`.
         run_config: EfficientTrack's settings (the preset's ``run`` preset; its seed and passes are set per job).
+        method_budgets: (method, interaction steps) pairs that replace ``budget`` for those methods' jobs (a costly
+            baseline stopped earlier, a sample-hungry one given more).
     """
 
     system: SystemSpec
@@ -68,13 +70,31 @@ class Study:
     budget: int
     preset: str
     run_config: RunConfig
+    method_budgets: tuple[tuple[str, int], ...] = ()
 
     def __post_init__(self) -> None:
-        """Check the references, the budget and the preset (EfficientTrackError naming the option)."""
+        """Check the references, the budgets and the preset (EfficientTrackError naming the option)."""
         if not self.train or not self.test:
             raise EfficientTrackError("study: needs at least one training (--train-refs) and one test reference (--test-refs)")
         if not isinstance(self.budget, int) or isinstance(self.budget, bool) or self.budget < 1:
             raise EfficientTrackError(f"--budget {self.budget!r}: expected a number of interaction steps ≥ 1")
+        for method, steps in self.method_budgets:
+            if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
+                raise EfficientTrackError(f"--method-budget {method}={steps!r}: expected a number of interaction steps ≥ 1")
+        names = [method for method, _ in self.method_budgets]
+        if len(set(names)) != len(names):
+            raise EfficientTrackError(f"--method-budget: a method is given twice ({', '.join(names)})")
+
+    def budget_of(self, method: str) -> int:
+        """Interaction steps a job of ``method`` may spend: its ``method_budgets`` entry, else ``budget``.
+
+        Args:
+            method: a method name.
+
+        Returns:
+            The budget.
+        """
+        return dict(self.method_budgets).get(method, self.budget)
         if self.preset not in STUDY_PRESETS:
             raise EfficientTrackError(f"--preset '{self.preset}': unknown, choose one of {', '.join(STUDY_PRESETS)}")
 
@@ -90,7 +110,7 @@ class Study:
 
         Returns:
             ``{"system", "train_references", "test_references": {name: length}, "references_sha256", "budget",
-            "preset", "run_config"}``.
+            "method_budgets": {method: steps}, "preset", "run_config"}``.
         """
         digest = hashlib.sha256()
         for ref in (*self.train, *self.test):
@@ -101,6 +121,7 @@ class Study:
             "test_references": {ref.name: len(ref) for ref in self.test},
             "references_sha256": digest.hexdigest(),
             "budget": self.budget,
+            "method_budgets": dict(self.method_budgets),
             "preset": self.preset,
             "run_config": self.run_config.to_dict(),
         }
@@ -113,6 +134,7 @@ def make_study(
     budget: int | None = None,
     preset: str = "full",
     run_config: RunConfig | None = None,
+    method_budgets: dict[str, int] | None = None,
 ) -> Study:
     """A study with the preset's defaults filled in.
 
@@ -123,6 +145,7 @@ def make_study(
         budget: interaction steps per job (None: the preset's).
         preset: ``quick`` or ``full`` (:data:`STUDY_PRESETS`).
         run_config: EfficientTrack's settings (None: the preset's ``run`` preset).
+        method_budgets: method name → interaction steps for that method's jobs instead of ``budget``.
 
     Returns:
         The study.
@@ -140,6 +163,7 @@ def make_study(
         budget=sizes.budget if budget is None else budget,
         preset=preset,
         run_config=PRESETS[sizes.run] if run_config is None else run_config,
+        method_budgets=tuple(sorted((method_budgets or {}).items())),
     )
 
 
@@ -158,6 +182,11 @@ class Job:
     loop: str
     seed: int
     study: Study
+
+    @property
+    def budget(self) -> int:
+        """Interaction steps this job may spend (:meth:`Study.budget_of` its method)."""
+        return self.study.budget_of(self.method)
 
     @property
     def name(self) -> str:

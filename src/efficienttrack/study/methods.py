@@ -1,7 +1,7 @@
 """The methods a study compares, by name, and the jobs they give: each runs one job and returns its curve.
 
 A method is a function ``run(job, folder) -> curve``: it trains with ``job.seed`` in ``job.loop`` within
-``job.study.budget`` interaction steps, writing what it likes under ``folder``, and returns the test metrics of the
+``job.budget`` interaction steps, writing what it likes under ``folder``, and returns the test metrics of the
 held-out references at regular interaction counts, as a list of points::
 
     {"interaction_steps": int, "wall_seconds": float, "metrics": compute_metrics(...) of the test episodes, ...}
@@ -131,9 +131,11 @@ def check_passes(study: Study) -> None:
     Raises:
         EfficientTrackError: the budget is smaller than one pass (naming ``--budget``).
     """
-    if not pass_counts(study.budget, study.steps_per_pass):
+    budget = study.budget_of("efficienttrack")
+    if not pass_counts(budget, study.steps_per_pass):
+        option = "--method-budget efficienttrack=" if "efficienttrack" in dict(study.method_budgets) else "--budget "
         raise EfficientTrackError(
-            f"--budget {study.budget}: less than one collection pass over the training references "
+            f"{option}{budget}: less than one collection pass over the training references "
             f"({study.steps_per_pass} interaction steps), which EfficientTrack needs"
         )
 
@@ -161,7 +163,7 @@ def run_efficienttrack(job: Job, folder: Path) -> list[Point]:
     check_passes(study)
     base = with_overrides(study.run_config, seed=job.seed)
     curve = []
-    for passes in pass_counts(study.budget, study.steps_per_pass):
+    for passes in pass_counts(job.budget, study.steps_per_pass):
         run_folder = folder / f"passes_{passes}"
         done = run_folder / "point.json"
         if done.exists():
@@ -197,7 +199,7 @@ def run_sb3(job: Job, folder: Path) -> list[Point]:
             system=study.system,
             train_refs=list(study.train),
             test_refs=list(study.test),
-            budget=study.budget,
+            budget=job.budget,
             seed=job.seed,
             folder=folder,
             preset=STUDY_PRESETS[study.preset].baselines,
@@ -239,8 +241,9 @@ def make_jobs(
         The jobs, method by method in the order given, then loop, then seed.
 
     Raises:
-        EfficientTrackError: an unknown or unavailable method, one that cannot run in the study (its ``check``), an
-            unknown loop, a bad seed, the open loop without a plant, or no job at all (each naming its option).
+        EfficientTrackError: an unknown or unavailable method (also in the study's ``method_budgets``), one that cannot
+            run in the study (its ``check``), an unknown loop, a bad seed, the open loop without a plant, or no job at
+            all (each naming its option).
     """
     names = available_methods() if methods is None else list(methods)
     for name in names:
@@ -251,6 +254,9 @@ def make_jobs(
                 f"--methods {name}: not available here (needs {', '.join(METHODS[name].requires)}); "
                 f"available: {', '.join(available_methods())}"
             )
+    for name, _ in study.method_budgets:
+        if name not in METHODS:
+            raise EfficientTrackError(f"--method-budget {name}=…: unknown method, choose from {', '.join(METHODS)}")
     if not names or len(set(names)) != len(names):
         raise EfficientTrackError(f"--methods {','.join(names)}: give each method once, at least one")
     for loop in loops:
