@@ -3,7 +3,8 @@
 Each joint follows its reference with a first-order lag, ``q[t+1] = q[t] + k·(q_ref[t] − q[t])``,
 so PD-like tracking of a moving reference lags behind by ``v·(1 − k)/k`` for a reference moving
 ``v`` rad per step. The adjustment that removes the lag exactly is
-``a = (1/k − 1)·(q*[t+1] − q[t])``: a policy has something real to learn.
+``a = (1/k − 1)·(q*[t+1] − q[t])``: a policy has something real to learn. With ``delay = d`` the reference
+acts d steps late (``q_ref[t − d]`` in place of ``q_ref[t]``; the start position before the first d steps).
 """
 
 from __future__ import annotations
@@ -24,32 +25,37 @@ class LagSystem:
         gain: fraction k of the remaining error closed per step, in (0, 1].
         batched: accept (N, 4) inputs (True) or single (4,) arrays only (False).
         dt: control period, s.
+        delay: steps d ≥ 0 by which the reference acts late.
     """
 
-    def __init__(self, gain: float = 0.4, batched: bool = True, dt: float = 0.05) -> None:
+    def __init__(self, gain: float = 0.4, batched: bool = True, dt: float = 0.05, delay: int = 0) -> None:
         self.k = float(gain)
         self.batched = bool(batched)
         self.dt = float(dt)
+        self.delay = int(delay)
         self.last_command: np.ndarray | None = None
         self._q: np.ndarray | None = None
+        self._pending: list[np.ndarray] = []
 
     def reset(self, q0):
         self._q = np.array(q0, dtype=np.float64)
+        self._pending = [self._q.copy() for _ in range(self.delay)]
         self.last_command = None
         return np.concatenate([self._q, np.zeros_like(self._q)], axis=-1)
 
     def step(self, q_ref):
         q_ref = np.asarray(q_ref, dtype=np.float64)
         assert q_ref.shape == self._q.shape, (q_ref.shape, self._q.shape)
-        dq = self.k * (q_ref - self._q)
+        self._pending.append(q_ref)
+        dq = self.k * (self._pending.pop(0) - self._q)
         self.last_command = 1000.0 * dq
         self._q = self._q + dq
         return np.concatenate([self._q, dq / self.dt], axis=-1)
 
 
-def make(gain: float = 0.4, batched: bool = True) -> LagSystem:
+def make(gain: float = 0.4, batched: bool = True, delay: int = 0) -> LagSystem:
     """Build the toy system (the ``module:callable`` entry point)."""
-    return LagSystem(gain=gain, batched=batched)
+    return LagSystem(gain=gain, batched=batched, delay=delay)
 
 
 def sine_refs(lengths: list[int], seed: int = 0) -> list[Reference]:

@@ -104,12 +104,21 @@ class CurveRecorder:
         """
         began = time.perf_counter()
         records = evaluate(act, self.test_refs, loop=self.header["loop"], system=self.system)
-        metrics = compute_metrics(records)
-        self.curve.append(
-            {"interaction_steps": count, "wall_seconds": began - self.start - self.evaluating, "metrics": metrics}
-        )
-        write_json(self.path, {**self.header, "curve": self.curve})
+        self.add(count, began - self.start - self.evaluating, compute_metrics(records))
         self.evaluating += time.perf_counter() - began
+
+    def add(self, count: int, wall_seconds: float, metrics: dict[str, Any]) -> None:
+        """Append a point measured by the caller and write the file (what :meth:`measure` does after evaluating).
+
+        For a method whose "policy" is no function of the observation (the ILC oracle's stored corrections).
+
+        Args:
+            count: the interaction steps trained so far.
+            wall_seconds: the training wall time so far (evaluations excluded).
+            metrics: :func:`~efficienttrack.metrics.compute_metrics` of the test episodes.
+        """
+        self.curve.append({"interaction_steps": int(count), "wall_seconds": float(wall_seconds), "metrics": metrics})
+        write_json(self.path, {**self.header, "curve": self.curve})
         if self.progress is not None and self.task is not None:
             self.progress.update(self.task, mae_deg=metrics["mae_deg"])
 

@@ -1,0 +1,350 @@
+"""An ORACLE lower bound, not a competitor: iterative learning control (ILC) on each test reference itself.
+
+ILC repeats the same reference many times and corrects the reference sent from the previous trial's error. Trial
+k sends, on the closed loop (the machine's own position controller),
+
+    q^r_k(t+1) = clamp(q*(t+1) + a_k(t)),     a_0 = 0 (trial 0 is the PD controller alone),
+
+and learns from the tracking error e_k(s) = wrap(q*(s) − q_k(s)) of the trial it has just run:
+
+    a_{k+1}(t) = clip(Q[a_k(t) + L · e_k(t + 1 + δ)], ±max_adjust),
+
+with L a learning gain per joint, δ the lead per joint (steps the machine answers later than the step after the reference is
+sent), Q a zero-phase low-pass over time (a Butterworth filter run forwards and backwards, ``scipy.signal.filtfilt``;
+it keeps the high-frequency part of the error, which the machine cannot follow, from building up trial after trial),
+clip the system's adjustment bound (``limits.max_adjust``) and clamp its joint limits, as the environments apply an
+action. The error past the end of a reference is unknown and taken as zero.
+
+It is an oracle: it runs on the held-out test references and learns a correction for each of them, so it sees
+exactly what the fair methods are scored on and never generalizes to a new reference. Its curve says how much
+tracking error any reference adjustment can remove on this system (within the adjustment bound): the error left to
+win. It has the closed loop only: on the open loop (PWM sent to the plant) a pure feed-forward correction of a
+hydraulic integrator without feedback drifts trial after trial, which no fair comparison needs.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.signal import butter, filtfilt
+
+from efficienttrack.angles import wrap
+from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_eval_points, check_refs
+from efficienttrack.configfile import check_seed
+from efficienttrack.episodes import Sent, batches, rollout
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.fileio import check_output_folder, output_lock
+from efficienttrack.joints import N_JOINTS
+from efficienttrack.metrics import MIN_STEPS, compute_metrics
+from efficienttrack.progress import ProgressDisplay
+from efficienttrack.records import EpisodeRecord
+from efficienttrack.references import Reference
+from efficienttrack.systems.protocol import BatchedSystem
+from efficienttrack.systems.spec import SystemSpec
+
+METHOD = "ilc"
+"""The method's name in ``curve.json`` and the study (an oracle: it sees the test references)."""
+
+
+@dataclass(frozen=True)
+class ILCSettings:
+    """Settings of the ILC oracle (tuned once on the built-in ``xe75`` with generated loading cycles, docs/baselines.md)."""
+
+    gain: tuple[float, ...] = (0.7, 0.7, 0.5, 0.7)
+    """L, the learning gain per joint (boom, arm, bucket, swing): the share of the last trial's error added to the
+    correction each trial; a single number is taken for all four joints."""
+    lead: tuple[int, ...] = (10, 6, 4, 8)
+    """δ ≥ 0 per joint, steps by which the closed loop's response lags behind the step after the reference is sent
+    (its dead time and, at a cycle's frequencies, most of its phase lag): the correction of step t learns from the
+    error at step t + 1 + δ; a single integer is taken for all four joints."""
+    cutoff_hz: float | None = 1.5
+    """Cut-off frequency of the zero-phase low-pass Q over time, Hz (below the Nyquist frequency 1 / (2 dt));
+    None: no filter."""
+    filter_order: int = 2
+    """Order of the Butterworth low-pass Q (run forwards and backwards: twice the order, no phase lag)."""
+    trials: int = 50
+    """Learning trials after trial 0 (the PD controller alone); each runs every test reference once. Fewer when the
+    budget ends first."""
+
+    def __post_init__(self) -> None:
+        """Check the values (EfficientTrackError naming the field); a single gain is spread over the four joints."""
+        gain = self.gain
+        if isinstance(gain, int | float) and not isinstance(gain, bool):
+            gain = (float(gain),) * N_JOINTS
+        if (
+            not isinstance(gain, tuple)
+            or len(gain) != N_JOINTS
+            or not all(isinstance(g, int | float) and not isinstance(g, bool) and math.isfinite(g) and g > 0 for g in gain)
+        ):
+            raise EfficientTrackError(f"ilc.gain: must be a number > 0 or 4 of them (boom, arm, bucket, swing), got {gain!r}")
+        object.__setattr__(self, "gain", tuple(float(g) for g in gain))
+        lead = self.lead
+        if isinstance(lead, int) and not isinstance(lead, bool):
+            lead = (lead,) * N_JOINTS
+        if (
+            not isinstance(lead, tuple)
+            or len(lead) != N_JOINTS
+            or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in lead)
+        ):
+            raise EfficientTrackError(f"ilc.lead: must be an integer ≥ 0 or 4 such (boom, arm, bucket, swing), got {lead!r}")
+        object.__setattr__(self, "lead", lead)
+        for field, low in (("filter_order", 1), ("trials", 1)):
+            value = getattr(self, field)
+            if not isinstance(value, int) or isinstance(value, bool) or value < low:
+                raise EfficientTrackError(f"ilc.{field}: must be an integer ≥ {low}, got {value!r}")
+        cutoff = self.cutoff_hz
+        if cutoff is not None and (
+            not isinstance(cutoff, int | float) or isinstance(cutoff, bool) or not (math.isfinite(cutoff) and cutoff > 0)
+        ):
+            raise EfficientTrackError(f"ilc.cutoff_hz: must be a number > 0 Hz or None (no filter), got {cutoff!r}")
+
+
+ILC_PRESETS: dict[str, ILCSettings] = {"full": ILCSettings(), "quick": ILCSettings(trials=5)}
+"""The oracle's presets: ``full`` (50 trials) and ``quick`` (5 trials, for tests)."""
+
+
+def ilc_settings(preset: str | ILCSettings = "full") -> ILCSettings:
+    """The ILC settings by preset name, or ``preset`` itself when it is an :class:`ILCSettings`.
+
+    Args:
+        preset: ``"full"``, ``"quick"`` or an :class:`ILCSettings`.
+
+    Returns:
+        The settings.
+    """
+    if isinstance(preset, ILCSettings):
+        return preset
+    if not isinstance(preset, str) or preset not in ILC_PRESETS:
+        raise EfficientTrackError(f"preset {preset!r}: unknown for ilc (known: {', '.join(ILC_PRESETS)}, or ILCSettings)")
+    return ILC_PRESETS[preset]
+
+
+def ilc_update(
+    correction: np.ndarray, error: np.ndarray, settings: ILCSettings, max_adjust: np.ndarray, dt: float
+) -> np.ndarray:
+    """One ILC update of N references' corrections (time-major), the update law of the module docstring.
+
+    Args:
+        correction: (T, N, 4) rad, a_k: the correction added to the desired position sent at each step.
+        error: (T, N, 4) rad, ``wrap(q*(t+1) − q_k(t+1))``, the error of each step's target in trial k (zero where
+            unknown).
+        settings: the gain, lead and filter.
+        max_adjust: (4,) rad, the adjustment bound.
+        dt: the control period, s.
+
+    Returns:
+        (T, N, 4) rad, a_{k+1}, within ±max_adjust.
+    """
+    ahead = np.zeros_like(error)
+    for joint, lead in enumerate(settings.lead):
+        ahead[: max(len(error) - lead, 0), :, joint] = error[lead:, :, joint]
+    learned = correction + np.asarray(settings.gain) * ahead
+    if settings.cutoff_hz is not None:
+        b, a = butter(settings.filter_order, check_cutoff(settings, dt))
+        learned = filtfilt(b, a, learned, axis=0, padlen=min(3 * len(b), len(learned) - 1))
+    return np.clip(learned, -max_adjust, max_adjust)
+
+
+def check_cutoff(settings: ILCSettings, dt: float) -> float | None:
+    """The filter's cut-off as a fraction of the Nyquist frequency, checked against the system's control period.
+
+    Args:
+        settings: the settings (their ``cutoff_hz``).
+        dt: the control period, s.
+
+    Returns:
+        ``cutoff_hz / (1 / (2 dt))`` in (0, 1), or None when there is no filter.
+
+    Raises:
+        EfficientTrackError: a cut-off at or above the Nyquist frequency.
+    """
+    if settings.cutoff_hz is None:
+        return None
+    nyquist = 0.5 / dt
+    if settings.cutoff_hz >= nyquist:
+        raise EfficientTrackError(f"ilc.cutoff_hz: {settings.cutoff_hz} Hz must be below the Nyquist frequency {nyquist:g} Hz")
+    return settings.cutoff_hz / nyquist
+
+
+class _CorrectionDriver:
+    """The driver of :func:`rollout` that sends the desired position plus the stored correction, and keeps the errors."""
+
+    def __init__(self, system: BatchedSystem, correction: np.ndarray) -> None:
+        self._limits = system.limits
+        self._correction = correction
+        self.target = np.zeros_like(correction)
+        """(T, N, 4) rad, q*(t+1) of each step."""
+        self.measured = np.zeros_like(correction)
+        """(T, N, 4) rad, q(t) of each step."""
+        self._t = 0
+
+    def start(self, obs0: np.ndarray) -> None:
+        self._t = 0
+
+    def step(self, obs: np.ndarray, q_des_future: np.ndarray) -> Sent:
+        t, q_next = self._t, q_des_future[:, 0]
+        q_ref = self._limits.clamp(q_next + self._correction[t])
+        self.target[t], self.measured[t] = q_next, obs[:, :N_JOINTS]
+        self._t += 1
+        return Sent(q_ref=q_ref, adjustment=q_ref - q_next, fallback=np.zeros(len(obs), dtype=bool))
+
+    def error(self) -> np.ndarray:
+        """(T, N, 4) rad, ``wrap(q*(t+1) − q(t+1))``; the last step's (after the last observation seen) is zero."""
+        error = np.zeros_like(self.target)
+        error[:-1] = wrap(self.target[:-1] - self.measured[1:])
+        return error
+
+
+def run_trial(
+    system: BatchedSystem, refs: Sequence[Reference], correction: np.ndarray
+) -> tuple[list[EpisodeRecord], np.ndarray]:
+    """Run every reference once with its correction, all together on the batched system (the closed loop).
+
+    A shorter reference holds its last desired position while the longer ones finish (as
+    :func:`efficienttrack.episodes.rollout` runs them); its errors there are kept too, its record is cut to its length.
+
+    Args:
+        system: the closed-loop system, checked and opened.
+        refs: the N references (each ≥ 3 positions).
+        correction: (T, N, 4) rad, the correction of each step, T = the longest reference's steps.
+
+    Returns:
+        One record per reference (meta ``name``, ``loop`` = closed) and the errors (T, N, 4) rad,
+        ``wrap(q*(t+1) − q(t+1))`` (zero at the last step).
+    """
+    records: list[EpisodeRecord] = []
+    error = np.zeros_like(correction)
+    for part in batches(system, len(refs)):
+        group = refs[part]
+        steps = max(len(ref) for ref in group) - 1
+        driver = _CorrectionDriver(system, correction[:steps, part])
+        group_records = rollout(system, [ref.q for ref in group], driver)
+        for record, ref in zip(group_records, group, strict=True):
+            record.meta.update(name=ref.name, loop="closed")
+        records += group_records
+        error[:steps, part] = driver.error()
+    return records, error
+
+
+def trial_steps(test_refs: Sequence[Reference]) -> int:
+    """Interaction steps one trial costs: every test reference once, ``Σ (L_i − 1)``.
+
+    Args:
+        test_refs: the test references.
+
+    Returns:
+        The steps.
+    """
+    return sum(len(ref) - 1 for ref in test_refs)
+
+
+def train_ilc(
+    loop: str,
+    system: SystemSpec,
+    train_refs: Sequence[Reference],
+    test_refs: Sequence[Reference],
+    budget: int,
+    seed: int,
+    folder: str | Path,
+    preset: str | ILCSettings = "full",
+    eval_at: Sequence[int] | None = None,
+    progress: ProgressDisplay | None = None,
+) -> list[dict[str, Any]]:
+    """The ORACLE: iterative learning control on the test references themselves, trial after trial (not a fair method).
+
+    Trial 0 runs every test reference with no correction (the PD controller alone); each later trial runs them all
+    again with the corrections learned from the trial before (:func:`ilc_update`), all references together on the
+    batched system. A trial's own run is its measurement: the point of trial k has ``interaction_steps = k ·`` the
+    steps of one trial (:func:`trial_steps`; the trials it learned from) and the metrics of its records. Trials run
+    while ``k ≤ settings.trials`` and ``k · trial_steps ≤ budget``. ``folder/curve.json`` (``{"method": "ilc",
+    "oracle": true, "loop", "seed", "budget", "system", "settings", "curve": [point, ...]}``) is rewritten atomically
+    after each point. Deterministic: the same inputs give the same curve (wall times aside).
+
+    Args:
+        loop: ``"closed"`` only (the ILC corrects the reference sent to the position controller).
+        system: the system spec the test references run on.
+        train_refs: unused (the oracle learns on the test references), taken for the same call as the other methods.
+        test_refs: the references the oracle learns on and is measured on (each ≥ 4 steps).
+        budget: interaction steps allowed (≥ one trial's steps).
+        seed: unused (ILC is deterministic), checked and written to the curve's header.
+        folder: output folder for ``curve.json`` (created; other files in it are left alone).
+        preset: ``"full"``, ``"quick"`` (:data:`ILC_PRESETS`) or an :class:`ILCSettings`.
+        eval_at: interaction counts at which to record a point, each in ``[1, budget]`` (each recorded at the first
+            trial whose count reaches it), besides trial 0; None: every trial.
+        progress: a display to show the interaction count and the last MAE on, or None for no progress.
+
+    Returns:
+        One point per recorded trial, trial 0 first: ``{"interaction_steps": int, "wall_seconds": float (time of the
+        trials and updates before this trial; scoring excluded), "metrics": dict (compute_metrics of this trial)}``.
+
+    Raises:
+        EfficientTrackError: the open loop or an unknown loop, an unknown preset, a budget < 1 or smaller than one
+            trial, an evaluation point outside ``[1, budget]``, a bad seed, a system that is no SystemSpec, no
+            references or a test reference shorter than 4 steps, a reference outside the system's limits, an output
+            folder that cannot be written or is being written by another process.
+    """
+    if loop == "open":
+        raise EfficientTrackError("loop 'open': the ILC oracle has the closed loop only (it corrects the PD reference)")
+    if loop != "closed":
+        raise EfficientTrackError(f"loop {loop!r}: unknown (the ILC oracle has 'closed' only)")
+    settings = ilc_settings(preset)
+    if not isinstance(budget, int | np.integer) or isinstance(budget, bool) or budget < 1:
+        raise EfficientTrackError(f"budget: must be an integer ≥ 1 interaction step, got {budget!r}")
+    budget = int(budget)
+    check_seed(seed, "seed")
+    if not isinstance(system, SystemSpec):
+        raise EfficientTrackError(f"system: expected a SystemSpec (efficienttrack.systems.spec), got {type(system).__name__}")
+    del train_refs  # the oracle learns on the test references themselves
+    test_refs = check_refs(test_refs, "test_refs", MIN_STEPS)
+    per_trial = trial_steps(test_refs)
+    if budget < per_trial:
+        raise EfficientTrackError(f"budget {budget}: less than one ILC trial over the test references ({per_trial} steps)")
+    trials = min(settings.trials, budget // per_trial)
+    record_at = _recorded_trials(eval_at, budget, per_trial, trials)
+    folder = check_output_folder(folder, "folder")
+    header = {
+        "method": METHOD,
+        "oracle": True,
+        "loop": loop,
+        "seed": seed,
+        "budget": budget,
+        "system": system.to_dict(),
+        "settings": asdict(settings),
+    }
+    with output_lock(folder / CURVE_FILE, "folder", folder=False):
+        opened = system.open()
+        check_cutoff(settings, opened.dt)
+        for ref in test_refs:
+            opened.limits.check_reference(ref.q, ref.name)
+        recorder = CurveRecorder(header, folder / CURVE_FILE, opened, test_refs, progress, trials * per_trial)
+        max_adjust = np.asarray(opened.limits.max_adjust, dtype=np.float64)
+        correction = np.zeros((max(len(ref) for ref in test_refs) - 1, len(test_refs), N_JOINTS))
+        scoring = 0.0
+        try:
+            for k in range(trials + 1):
+                wall = time.perf_counter() - recorder.start - scoring
+                records, error = run_trial(opened, test_refs, correction)
+                if k in record_at:
+                    began = time.perf_counter()
+                    recorder.add(k * per_trial, wall, compute_metrics(records))
+                    scoring += time.perf_counter() - began
+                recorder.show(k * per_trial)
+                if k < trials:
+                    correction = ilc_update(correction, error, settings, max_adjust, opened.dt)
+        finally:
+            recorder.close()
+    return recorder.curve
+
+
+def _recorded_trials(eval_at: Sequence[int] | None, budget: int, per_trial: int, trials: int) -> set[int]:
+    """The trials whose points are recorded: trial 0 and, per point, the first trial whose count reaches it."""
+    if eval_at is None:
+        return set(range(trials + 1))
+    points = check_eval_points(eval_at, budget)
+    return {0} | {min(-(-p // per_trial), trials) for p in points}
