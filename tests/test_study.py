@@ -255,3 +255,13 @@ def test_a_method_budget_replaces_the_study_budget_for_that_method(refs):
         make_jobs(make_study(SystemSpec(), train, test, 2 * 59, "quick", FAST, {"efficienttrack": 50}), ["efficienttrack"])
     with pytest.raises(EfficientTrackError, match="--method-budget nope=…: unknown method"):
         make_jobs(make_study(SystemSpec(), train, test, 2 * 59, "quick", FAST, {"nope": 50}), ["pd"])
+
+
+def test_the_ilc_oracle_runs_as_a_study_method_below_pd(refs, tmp_path):
+    study = tiny_study(refs)
+    result = run_study(study, make_jobs(study, ["pd", "ilc"]), tmp_path, log=lambda line: None)
+    best = {entry["method"]: entry["mae_deg"] for entry in result.report.entries}
+    assert best["ilc"] < 0.5 * best["pd"]
+    assert "ILC (oracle" in result.report.markdown
+    with pytest.raises(EfficientTrackError, match="--method-budget ilc=10: less than one ILC trial .*59 steps"):
+        make_jobs(make_study(SystemSpec(), *refs, 2 * 59, "quick", FAST, {"ilc": 10}), ["ilc"])

@@ -2,26 +2,38 @@
 
 PPO and SAC through Stable-Baselines3 (:mod:`.sb3`); iterative learning control on the test references themselves
 (:mod:`.ilc`: it sees the test references, so it only says how much error is left to win).
+
+The names load their module when first used, so that the ILC oracle (numpy and scipy) does not import
+Stable-Baselines3.
 """
 
-from efficienttrack.baselines.curve import CurveRecorder, default_eval_points
-from efficienttrack.baselines.ilc import ILC_PRESETS, ILCSettings, train_ilc
-from efficienttrack.baselines.sb3 import train_baseline
-from efficienttrack.baselines.settings import PPO_PRESETS, PRESETS, SAC_PRESETS, PPOSettings, SACSettings, method_settings
-from efficienttrack.baselines.vec_env import SB3VecEnv
+from __future__ import annotations
 
-__all__ = [
-    "CurveRecorder",
-    "ILCSettings",
-    "ILC_PRESETS",
-    "PPO_PRESETS",
-    "PRESETS",
-    "SAC_PRESETS",
-    "PPOSettings",
-    "SACSettings",
-    "SB3VecEnv",
-    "default_eval_points",
-    "method_settings",
-    "train_baseline",
-    "train_ilc",
-]
+import importlib
+from typing import Any
+
+_HOMES = {
+    "CurveRecorder": "curve",
+    "default_eval_points": "curve",
+    "ILC_PRESETS": "ilc",
+    "ILCSettings": "ilc",
+    "train_ilc": "ilc",
+    "train_baseline": "sb3",
+    "PPO_PRESETS": "settings",
+    "PRESETS": "settings",
+    "SAC_PRESETS": "settings",
+    "PPOSettings": "settings",
+    "SACSettings": "settings",
+    "method_settings": "settings",
+    "SB3VecEnv": "vec_env",
+}
+"""Public name → the module of this package that defines it."""
+
+__all__ = list(_HOMES)
+
+
+def __getattr__(name: str) -> Any:
+    """The public names, imported from their module on first use."""
+    if name not in _HOMES:
+        raise AttributeError(f"module 'efficienttrack.baselines' has no attribute '{name}'")
+    return getattr(importlib.import_module(f"efficienttrack.baselines.{_HOMES[name]}"), name)

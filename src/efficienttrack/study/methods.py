@@ -7,8 +7,9 @@ held-out references at regular interaction counts, as a list of points::
     {"interaction_steps": int, "wall_seconds": float, "metrics": compute_metrics(...) of the test episodes, ...}
 
 ``pd`` (the PD controller alone, one point at 0 interactions), ``efficienttrack`` (the whole pipeline after 1, 2, 5,
-10 … collection passes) and the Stable-Baselines3 baselines ``sac`` and ``ppo``
-(:func:`efficienttrack.baselines.sb3.train_baseline`), the latter where that module can be imported.
+10 … collection passes), the Stable-Baselines3 baselines ``sac`` and ``ppo``
+(:func:`efficienttrack.baselines.sb3.train_baseline`, where that module can be imported), and ``ilc``, the oracle
+lower bound (:func:`efficienttrack.baselines.ilc.train_ilc`; it sees the test references).
 """
 
 from __future__ import annotations
@@ -207,6 +208,53 @@ def run_sb3(job: Job, folder: Path) -> list[Point]:
         )
 
 
+def check_trial(study: Study) -> None:
+    """Refuse a budget smaller than one ILC trial (every test reference once).
+
+    Args:
+        study: the study.
+
+    Raises:
+        EfficientTrackError: the ILC budget is smaller than one trial (naming the option).
+    """
+    from efficienttrack.baselines.ilc import trial_steps
+
+    budget, steps = study.budget_of("ilc"), trial_steps(study.test)
+    if budget < steps:
+        option = "--method-budget ilc=" if "ilc" in dict(study.method_budgets) else "--budget "
+        raise EfficientTrackError(f"{option}{budget}: less than one ILC trial over the test references ({steps} steps)")
+
+
+def run_ilc(job: Job, folder: Path) -> list[Point]:
+    """The ILC oracle (:func:`efficienttrack.baselines.ilc.train_ilc`): trials on the test references themselves.
+
+    It sees the test references, so it is a lower bound on the error a reference adjustment can reach, not a
+    competitor; its label says so.
+
+    Args:
+        job: the job.
+        folder: the job's folder (the oracle's ``curve.json`` goes there).
+
+    Returns:
+        One point per trial: the test metrics after k trials at k × one trial's interaction steps.
+    """
+    from efficienttrack.baselines.ilc import train_ilc
+
+    study = job.study
+    with ProgressDisplay() as progress:
+        return train_ilc(
+            loop=job.loop,
+            system=study.system,
+            train_refs=list(study.train),
+            test_refs=list(study.test),
+            budget=job.budget,
+            seed=job.seed,
+            folder=folder,
+            preset=STUDY_PRESETS[study.preset].baselines,
+            progress=progress,
+        )
+
+
 SB3_MODULES = ("stable_baselines3", "efficienttrack.baselines.sb3")
 """What the SB3 baselines need."""
 METHODS: dict[str, Method] = {
@@ -214,6 +262,7 @@ METHODS: dict[str, Method] = {
     "efficienttrack": Method("efficienttrack", "EfficientTrack", run_efficienttrack, ("closed",), check=check_passes),
     "sac": Method("sac", "SAC", run_sb3, LOOPS, requires=SB3_MODULES),
     "ppo": Method("ppo", "PPO", run_sb3, LOOPS, requires=SB3_MODULES),
+    "ilc": Method("ilc", "ILC (oracle: sees the test references)", run_ilc, ("closed",), seeded=False, check=check_trial),
 }
 """The methods by name, in the order the reports list them."""
 
