@@ -95,19 +95,27 @@ class CurveRecorder:
         self.task = None if progress is None else progress.add_task(label, total=budget)
         write_json(path, {**header, "curve": self.curve})
 
-    def measure(self, act: Callable[[np.ndarray], np.ndarray], count: int) -> None:
+    def measure(
+        self,
+        act: Callable[[np.ndarray], np.ndarray],
+        count: int,
+        wall_seconds: float | None = None,
+        extra: dict[str, Any] | None = None,
+    ) -> None:
         """Run the deterministic policy ``act`` on the test references; append the point and write the file.
 
         Args:
             act: observations (N, 332) float32 → actions (N, 4) in [−1, 1] (:func:`efficienttrack.envs.evaluate`).
             count: the interaction steps trained so far.
+            wall_seconds: the wall time the point took, for a method whose points are separate runs (open-loop
+                EfficientTrack: one run per pass count); None: the recorder's time so far, evaluations excluded.
+            extra: further facts of the point (e.g. ``{"passes": 2}``), added to it.
         """
         began = time.perf_counter()
         records = evaluate(act, self.test_refs, loop=self.header["loop"], system=self.system)
         metrics = compute_metrics(records)
-        self.curve.append(
-            {"interaction_steps": count, "wall_seconds": began - self.start - self.evaluating, "metrics": metrics}
-        )
+        wall = began - self.start - self.evaluating if wall_seconds is None else wall_seconds
+        self.curve.append({"interaction_steps": count, "wall_seconds": wall, "metrics": metrics, **(extra or {})})
         write_json(self.path, {**self.header, "curve": self.curve})
         self.evaluating += time.perf_counter() - began
         if self.progress is not None and self.task is not None:
