@@ -100,7 +100,7 @@ def open_settings(preset: str | OpenLoopSettings) -> OpenLoopSettings:
     if isinstance(preset, OpenLoopSettings):
         return preset
     if preset not in OPEN_PRESETS:
-        raise EfficientTrackError(f"preset '{preset}': unknown for efficienttrack open loop (known: {', '.join(OPEN_PRESETS)})")
+        raise EfficientTrackError(f"preset '{preset}': unknown for open-loop EfficientTrack ({', '.join(OPEN_PRESETS)})")
     return OPEN_PRESETS[preset]
 
 
@@ -247,4 +247,3 @@ def train_open_loop(settings: OpenLoopSettings, records: Sequence[EpisodeRecord]
         settings.policy, g_theta, records, settings.device, seed, progress=False, init=init, network=PWMPolicy
     )
     return policy.policy.cpu().eval()
-
