@@ -1,5 +1,10 @@
 """The closed-loop dynamics model ô_{t+1} = o_t + g_θ(o_H, q^r_H, q^r_{t+1}), its multi-step trainer and its error.
 
+The same model and trainer learn a plant's own (open-loop, PWM-level) dynamics ô_{t+1} = o_t + g_θ(o_H, u_H, u_t)
+(:class:`PlantModel`, ``train_model(..., network=PlantModel)``): the input channel is then the command u / 1000
+instead of the reference (:class:`~efficienttrack.dataset.Sequences` with ``channel="u"``), taken as it is instead of
+relative to q_t. Everything else (scaling, loss, schedule) is shared.
+
 Implementation choices (numbered, referenced in the docs):
 
 1. Inputs are seen from the current position (:func:`~efficienttrack.nets.relative_features`): past positions
@@ -32,6 +37,7 @@ from torch import nn
 
 from efficienttrack.angles import wrap
 from efficienttrack.dataset import Sequences
+from efficienttrack.errors import EfficientTrackError
 from efficienttrack.metrics import position_error
 from efficienttrack.nets import (
     MAX_HIDDEN,
@@ -131,6 +137,11 @@ class ClosedLoopModel(nn.Module):
         cfg: the model config (sizes; history length ``cfg.history_length``).
     """
 
+    channel = "q_ref"
+    """What the model is driven by (:data:`~efficienttrack.dataset.CHANNELS`): the references sent."""
+    kind = "closed_loop_model"
+    """Its checkpoint kind (:func:`save_model`)."""
+
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
         self.cfg = cfg
@@ -151,7 +162,7 @@ class ClosedLoopModel(nn.Module):
             qref_next: (N, 4) rad, ``q^r_{t+1}``.
             obs_next: (N, 8) [rad, rad/s], the recorded ``o_{t+1}``.
         """
-        self.features.fit(relative_features(obs_hist, qref_hist, qref_next[:, None]))
+        self.features.fit(self._features(obs_hist, qref_hist, qref_next))
         delta = observation_error(obs_next, obs_hist[:, -1])
         scale = delta.std(0).clamp(min=1e-6)
         self.delta_scale.copy_(scale)
@@ -169,9 +180,34 @@ class ClosedLoopModel(nn.Module):
         Returns:
             (B, 8) [rad, rad/s], the predicted ``ô_{t+1}``.
         """
+        return obs_hist[:, -1] + self.g_theta(self.features(self._features(obs_hist, qref_hist, qref_next)))
+
+    def _features(self, obs_hist: torch.Tensor, qref_hist: torch.Tensor, qref_next: torch.Tensor) -> torch.Tensor:
         h = self.cfg.history_length
-        x = relative_features(obs_hist[:, -h:], qref_hist[:, -h:], qref_next[:, None])
-        return obs_hist[:, -1] + self.g_theta(self.features(x))
+        return relative_features(obs_hist[:, -h:], qref_hist[:, -h:], qref_next[:, None])
+
+
+class PlantModel(ClosedLoopModel):
+    """g_θ of a plant itself (the open loop): ô_{t+1} = o_t + g_θ(o_H, u_H, u_t), u in PWM / 1000.
+
+    The forward pass and :meth:`fit_scaling` take the commands where :class:`ClosedLoopModel` takes the references:
+    ``qref_hist`` (B, h', 4) is ``u_{t−h'} … u_{t−1}`` and ``qref_next`` (B, 4) is ``u_t``, PWM / 1000. Its features are
+    those of :func:`~efficienttrack.nets.relative_features` with the commands taken as they are (``u_t`` appended to
+    the command history), as many as the closed-loop model's.
+
+    Args:
+        cfg: the model config (sizes; history length ``cfg.history_length``).
+    """
+
+    channel = "u"
+    """Driven by the commands u / 1000."""
+    kind = "plant_model"
+    """Its checkpoint kind (:func:`save_model`)."""
+
+    def _features(self, obs_hist: torch.Tensor, qref_hist: torch.Tensor, qref_next: torch.Tensor) -> torch.Tensor:
+        h = self.cfg.history_length
+        commands = torch.cat([qref_hist[:, -h:], qref_next[:, None]], dim=1)
+        return relative_features(obs_hist[:, -h:], commands, qref_next[:, :0, None], commands=True)
 
 
 def observation_error(obs_a: torch.Tensor, obs_b: torch.Tensor) -> torch.Tensor:
@@ -190,13 +226,13 @@ def observation_error(obs_a: torch.Tensor, obs_b: torch.Tensor) -> torch.Tensor:
 def rollout(
     model: ClosedLoopModel, obs_hist: torch.Tensor, qref_hist: torch.Tensor, qref_future: torch.Tensor
 ) -> torch.Tensor:
-    """Roll the model on its own predictions, driven by the references ``q^r_{t+1} … q^r_{t+H}``.
+    """Roll the model on its own predictions, driven by the references ``q^r_{t+1} … q^r_{t+H}`` (or the commands).
 
     Args:
         model: g_θ.
         obs_hist: (B, h', 8) [rad, rad/s], recorded ``o_H`` at t (h' ≥ model h).
-        qref_hist: (B, h', 4) rad, ``q^r_H`` at t.
-        qref_future: (B, H, 4) rad, the references driving steps t+1 … t+H.
+        qref_hist: (B, h', 4) rad, ``q^r_H`` at t (:class:`PlantModel`: ``u_H``, PWM / 1000).
+        qref_future: (B, H, 4) rad, the references driving steps t+1 … t+H (:class:`PlantModel`: ``u_t … u_{t+H−1}``).
 
     Returns:
         (B, H, 8) [rad, rad/s], predicted ``ô_{t+1} … ô_{t+H}``.
@@ -240,6 +276,7 @@ def train_model(
     log_dir: str | Path | None = None,
     held_out: Sequence[EpisodeRecord] = (),
     init: ClosedLoopModel | None = None,
+    network: type[ClosedLoopModel] = ClosedLoopModel,
 ) -> ModelTrainResult:
     """Train g_θ by multi-step backpropagation through ``cfg.rollout_length``-step rollouts (Algorithm 1, TrainModel).
 
@@ -256,6 +293,8 @@ def train_model(
             :data:`~efficienttrack.training.HELD_OUT_STEPS` recorded steps) is logged every ``cfg.eval_every`` steps.
         init: a trained g_θ to start from (a warm start, e.g. the previous round's), with its feature and output
             scaling; None starts from a fresh initialization scaled on ``records``.
+        network: :class:`ClosedLoopModel` (driven by the recorded references) or :class:`PlantModel` (the open loop,
+            driven by the recorded commands ``u``, which every record then needs).
 
     Returns:
         The model, per-step losses, time, steps and window count.
@@ -265,10 +304,12 @@ def train_model(
     H = cfg.rollout_length
     check_training_memory("ModelConfig", cfg.batch_size, H, [cfg], device)
     torch.manual_seed(seed)
-    data = Sequences(records, history=cfg.history_length, future=H, device=device)
+    data = Sequences(records, history=cfg.history_length, future=H, device=device, channel=network.channel)
     starts = data.starts(H)
-    g_theta = ClosedLoopModel(cfg).to(device)
+    g_theta = network(cfg).to(device)
     if init is not None:
+        if type(init) is not network:
+            raise EfficientTrackError(f"initial model: a {type(init).__name__}, but a {network.__name__} is trained")
         warm_start(g_theta, init, "initial model")
     else:
         sample = data.window(starts[torch.randperm(len(starts))[:NORM_SAMPLES].to(device)], horizon=1)
@@ -323,7 +364,7 @@ def model_error(
 ) -> MPE:
     """Multi-step prediction error (MPE) of the model on recorded episodes, in degrees.
 
-    From every start with ``steps`` recorded steps ahead, roll the model driven by the recorded ``q^r``
+    From every start with ``steps`` recorded steps ahead, roll the model driven by the recorded ``q^r`` (or ``u``)
     and compare the predicted positions with the recorded ones. All windows are batched (in chunks of
     :data:`MPE_CHUNK`); the only loop is over the steps.
 
@@ -340,7 +381,7 @@ def model_error(
     device = next(model.parameters()).device if device is None else resolve_device(device)
     was_training = model.training
     model.eval().to(device)
-    data = Sequences(records, history=model.cfg.history_length, future=steps, device=device)
+    data = Sequences(records, history=model.cfg.history_length, future=steps, device=device, channel=model.channel)
     starts = data.starts(steps)
     total = torch.zeros(steps, 4, dtype=torch.float64, device=device)
     for chunk in starts.split(MPE_CHUNK):
@@ -357,14 +398,17 @@ def save_model(model: ClosedLoopModel, path: str | Path, fingerprint: str | None
 
     ``fingerprint`` is what it was trained from (``ModelTrainResult.fingerprint``), kept in the JSON; None when not known.
     """
-    return save_checkpoint(model, "closed_loop_model", model.cfg, path, fingerprint)
+    return save_checkpoint(model, model.kind, model.cfg, path, fingerprint)
 
 
-def load_model(path: str | Path, device: str | torch.device = "cpu") -> ClosedLoopModel:
+def load_model(
+    path: str | Path, device: str | torch.device = "cpu", network: type[ClosedLoopModel] = ClosedLoopModel
+) -> ClosedLoopModel:
     """Load a model saved by :func:`save_model` (tensors only, ``weights_only=True``), in eval mode on ``device``.
 
     Args:
         path: the ``.pt`` file written by :func:`save_model`; its JSON config must lie next to it.
         device: where to put the model (``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or a torch device).
+        network: the class saved: :class:`ClosedLoopModel` or :class:`PlantModel` (a file of the other is refused).
     """
-    return load_checkpoint(path, "closed_loop_model", ModelConfig, ClosedLoopModel, device)
+    return load_checkpoint(path, network.kind, ModelConfig, network, device)

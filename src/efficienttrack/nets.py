@@ -120,28 +120,32 @@ def feature_width(history: int, targets: int) -> int:
     return N_JOINTS * (1 + (history - 1) + history + history + targets)
 
 
-def relative_features(obs_hist: torch.Tensor, qref_hist: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+def relative_features(
+    obs_hist: torch.Tensor, qref_hist: torch.Tensor, targets: torch.Tensor, commands: bool = False
+) -> torch.Tensor:
     """The network input: histories and targets as seen from the current position, so any machine's offsets drop out.
 
     Features, in order: the current position ``q_t`` (4), past positions ``wrap(q_{t−k} − q_t)``
     (h−1 × 4), velocities (h × 4), references ``wrap(q^r_{t−k} − q_t)`` (h × 4) and targets
     ``wrap(target − q_t)`` (K × 4): :func:`feature_width` (h, K) = 12h + 4K values (callers scale them with a
-    :class:`Standardizer`).
+    :class:`Standardizer`). In the open loop (``commands``) the second history holds PWM commands, which are no
+    angles: they are taken as they are.
 
     Args:
         obs_hist: (B, h, 8) [rad, rad/s], ``o_{t−h+1} … o_t``.
-        qref_hist: (B, h, 4) rad, ``q^r_{t−h+1} … q^r_t``.
+        qref_hist: (B, h', 4) rad, ``q^r_{t−h'+1} … q^r_t`` (h' = h); with ``commands``, (B, h', 4) PWM / 1000, any h'.
         targets: (B, K, 4) rad, absolute positions ahead (``q^r_{t+1}`` for the model, ``q*_F`` for the policy).
+        commands: ``qref_hist`` holds commands (PWM / 1000), not references.
 
     Returns:
-        (B, 12h + 4K) features.
+        (B, 8h + 4h' + 4K − 4) features (12h + 4K for h' = h).
     """
     q_t = obs_hist[:, -1:, :4]
     parts = (
         q_t,
         wrap(obs_hist[:, :-1, :4] - q_t),
         obs_hist[:, :, 4:],
-        wrap(qref_hist - q_t),
+        qref_hist if commands else wrap(qref_hist - q_t),
         wrap(targets - q_t),
     )
     return torch.cat([p.flatten(1) for p in parts], dim=1)

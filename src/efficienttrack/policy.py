@@ -13,6 +13,10 @@ in rad² (the paper's units, for which γ = 0.98 and k_smooth = 1.0 are tuned). 
 2. The output is ``tanh × max_adjust`` per joint, and its last layer starts at zero: the untrained policy is
    the position controller alone (a = 0).
 3. Windows start at every recorded step; desired positions past an episode's end repeat its last one.
+
+The open loop (:class:`PWMPolicy` through a :class:`~efficienttrack.dynamics.PlantModel`): the policy outputs the
+command u_t / 1000 = π_φ(o_H, u_H, q*_F) ∈ (−1, 1)⁴ (tanh × 1: PWM within ±1000), the model is driven by it, and the
+smoothness term weighs the change of the command (PWM / 1000)². The loss and the trainer are the same.
 """
 
 from __future__ import annotations
@@ -166,11 +170,16 @@ class AdjustmentPolicy(nn.Module):
         cfg: the policy config (sizes, ``history_length`` h, ``future_length`` F, ``max_adjust``).
     """
 
+    channel = "q_ref"
+    """What the policy's output drives (:data:`~efficienttrack.dataset.CHANNELS`): the reference, q*_{t+1} + a_t."""
+    kind = "adjustment_policy"
+    """Its checkpoint kind (:func:`save_policy`)."""
+
     def __init__(self, cfg: PolicyConfig) -> None:
         super().__init__()
         self.cfg = cfg
         self.features = Standardizer(cfg.in_dim)
-        self.pi_phi = MLP(cfg.in_dim, 4, cfg.hidden, cfg.layers, out_scale=torch.tensor(cfg.max_adjust))
+        self.pi_phi = MLP(cfg.in_dim, 4, cfg.hidden, cfg.layers, out_scale=self._bound(cfg))
         last = self.pi_phi.body[-1]
         nn.init.zeros_(last.weight)
         nn.init.zeros_(last.bias)
@@ -201,7 +210,34 @@ class AdjustmentPolicy(nn.Module):
 
     def _features(self, obs_hist: torch.Tensor, qref_hist: torch.Tensor, qdes_future: torch.Tensor) -> torch.Tensor:
         h, F = seen_lengths(self.cfg)
-        return relative_features(obs_hist[:, -h:], qref_hist[:, -h:], qdes_future[:, :F])
+        return relative_features(obs_hist[:, -h:], qref_hist[:, -h:], qdes_future[:, :F], commands=self.channel == "u")
+
+    @staticmethod
+    def _bound(cfg: PolicyConfig) -> torch.Tensor:
+        """(4,) bound of the output: ``max_adjust`` rad."""
+        return torch.tensor(cfg.max_adjust)
+
+
+class PWMPolicy(AdjustmentPolicy):
+    """π_φ of the open loop: the command u_t / 1000 = π_φ(o_H, u_H, q*_F) ∈ (−1, 1)⁴ sent to the plant.
+
+    Inputs as :class:`AdjustmentPolicy`'s with ``qref_hist`` the last commands ``u_{t−h} … u_{t−1}`` / 1000 (taken as
+    they are); the output bound is 1 (PWM ±1000) and ``cfg.max_adjust`` is not used. The last layer starts at zero:
+    the untrained policy sends u = 0.
+
+    Args:
+        cfg: the policy config (sizes, ``history_length`` h, ``future_length`` F).
+    """
+
+    channel = "u"
+    """Its output is the command u / 1000."""
+    kind = "pwm_policy"
+    """Its checkpoint kind (:func:`save_policy`)."""
+
+    @staticmethod
+    def _bound(cfg: PolicyConfig) -> torch.Tensor:
+        """(4,) bound of the output: 1 (PWM / 1000)."""
+        return torch.ones(4)
 
 
 class PolicyRollout(NamedTuple):
@@ -218,6 +254,20 @@ class PolicyRollout(NamedTuple):
     q_ref: torch.Tensor
 
 
+def drive(channel: str, a: torch.Tensor, q_next: torch.Tensor) -> torch.Tensor:
+    """What an action drives the model with: the reference ``q*_{t+1} + a_t`` (closed loop) or the command ``a_t`` (open).
+
+    Args:
+        channel: the model's :attr:`~efficienttrack.dynamics.ClosedLoopModel.channel` (``"q_ref"`` or ``"u"``).
+        a: (B, 4), the action (rad, or PWM / 1000).
+        q_next: (B, 4) rad, ``q*_{t+1}``.
+
+    Returns:
+        (B, 4), ``q^r_{t+1}`` rad or ``u_t`` / 1000.
+    """
+    return a if channel == "u" else q_next + a
+
+
 def policy_rollout(
     g_theta: ClosedLoopModel,
     pi_phi: AdjustmentPolicy | None,
@@ -228,9 +278,11 @@ def policy_rollout(
 ) -> PolicyRollout:
     """Roll g_θ ``steps`` steps under π_φ: a_i = π_φ(o_H, q^r_H, q*_F), q^r_{i+1} = q*_{i+1} + a_i, ô_{i+1} = g_θ(…).
 
+    With a :class:`~efficienttrack.dynamics.PlantModel` (the open loop) the action is the command: u_i = a_i (:func:`drive`).
+
     Args:
-        g_theta: the (frozen) closed-loop dynamics model.
-        pi_phi: the policy, or None for a = 0 (the position controller alone).
+        g_theta: the (frozen) closed-loop dynamics model, or a plant model with a :class:`PWMPolicy`.
+        pi_phi: the policy, or None for a = 0 (the position controller alone; the open loop: u = 0).
         obs_hist: (B, h', 8) [rad, rad/s], recorded ``o_H`` at t, h' ≥ both networks' h.
         qref_hist: (B, h', 4) rad, recorded ``q^r_H`` at t.
         qdes_future: (B, F', 4) rad, ``q*_{t+1} … q*_{t+F'}`` with F' ≥ :func:`desired_length` (policy, steps).
@@ -240,6 +292,8 @@ def policy_rollout(
         Predicted positions, adjustments and references.
     """
     cfg = pi_phi.cfg if pi_phi is not None else None
+    if pi_phi is not None and pi_phi.channel != g_theta.channel:
+        raise EfficientTrackError(f"policy_rollout: a {type(pi_phi).__name__} cannot drive a {type(g_theta).__name__}")
     needed = desired_length(cfg, steps)
     if qdes_future.shape[1] < needed:
         raise EfficientTrackError(f"policy_rollout: needs {needed} future desired positions, got {qdes_future.shape[1]}")
@@ -248,7 +302,7 @@ def policy_rollout(
     for i in range(steps):
         q_star_F = qdes_future[:, i : i + F]
         a_i = pi_phi(obs_hist, qref_hist, q_star_F) if pi_phi is not None else torch.zeros_like(q_star_F[:, 0])
-        q_r = q_star_F[:, 0] + a_i
+        q_r = drive(g_theta.channel, a_i, q_star_F[:, 0])
         o_hat = g_theta(obs_hist, qref_hist, q_r)
         obs_hist, qref_hist = push(obs_hist, o_hat), push(qref_hist, q_r)
         q_hat.append(o_hat[:, :4])
@@ -288,6 +342,7 @@ def train_policy(
     log_dir: str | Path | None = None,
     held_out: Sequence[EpisodeRecord] = (),
     init: AdjustmentPolicy | None = None,
+    network: type[AdjustmentPolicy] = AdjustmentPolicy,
 ) -> PolicyTrainResult:
     """Train π_φ by multi-step backpropagation through the frozen model (Algorithm 1, TrainPolicy).
 
@@ -306,6 +361,8 @@ def train_policy(
 
         init: a trained π_φ to start from (a warm start, e.g. the previous round's), with its feature scaling;
             None starts at a = 0 (a zero last layer) scaled on ``records``.
+        network: :class:`AdjustmentPolicy`, or :class:`PWMPolicy` with a :class:`~efficienttrack.dynamics.PlantModel`
+            (the open loop; every record then needs its commands ``u``).
 
     Returns:
         The policy, per-step losses, time, steps and window count.
@@ -314,13 +371,17 @@ def train_policy(
     device = resolve_device(device)
     H, F, desired = cfg.rollout_length, cfg.future_length, desired_length(cfg, cfg.rollout_length)
     check_training_memory("PolicyConfig", cfg.batch_size, H, [cfg, model.cfg], device)
+    if network.channel != model.channel or (init is not None and type(init) is not network):
+        raise EfficientTrackError(f"train_policy: a {network.__name__} is trained through a {type(model).__name__}, "
+                                  f"from {type(init).__name__}")  # fmt: skip
     torch.manual_seed(seed)
-    data = Sequences(records, history=max(cfg.history_length, model.cfg.history_length), future=desired, device=device)
+    history = max(cfg.history_length, model.cfg.history_length)
+    data = Sequences(records, history=history, future=desired, device=device, channel=model.channel)
     starts = data.starts(0)
-    g_theta = ClosedLoopModel(model.cfg).to(device)
+    g_theta = type(model)(model.cfg).to(device)
     g_theta.load_state_dict(model.state_dict())
     g_theta.eval().requires_grad_(False)
-    pi_phi = AdjustmentPolicy(cfg).to(device)
+    pi_phi = network(cfg).to(device)
     if init is not None:
         warm_start(pi_phi, init, "initial policy")
     else:
@@ -399,7 +460,8 @@ def predicted_tracking_error(
     policy = policy.eval().to(device) if policy is not None else None
     cfg = policy.cfg if policy is not None else None
     desired = desired_length(cfg, steps)
-    data = Sequences(records, history=max(seen_lengths(cfg).history, model.cfg.history_length), future=desired, device=device)
+    history = max(seen_lengths(cfg).history, model.cfg.history_length)
+    data = Sequences(records, history=history, future=desired, device=device, channel=model.channel)
     starts = data.starts(0)
     total = torch.zeros(4, dtype=torch.float64, device=device)
     for chunk in starts.split(EVAL_CHUNK):
@@ -416,14 +478,17 @@ def save_policy(policy: AdjustmentPolicy, path: str | Path, fingerprint: str | N
     ``fingerprint`` is what it was trained from (``PolicyTrainResult.fingerprint``), kept in the JSON and carried into
     an export's contract; None when not known.
     """
-    return save_checkpoint(policy, "adjustment_policy", policy.cfg, path, fingerprint)
+    return save_checkpoint(policy, policy.kind, policy.cfg, path, fingerprint)
 
 
-def load_policy(path: str | Path, device: str | torch.device = "cpu") -> AdjustmentPolicy:
+def load_policy(
+    path: str | Path, device: str | torch.device = "cpu", network: type[AdjustmentPolicy] = AdjustmentPolicy
+) -> AdjustmentPolicy:
     """Load a policy saved by :func:`save_policy` (tensors only, ``weights_only=True``), in eval mode on ``device``.
 
     Args:
         path: the ``.pt`` file written by :func:`save_policy`; its JSON config must lie next to it.
         device: where to put the policy (``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or a torch device).
+        network: the class saved: :class:`AdjustmentPolicy` or :class:`PWMPolicy` (a file of the other is refused).
     """
-    return load_checkpoint(path, "adjustment_policy", PolicyConfig, AdjustmentPolicy, device)
+    return load_checkpoint(path, network.kind, PolicyConfig, network, device)

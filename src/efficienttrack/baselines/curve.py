@@ -95,19 +95,29 @@ class CurveRecorder:
         self.task = None if progress is None else progress.add_task(label, total=budget)
         write_json(path, {**header, "curve": self.curve})
 
-    def measure(self, act: Callable[[np.ndarray], np.ndarray], count: int) -> None:
+    def measure(
+        self,
+        act: Callable[[np.ndarray], np.ndarray],
+        count: int,
+        wall_seconds: float | None = None,
+        extra: dict[str, Any] | None = None,
+    ) -> None:
         """Run the deterministic policy ``act`` on the test references; append the point and write the file.
 
         Args:
             act: observations (N, 332) float32 → actions (N, 4) in [−1, 1] (:func:`efficienttrack.envs.evaluate`).
             count: the interaction steps trained so far.
+            wall_seconds: the wall time the point took, for a method whose points are separate runs (open-loop
+                EfficientTrack: one run per pass count); None: the recorder's time so far, evaluations excluded.
+            extra: further facts of the point (e.g. ``{"passes": 2}``), added to it.
         """
         began = time.perf_counter()
         records = evaluate(act, self.test_refs, loop=self.header["loop"], system=self.system)
-        self.add(count, began - self.start - self.evaluating, compute_metrics(records))
+        wall = began - self.start - self.evaluating if wall_seconds is None else wall_seconds
+        self.add(count, wall, compute_metrics(records), extra)
         self.evaluating += time.perf_counter() - began
 
-    def add(self, count: int, wall_seconds: float, metrics: dict[str, Any]) -> None:
+    def add(self, count: int, wall_seconds: float, metrics: dict[str, Any], extra: dict[str, Any] | None = None) -> None:
         """Append a point measured by the caller and write the file (what :meth:`measure` does after evaluating).
 
         For a method whose "policy" is no function of the observation (the ILC oracle's stored corrections).
@@ -116,8 +126,10 @@ class CurveRecorder:
             count: the interaction steps trained so far.
             wall_seconds: the training wall time so far (evaluations excluded).
             metrics: :func:`~efficienttrack.metrics.compute_metrics` of the test episodes.
+            extra: further facts of the point (e.g. ``{"passes": 2}``), added to it.
         """
-        self.curve.append({"interaction_steps": int(count), "wall_seconds": float(wall_seconds), "metrics": metrics})
+        point = {"interaction_steps": int(count), "wall_seconds": float(wall_seconds), "metrics": metrics}
+        self.curve.append({**point, **(extra or {})})
         write_json(self.path, {**self.header, "curve": self.curve})
         if self.progress is not None and self.task is not None:
             self.progress.update(self.task, mae_deg=metrics["mae_deg"])

@@ -1,0 +1,249 @@
+"""EfficientTrack in the open loop (the paper's "Ours (Open.)"): a model of the plant itself, a policy that sends PWM.
+
+The same method as the closed loop (:func:`efficienttrack.pipeline.run_pipeline`), one level down:
+
+1. **collect** (Algorithm 1, :func:`efficienttrack.collect.run_pass`): the PD controller drives the plant along the
+   training references with noise on its reference (σ ~ U(0, σ_max) per episode, noisy:clean 9:2); the records keep
+   the PWM u the PD law applied, so they are (o, u) sequences of the plant.
+2. **model**: g_θ of the plant, ô_{t+1} = o_t + g_θ(o_H, u_H, u_t) (:class:`~efficienttrack.dynamics.PlantModel`),
+   trained by the closed loop's multi-step trainer (:func:`~efficienttrack.dynamics.train_model`).
+3. **policy**: u_t / 1000 = π_φ(o_H, u_H, q*_F) (:class:`~efficienttrack.policy.PWMPolicy`, tanh-bounded to ±1000 PWM),
+   trained through the frozen g_θ on the discounted tracking error plus k_smooth × the command's change
+   (:func:`~efficienttrack.policy.train_policy`). Where the closed loop's policy starts at a = 0, which is the PD
+   controller, u = 0 is a machine standing still; so π_φ first imitates the PD law's recorded commands
+   (``imitation_steps`` of behaviour cloning on the same windows) and starts from there.
+4. **evaluate** on the held-out references through the open-loop environment (:func:`efficienttrack.envs.evaluate`,
+   ``loop="open"``), scored by :func:`efficienttrack.metrics.compute_metrics`.
+
+:func:`train_efficienttrack_open` runs this after 1, 2, 5, 10 … collection passes within the budget (the passes are
+collected once, in order; each pass count trains from scratch on its first p passes, as the study's closed-loop
+EfficientTrack runs one pipeline per pass count).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from efficienttrack.baselines.agent import check_run, policy_act
+from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder
+from efficienttrack.collect import MAX_PASSES, CollectConfig, run_pass
+from efficienttrack.configfile import check_seed
+from efficienttrack.dataset import Sequences
+from efficienttrack.dynamics import NORM_SAMPLES, ModelConfig, PlantModel, train_model
+from efficienttrack.envs.core import open_system
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.fileio import output_lock
+from efficienttrack.nets import check_size, resolve_device
+from efficienttrack.policy import PolicyConfig, PWMPolicy, train_policy
+from efficienttrack.progress import ProgressDisplay
+from efficienttrack.records import EpisodeRecord
+from efficienttrack.references import Reference
+from efficienttrack.systems.spec import SystemSpec
+from efficienttrack.training import MAX_STEPS
+
+
+@dataclass(frozen=True)
+class OpenLoopSettings:
+    """Settings of open-loop EfficientTrack: the closed loop's, with a plant model, a PWM policy and imitation."""
+
+    model: ModelConfig = field(
+        default_factory=lambda: ModelConfig(history=5, steps=1000, batch_size=256, lr=1e-3, cosine_decay=True)
+    )
+    """The plant model g_θ and its training (the closed loop's ``cpu`` preset: history 5 = 0.25 s, horizon 20, 128 × 3
+    units, weight decay 0.003 as in the paper; 1000 steps instead of 4000 to keep a pass count within minutes)."""
+    policy: PolicyConfig = field(default_factory=lambda: PolicyConfig(horizon=20, steps=500, k_smooth=0.01))
+    """π_φ and its training: the paper's horizon 20 and γ 0.98; 128 × 3 units; ``k_smooth`` weighs the change of the
+    command in (PWM / 1000)², not of an adjustment in rad² as the paper's 1.0 does, and is set ours (0.01: the PD
+    law's own commands change by about 0.3 a step)."""
+    sigma_max: float = 0.05
+    """Collection: bound of the per-episode noise level on the PD reference, rad (the paper's 0.05)."""
+    noise_ratio: tuple[float, float] = (9.0, 2.0)
+    """Collection: noisy : clean episodes (the paper's best, 9:2)."""
+    imitation_steps: int = 500
+    """Behaviour-cloning steps that fit π_φ to the PD law's recorded commands before training through g_θ (ours; 0:
+    start from u = 0). Same batch size and learning rate as the policy's training."""
+    device: str = "cpu"
+    """Torch device of the training (``auto``, ``cpu``, ``cuda``); evaluation runs the policy on the CPU."""
+
+    def __post_init__(self) -> None:
+        """Check the values (EfficientTrackError naming the field)."""
+        CollectConfig(sigma_max=self.sigma_max, noise_ratio=self.noise_ratio)
+        check_size("OpenLoopSettings", "imitation_steps", self.imitation_steps, 0, MAX_STEPS)
+        if not isinstance(self.model, ModelConfig) or not isinstance(self.policy, PolicyConfig):
+            raise EfficientTrackError("OpenLoopSettings: model must be a ModelConfig and policy a PolicyConfig")
+        resolve_device(self.device)
+
+
+OPEN_PRESETS: dict[str, OpenLoopSettings] = {
+    "full": OpenLoopSettings(),
+    "quick": OpenLoopSettings(
+        model=ModelConfig(hidden=32, layers=2, horizon=4, batch_size=64, lr=3e-3, steps=100),
+        policy=PolicyConfig(hidden=32, layers=2, horizon=4, batch_size=64, lr=3e-3, steps=60, k_smooth=0.01),
+        imitation_steps=60,
+    ),
+}
+"""``full``: minutes per pass count on a CPU; ``quick``: seconds (tests; its curves say nothing about the method)."""
+
+
+def open_settings(preset: str | OpenLoopSettings) -> OpenLoopSettings:
+    """The settings by preset name (:data:`OPEN_PRESETS`), or ``preset`` itself.
+
+    Args:
+        preset: ``"full"``, ``"quick"`` or an :class:`OpenLoopSettings`.
+    """
+    if isinstance(preset, OpenLoopSettings):
+        return preset
+    if preset not in OPEN_PRESETS:
+        raise EfficientTrackError(f"preset '{preset}': unknown for open-loop EfficientTrack ({', '.join(OPEN_PRESETS)})")
+    return OPEN_PRESETS[preset]
+
+
+def imitate(
+    cfg: PolicyConfig, records: Sequence[EpisodeRecord], steps: int, seed: int, device: str | torch.device = "cpu"
+) -> PWMPolicy:
+    """Behaviour cloning: fit π_φ to the recorded commands, min ‖π_φ(o_H, u_H, q*_F) − u_t / 1000‖².
+
+    Args:
+        cfg: the policy's config (sizes, ``batch_size``, ``lr``).
+        records: episodes with their PWM ``u``.
+        steps: Adam steps (0: the fresh policy, u = 0, scaled on the records).
+        seed: seeds the initialization and the window sampling.
+        device: where to train.
+
+    Returns:
+        The policy (on ``device``), its feature scaling fitted on the records' windows.
+    """
+    device = resolve_device(device)
+    torch.manual_seed(check_seed(seed, "seed"))
+    F = cfg.future_length
+    data = Sequences(records, history=cfg.history_length, future=F, device=device, channel="u")
+    starts = data.starts(1)
+    pi_phi = PWMPolicy(cfg).to(device)
+    sample = data.window(starts[torch.randperm(len(starts))[:NORM_SAMPLES].to(device)], horizon=0, desired=F)
+    pi_phi.fit_scaling(sample.obs_hist, sample.qref_hist, sample.qdes_future)
+    optimizer = torch.optim.Adam(pi_phi.parameters(), lr=cfg.lr)
+    generator = torch.Generator().manual_seed(seed)
+    for _ in range(steps):
+        window = data.window(starts[torch.randint(len(starts), (cfg.batch_size,), generator=generator).to(device)], 1, F)
+        # loss: the PD law's command u_t / 1000, recorded, as the target
+        loss = (pi_phi(window.obs_hist, window.qref_hist, window.qdes_future) - window.qref_future[:, 0]).pow(2).sum(-1)
+        optimizer.zero_grad(set_to_none=True)
+        loss.mean().backward()
+        optimizer.step()
+    return pi_phi.eval()
+
+
+def pass_counts(budget: int, steps_per_pass: int) -> list[int]:
+    """The pass counts 1, 2, 5, 10, 20, 50 … (≤ ``collect.MAX_PASSES``) whose interaction steps fit the budget.
+
+    Args:
+        budget: interaction steps allowed.
+        steps_per_pass: interaction steps of one pass over the training references, ≥ 1.
+
+    Returns:
+        The ascending pass counts; empty when not even one pass fits.
+    """
+    counts = [m * 10**k for k in range(len(str(MAX_PASSES))) for m in (1, 2, 5)]
+    return [p for p in counts if p <= MAX_PASSES and p * steps_per_pass <= budget]
+
+
+def train_efficienttrack_open(
+    loop: str,
+    system: SystemSpec,
+    train_refs: Sequence[Reference],
+    test_refs: Sequence[Reference],
+    budget: int,
+    seed: int,
+    folder: str | Path,
+    preset: str | OpenLoopSettings = "full",
+    eval_at: Sequence[int] | None = None,
+    progress: ProgressDisplay | None = None,
+) -> list[dict[str, Any]]:
+    """Open-loop EfficientTrack after 1, 2, 5, 10 … collection passes within the budget; the curve of its test metrics.
+
+    The passes are collected once, in order, with the PD controller on ``system``'s closed loop (pass k's noise seeded
+    by (seed, k), so p passes are the same whatever the budget); after p passes, a plant model and a PWM policy are
+    trained from scratch on them (seeded by ``seed``) and the policy runs every test reference once on the plant.
+    ``folder/curve.json`` is rewritten after each point.
+
+    Args:
+        loop: must be ``"open"`` (the closed loop is :func:`efficienttrack.pipeline.run_pipeline`).
+        system: the spec of a system with a PWM-level plant under it (``SystemSpec(plant=...)`` or the built-in one).
+        train_refs: the training references (``.q`` (T, 4) rad).
+        test_refs: the held-out references (each ≥ 4 steps).
+        budget: interaction steps (≥ one pass over ``train_refs``).
+        seed: seed of the collection noise and the trainings.
+        folder: output folder for ``curve.json``.
+        preset: ``"full"``, ``"quick"`` (:data:`OPEN_PRESETS`) or an :class:`OpenLoopSettings`.
+        eval_at: interaction counts; each is measured after the most passes whose steps do not exceed it (at least
+            one). None: the pass counts 1, 2, 5, 10 … that fit the budget (:func:`pass_counts`).
+        progress: a display for the interaction count and the last MAE, or None.
+
+    Returns:
+        One point per pass count: ``{"interaction_steps": p · steps per pass, "wall_seconds": the collection of p passes
+        plus the trainings, "metrics": compute_metrics of the test episodes, "passes": p}``.
+
+    Raises:
+        EfficientTrackError: ``loop`` is not ``"open"``, a system without a plant, a budget below one pass, a bad
+            seed, preset, evaluation point, reference or folder.
+    """
+    settings = open_settings(preset)
+    if loop != "open":
+        raise EfficientTrackError(f"loop '{loop}': open-loop EfficientTrack runs in the open loop only ('open')")
+    run = check_run(loop, system, train_refs, test_refs, budget, seed, folder, eval_at)
+    steps_per_pass = sum(len(ref) - 1 for ref in run.train_refs)
+    counts = pass_counts(run.budget, steps_per_pass)
+    if not counts:
+        raise EfficientTrackError(
+            f"budget {budget}: less than one collection pass over the training references ({steps_per_pass} steps)"
+        )
+    if eval_at is not None:
+        counts = sorted({min(max(1, point // steps_per_pass), MAX_PASSES) for point in run.points})
+    plant = open_system("open", system)
+    closed = system.open()
+    collect_cfg = CollectConfig(sigma_max=settings.sigma_max, noise_ratio=settings.noise_ratio, passes=1, seed=seed)
+    header = {"method": "efficienttrack", "loop": loop, "seed": seed, "budget": run.budget, "system": system.to_dict(),
+              "settings": asdict(settings)}  # fmt: skip
+    records: list[EpisodeRecord] = []
+    collect_seconds: list[float] = []
+    with output_lock(run.folder / CURVE_FILE, "folder", folder=False):
+        recorder = CurveRecorder(header, run.folder / CURVE_FILE, plant, run.test_refs, progress, run.budget)
+        try:
+            for passes in counts:
+                while len(collect_seconds) < passes:  # collect
+                    began = time.perf_counter()
+                    records += run_pass(closed, run.train_refs, collect_cfg, len(collect_seconds))
+                    collect_seconds.append(time.perf_counter() - began)
+                    recorder.show(len(collect_seconds) * steps_per_pass)
+                began = time.perf_counter()
+                policy = train_open_loop(settings, records, seed)
+                wall = sum(collect_seconds[:passes]) + time.perf_counter() - began
+                recorder.measure(policy_act(policy, "open"), passes * steps_per_pass, wall, {"passes": passes})
+        finally:
+            recorder.close()
+    return recorder.curve
+
+
+def train_open_loop(settings: OpenLoopSettings, records: Sequence[EpisodeRecord], seed: int) -> PWMPolicy:
+    """Steps 2 and 3 of the module docstring: the plant model, then the PWM policy through it (on the CPU at the end).
+
+    Args:
+        settings: the settings.
+        records: the collected episodes, with their PWM ``u``.
+        seed: seeds both trainings and the imitation.
+
+    Returns:
+        π_φ, in eval mode on the CPU.
+    """
+    g_theta = train_model(settings.model, records, settings.device, seed, progress=False, network=PlantModel).model
+    init = imitate(settings.policy, records, settings.imitation_steps, seed, settings.device)
+    policy = train_policy(
+        settings.policy, g_theta, records, settings.device, seed, progress=False, init=init, network=PWMPolicy
+    )
+    return policy.policy.cpu().eval()

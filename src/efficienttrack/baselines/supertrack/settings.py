@@ -1,0 +1,94 @@
+"""SuperTrack's settings: one frozen dataclass, presets ``full`` (minutes on a CPU) and ``quick`` (seconds, tests)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from efficienttrack.dynamics import ModelConfig
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.nets import check_size, resolve_device
+from efficienttrack.policy import PolicyConfig
+from efficienttrack.training import MAX_STEPS
+
+
+@dataclass(frozen=True)
+class SuperTrackSettings:
+    """Settings of SuperTrack (Fussell et al. 2021) on the tracking environments.
+
+    SuperTrack's own values where they carry over: the world model trained on windows of 8 steps, learning rate 1e-3
+    for both networks, a constant rate (no schedule) as training never ends in an online method. The policy's window
+    is SuperTrack's 32 in the paper; here it is 20, the most desired positions the environments show (F = 20).
+    """
+
+    model: ModelConfig = field(
+        default_factory=lambda: ModelConfig(horizon=8, history=5, steps=100, batch_size=256, lr=1e-3, cosine_decay=False)
+    )
+    """The world model g_θ (closed loop: of the PD loop; open loop: of the plant) and the optimizer steps it is trained
+    per iteration (``steps``); horizon 8: SuperTrack's world-model window; history 5 as our closed loop's ``cpu``."""
+    policy: PolicyConfig = field(
+        default_factory=lambda: PolicyConfig(horizon=20, steps=100, batch_size=128, lr=1e-3, cosine_decay=False)
+    )
+    """π_φ and the optimizer steps it is trained per iteration (``steps``) through the world model on the discounted
+    tracking loss plus k_smooth × the action's change (:func:`efficienttrack.policy.train_policy`); its
+    ``max_adjust`` is replaced by the system's bound in the closed loop and not used in the open loop."""
+    steps_per_iteration: int = 4096
+    """Interaction steps collected per iteration (whole episodes on training references drawn at random, seeded)."""
+    buffer_steps: int = 200_000
+    """Replay buffer: the most recent episodes whose steps fit (older ones are dropped)."""
+    noise_closed: float = 0.1
+    """Exploration noise σ in the closed loop, in action units (× the adjustment bound: 10 % of it)."""
+    noise_open: float = 0.3
+    """Exploration noise σ in the open loop, in action units (PWM / 1000: 300 PWM, enough to leave the valves' dead
+    zone, so that the first iteration, with the policy still at u = 0, moves the machine)."""
+    noise_rho: float = 0.9
+    """Correlation of consecutive noise steps (AR(1)): slow noise moves a hydraulic joint, white noise averages out."""
+    device: str = "cpu"
+    """Torch device of the training (``auto``, ``cpu``, ``cuda``); collection and evaluation run the policy on the CPU."""
+
+    def __post_init__(self) -> None:
+        """Check the values (EfficientTrackError naming the field)."""
+        if not isinstance(self.model, ModelConfig) or not isinstance(self.policy, PolicyConfig):
+            raise EfficientTrackError("SuperTrackSettings: model must be a ModelConfig and policy a PolicyConfig")
+        check_size("SuperTrackSettings", "steps_per_iteration", self.steps_per_iteration, 1, MAX_STEPS)
+        check_size("SuperTrackSettings", "buffer_steps", self.buffer_steps, 1, 100 * MAX_STEPS)
+        for name in ("noise_closed", "noise_open"):
+            value = getattr(self, name)
+            if not isinstance(value, int | float) or not (math.isfinite(value) and value >= 0):
+                raise EfficientTrackError(f"SuperTrackSettings.{name}: must be a number ≥ 0, got {value!r}")
+        if not isinstance(self.noise_rho, int | float) or not 0 <= self.noise_rho < 1:
+            raise EfficientTrackError(f"SuperTrackSettings.noise_rho: must be in [0, 1), got {self.noise_rho!r}")
+        resolve_device(self.device)
+
+    def noise(self, loop: str) -> float:
+        """The exploration σ of ``loop`` (``"closed"`` or ``"open"``), in action units.
+
+        Args:
+            loop: the loop.
+        """
+        return self.noise_open if loop == "open" else self.noise_closed
+
+
+SUPERTRACK_PRESETS: dict[str, SuperTrackSettings] = {
+    "full": SuperTrackSettings(),
+    "quick": SuperTrackSettings(
+        model=ModelConfig(hidden=32, layers=2, horizon=4, history=3, batch_size=64, steps=20, lr=3e-3, cosine_decay=False),
+        policy=PolicyConfig(hidden=32, layers=2, horizon=4, batch_size=64, steps=20, lr=3e-3, cosine_decay=False),
+        steps_per_iteration=1000,
+        buffer_steps=20_000,
+    ),
+}
+"""``full``: minutes per 50,000 interaction steps on a CPU; ``quick``: seconds (tests; its curves say nothing)."""
+
+
+def supertrack_settings(preset: str | SuperTrackSettings) -> SuperTrackSettings:
+    """The settings by preset name (:data:`SUPERTRACK_PRESETS`), or ``preset`` itself.
+
+    Args:
+        preset: ``"full"``, ``"quick"`` or a :class:`SuperTrackSettings`.
+    """
+    if isinstance(preset, SuperTrackSettings):
+        return preset
+    if preset not in SUPERTRACK_PRESETS:
+        raise EfficientTrackError(f"preset '{preset}': unknown for supertrack (known: {', '.join(SUPERTRACK_PRESETS)})")
+    return SUPERTRACK_PRESETS[preset]

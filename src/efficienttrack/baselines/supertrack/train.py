@@ -1,0 +1,155 @@
+"""SuperTrack (Fussell et al. 2021): a world model learnt online, a policy trained by backpropagation through it.
+
+One iteration of :func:`train_supertrack`:
+
+1. **collect**: the current policy plus exploration noise (AR(1), seeded) runs whole episodes on training
+   references drawn at random until ``steps_per_iteration`` interaction steps are spent, through the environments'
+   episode loop (:func:`efficienttrack.envs.evaluate`); the episodes go into the replay buffer (the most recent
+   ``buffer_steps``). In the first iteration the policy is a = 0 (closed loop: the PD controller; open loop: u = 0,
+   so the noise alone moves the machine).
+2. **world model**: ``model.steps`` multi-step optimizer steps on buffer windows (:func:`efficienttrack.dynamics.train_model`,
+   warm-started from the last iteration's model): in the closed loop g_θ of the PD loop driven by the references sent,
+   in the open loop g_θ of the plant driven by the PWM (:class:`~efficienttrack.dynamics.PlantModel`).
+3. **policy**: ``policy.steps`` optimizer steps through the frozen world model from buffer windows on the discounted
+   tracking loss plus the smoothness term (:func:`efficienttrack.policy.train_policy`, warm-started).
+4. **evaluate** the noiseless policy on the held-out references when the interaction count first reaches an
+   evaluation point (:class:`~efficienttrack.baselines.curve.CurveRecorder`).
+
+What is SuperTrack's and what is ours: SuperTrack's loop (collect with the policy and noise, train the world model,
+train the policy through it, repeat), its world-model window 8, its learning rates; ours: the networks and losses of
+EfficientTrack (:mod:`efficienttrack.dynamics`, :mod:`efficienttrack.policy`: SuperTrack's character-specific
+losses on rigid-body positions and rotations become the joint tracking error of an excavator), the policy window 20
+(the environments show 20 desired positions; SuperTrack's is 32), and the noise.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import asdict, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from efficienttrack.baselines.agent import Noise, check_run, policy_act
+from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder
+from efficienttrack.baselines.supertrack.settings import SuperTrackSettings, supertrack_settings
+from efficienttrack.dynamics import ClosedLoopModel, PlantModel, train_model
+from efficienttrack.envs.core import open_system
+from efficienttrack.envs.evaluation import evaluate
+from efficienttrack.fileio import output_lock
+from efficienttrack.policy import AdjustmentPolicy, PWMPolicy, train_policy
+from efficienttrack.progress import ProgressDisplay
+from efficienttrack.records import EpisodeRecord
+from efficienttrack.references import Reference
+from efficienttrack.systems.spec import SystemSpec
+
+
+def draw_references(refs: Sequence[Reference], steps: int, rng: np.random.Generator) -> list[Reference]:
+    """References drawn at random (with repeats) until their episodes hold at least ``steps`` interaction steps.
+
+    Args:
+        refs: the training references.
+        steps: interaction steps wanted, ≥ 1.
+        rng: the generator.
+
+    Returns:
+        The drawn references, in the order drawn.
+    """
+    drawn, total = [], 0
+    while total < steps:
+        ref = refs[int(rng.integers(len(refs)))]
+        drawn.append(ref)
+        total += len(ref) - 1
+    return drawn
+
+
+def keep_recent(buffer: list[EpisodeRecord], capacity: int) -> list[EpisodeRecord]:
+    """The most recent episodes whose steps fit ``capacity`` (at least the newest one).
+
+    Args:
+        buffer: episodes, oldest first.
+        capacity: the most steps to keep.
+    """
+    sizes = np.cumsum([len(r) for r in reversed(buffer)])
+    keep = max(1, int(np.searchsorted(sizes, capacity, side="right")))
+    return buffer[-keep:]
+
+
+def train_supertrack(
+    loop: str,
+    system: SystemSpec,
+    train_refs: Sequence[Reference],
+    test_refs: Sequence[Reference],
+    budget: int,
+    seed: int,
+    folder: str | Path,
+    preset: str | SuperTrackSettings = "full",
+    eval_at: Sequence[int] | None = None,
+    progress: ProgressDisplay | None = None,
+) -> list[dict[str, Any]]:
+    """Train SuperTrack for ``budget`` interaction steps (module docstring); the curve of its test metrics.
+
+    The last iteration collects only what is left of the budget (whole episodes, so it may end up to one episode
+    past it). ``folder/curve.json`` is rewritten after each point; a new run in the folder starts over.
+
+    Args:
+        loop: ``"closed"`` (the policy adjusts the PD reference) or ``"open"`` (the policy sends PWM / 1000 to the
+            plant under ``system``).
+        system: the system spec training and evaluation run on.
+        train_refs: the training references (``.q`` (T, 4) rad).
+        test_refs: the held-out references (each ≥ 4 steps).
+        budget: interaction steps to train for, ≥ 1.
+        seed: seed of the reference draws, the noise and the trainings.
+        folder: output folder for ``curve.json``.
+        preset: ``"full"``, ``"quick"`` (:data:`~.settings.SUPERTRACK_PRESETS`) or a :class:`SuperTrackSettings`.
+        eval_at: interaction counts to evaluate at, each in ``[1, budget]``; None: 1, 2, 5 × 10^k and the budget.
+            A point is measured after the first iteration whose count reaches it (points reached together once).
+        progress: a display for the interaction count and the last MAE, or None.
+
+    Returns:
+        One point per measurement: ``{"interaction_steps", "wall_seconds" (training so far, evaluations excluded),
+        "metrics": compute_metrics of the test episodes, "iterations"}``.
+
+    Raises:
+        EfficientTrackError: an unknown loop or preset, the open loop without a plant, a bad budget, seed, evaluation
+            point, reference or folder.
+    """
+    settings = supertrack_settings(preset)
+    run = check_run(loop, system, train_refs, test_refs, budget, seed, folder, eval_at)
+    stepped = open_system(loop, system)
+    closed = loop == "closed"
+    world, actor = (ClosedLoopModel, AdjustmentPolicy) if closed else (PlantModel, PWMPolicy)
+    bound = tuple(float(b) for b in stepped.limits.max_adjust)
+    policy_cfg = replace(settings.policy, max_adjust=bound) if closed else settings.policy
+    header = {"method": "supertrack", "loop": loop, "seed": seed, "budget": run.budget, "system": system.to_dict(),
+              "settings": asdict(settings)}  # fmt: skip
+    rng = np.random.default_rng([seed, 0x5E7])
+    noise = Noise(settings.noise(loop), settings.noise_rho, rng)
+    buffer: list[EpisodeRecord] = []
+    model, policy = None, None
+    points, count, iteration = list(run.points), 0, 0
+    with output_lock(run.folder / CURVE_FILE, "folder", folder=False):
+        recorder = CurveRecorder(header, run.folder / CURVE_FILE, stepped, run.test_refs, progress, run.budget)
+        try:
+            while count < run.budget:
+                # collect: the policy plus noise on references drawn at random
+                drawn = draw_references(run.train_refs, min(settings.steps_per_iteration, run.budget - count), rng)
+                buffer = keep_recent(buffer + evaluate(policy_act(policy, loop, noise), drawn, loop, stepped),
+                                     settings.buffer_steps)  # fmt: skip
+                count += sum(len(ref) - 1 for ref in drawn)
+                # world model, then the policy through it, both warm-started from the last iteration
+                train_seed = seed + iteration
+                model = train_model(settings.model, buffer, settings.device, train_seed, progress=False, init=model,
+                                    network=world).model  # fmt: skip
+                policy = train_policy(policy_cfg, model, buffer, settings.device, train_seed, progress=False,
+                                      init=policy, network=actor).policy.cpu()  # fmt: skip
+                iteration += 1
+                # evaluate at the points reached
+                if points and count >= points[0]:
+                    points = [p for p in points if p > count]
+                    recorder.measure(policy_act(policy, loop), count, extra={"iterations": iteration})
+                recorder.show(count)
+        finally:
+            recorder.close()
+    return recorder.curve

@@ -1,0 +1,149 @@
+"""The open loop's model and policy, open-loop EfficientTrack and SuperTrack (closed and open loop), at the quick size."""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from efficienttrack.baselines.agent import policy_act
+from efficienttrack.baselines.curve import CURVE_FILE
+from efficienttrack.baselines.openloop import OPEN_PRESETS, imitate, pass_counts, train_efficienttrack_open
+from efficienttrack.baselines.supertrack import SUPERTRACK_PRESETS, train_supertrack
+from efficienttrack.collect import CollectConfig, run_pass
+from efficienttrack.cycles import generate_references
+from efficienttrack.dataset import Sequences
+from efficienttrack.dynamics import MODEL_PRESETS, PlantModel, model_error, train_model
+from efficienttrack.envs import evaluate
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.metrics import compute_metrics
+from efficienttrack.policy import POLICY_PRESETS, PWMPolicy, train_policy
+from efficienttrack.references import Reference
+from efficienttrack.systems.pd import PDGains
+from efficienttrack.systems.protocol import BatchedSystem
+from efficienttrack.systems.spec import SystemSpec, close_loop
+
+torch.set_num_threads(1)
+
+
+def short_refs(count, steps, seed=0):
+    """Generated loading cycles cut to ``steps`` positions (fast episodes on the built-in xe75)."""
+    return [Reference(f"{r.name}_short", r.q[:steps]) for r in generate_references(count, seed=seed)]
+
+
+class VelocityPlant:
+    """A toy PWM plant: each joint's velocity is 2 rad/s per 1000 PWM, reached at once (an integrator)."""
+
+    batched = True
+    dt = 0.05
+
+    def reset(self, q0):
+        self.q = np.array(q0, dtype=np.float64)
+        return np.concatenate([self.q, np.zeros_like(self.q)], axis=-1)
+
+    def step(self, u):
+        qd = 2.0 * np.asarray(u) / 1000.0
+        self.q = self.q + self.dt * qd
+        return np.concatenate([self.q, qd], axis=-1)
+
+
+def sine_refs(n, steps=60):
+    t = np.arange(steps)[:, None] * 0.05
+    return [Reference(f"sine_{i}", 0.3 * np.sin((1.5 + 0.3 * i) * t + np.arange(4) + i)) for i in range(n)]
+
+
+def test_open_windows_hold_the_commands_and_start_at_rest():
+    plant = BatchedSystem(VelocityPlant(), "toy")
+    records = run_pass(close_loop(plant, PD, "toy"), sine_refs(1, 10), CollectConfig(sigma_max=0.0), 0)
+    data = Sequences(records, history=3, future=2, channel="u")
+    window = data.window(data.starts(1)[:2], horizon=1)
+    u = records[0].u / 1000
+    assert torch.equal(window.qref_hist[0], torch.zeros(3, 4))  # u_{−3..−1}: at rest
+    np.testing.assert_allclose(window.qref_future[:, 0].numpy(), u[:2], rtol=1e-6)  # u_t
+    np.testing.assert_allclose(window.qref_hist[1, -1].numpy(), u[0], rtol=1e-6)  # u_{t−1}
+    with pytest.raises(EfficientTrackError, match="PWM u"):
+        Sequences([dataclasses.replace(records[0], u=None)], history=3, future=2, channel="u")
+
+
+PD = PDGains(kp=(2000.0,) * 4, kd=(0.0,) * 4, sign=(1.0,) * 4, c=0.0)
+"""A P controller on the toy plant: u = 2000 e, so it closes 20 % of the error a step and lags a moving reference."""
+
+
+def test_plant_model_error_falls_with_training_on_xe75_data():
+    records = run_pass(SystemSpec().open(), short_refs(3, 120), CollectConfig(), 0)
+    cfg = dataclasses.replace(MODEL_PRESETS["tiny"], horizon=4, history=3, steps=1)
+    before = model_error(train_model(cfg, records, "cpu", 0, progress=False, network=PlantModel).model, records, 10)
+    trained = train_model(dataclasses.replace(cfg, steps=250), records, "cpu", 0, progress=False, network=PlantModel).model
+    after = model_error(trained, records, 10)
+    assert after.mpe_deg < 0.5 * before.mpe_deg
+
+
+def test_pwm_policy_through_its_model_tracks_better_than_the_p_controller_on_a_toy_plant():
+    plant = BatchedSystem(VelocityPlant(), "toy")
+    closed = close_loop(plant, PD, "toy")
+    refs = sine_refs(6)
+    noisy = CollectConfig(sigma_max=0.3, noise_ratio=(1.0, 0.0))  # the plant model needs commands not fixed by the state
+    records = [r for k in range(3) for r in run_pass(closed, refs, noisy, k)]
+    model_cfg = dataclasses.replace(MODEL_PRESETS["tiny"], horizon=4, history=2, steps=300)
+    g_theta = train_model(model_cfg, records, "cpu", 0, progress=False, network=PlantModel).model
+    policy_cfg = dataclasses.replace(POLICY_PRESETS["tiny"], horizon=4, steps=300, k_smooth=0.01)
+    init = imitate(policy_cfg, records, 100, 0)
+    pi_phi = train_policy(policy_cfg, g_theta, records, "cpu", 0, progress=False, init=init, network=PWMPolicy).policy
+    pd_mae = compute_metrics(evaluate(lambda obs: np.zeros((len(obs), 4)), refs, "closed", closed))["mae_deg"]
+    imitation_mae = compute_metrics(evaluate(policy_act(init, "open"), refs, "open", plant))["mae_deg"]
+    ours_mae = compute_metrics(evaluate(policy_act(pi_phi, "open"), refs, "open", plant))["mae_deg"]
+    zero_mae = compute_metrics(evaluate(lambda obs: np.zeros((len(obs), 4)), refs, "open", plant))["mae_deg"]
+    assert ours_mae < 0.4 * pd_mae and ours_mae < 0.4 * imitation_mae and ours_mae < 0.1 * zero_mae
+
+
+def test_pwm_policy_cannot_drive_the_closed_loop_model():
+    with pytest.raises(EfficientTrackError, match="PWMPolicy"):
+        policy_act(PWMPolicy(POLICY_PRESETS["tiny"]), "closed")
+
+
+REFS = short_refs(6, 80)
+TRAIN, TEST = REFS[:4], REFS[4:]
+"""Four short training references (316 steps a pass) and two test ones."""
+
+
+def test_open_loop_efficienttrack_quick_curve_and_determinism(tmp_path):
+    assert pass_counts(1000, 316) == [1, 2]
+    curve = train_efficienttrack_open("open", SystemSpec(), TRAIN, TEST, 1000, 0, tmp_path / "a", preset="quick")
+    assert [p["passes"] for p in curve] == [1, 2] and [p["interaction_steps"] for p in curve] == [316, 632]
+    assert all(np.isfinite(p["metrics"]["mae_deg"]) and p["wall_seconds"] > 0 for p in curve)
+    saved = json.loads((tmp_path / "a" / CURVE_FILE).read_text())
+    assert saved["method"] == "efficienttrack" and saved["loop"] == "open" and len(saved["curve"]) == 2
+    again = train_efficienttrack_open("open", SystemSpec(), TRAIN, TEST, 400, 0, tmp_path / "b", preset="quick")
+    assert again[0]["metrics"] == curve[0]["metrics"]
+
+
+@pytest.mark.parametrize("loop", ["closed", "open"])
+def test_supertrack_quick_curve_and_determinism(tmp_path, loop):
+    settings = dataclasses.replace(SUPERTRACK_PRESETS["quick"], steps_per_iteration=300)
+    curve = train_supertrack(loop, SystemSpec(), TRAIN, TEST, 700, 3, tmp_path / "a", preset=settings, eval_at=[300, 700])
+    assert [p["iterations"] for p in curve] == [1, 3] and curve[-1]["interaction_steps"] >= 700
+    assert all(np.isfinite(p["metrics"]["mae_deg"]) for p in curve)
+    saved = json.loads((tmp_path / "a" / CURVE_FILE).read_text())
+    assert saved["method"] == "supertrack" and saved["loop"] == loop and len(saved["curve"]) == 2
+    again = train_supertrack(loop, SystemSpec(), TRAIN, TEST, 300, 3, tmp_path / "b", preset=settings)
+    assert again[0]["metrics"] == curve[0]["metrics"]
+
+
+def test_bad_input_is_refused(tmp_path):
+    with pytest.raises(EfficientTrackError, match="open loop only"):
+        train_efficienttrack_open("closed", SystemSpec(), TRAIN, TEST, 1000, 0, tmp_path, preset="quick")
+    with pytest.raises(EfficientTrackError, match="PWM-level plant"):
+        train_efficienttrack_open("open", SystemSpec(system="learned"), TRAIN, TEST, 1000, 0, tmp_path, preset="quick")
+    with pytest.raises(EfficientTrackError, match="less than one collection pass"):
+        train_efficienttrack_open("open", SystemSpec(), TRAIN, TEST, 100, 0, tmp_path, preset="quick")
+    with pytest.raises(EfficientTrackError, match="PWM-level plant"):
+        train_supertrack("open", SystemSpec(system="learned"), TRAIN, TEST, 1000, 0, tmp_path, preset="quick")
+    with pytest.raises(EfficientTrackError, match="loop"):
+        train_supertrack("sideways", SystemSpec(), TRAIN, TEST, 1000, 0, tmp_path, preset="quick")
+    with pytest.raises(EfficientTrackError, match="preset"):
+        train_supertrack("closed", SystemSpec(), TRAIN, TEST, 1000, 0, tmp_path, preset="huge")
+    with pytest.raises(EfficientTrackError, match="budget"):
+        train_supertrack("closed", SystemSpec(), TRAIN, TEST, 0, 0, tmp_path, preset="quick")
+    with pytest.raises(EfficientTrackError, match="imitation_steps"):
+        dataclasses.replace(OPEN_PRESETS["quick"], imitation_steps=-1)
