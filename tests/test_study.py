@@ -10,13 +10,14 @@ import pytest
 from typer.testing import CliRunner
 
 from efficienttrack.cli import app
+from efficienttrack.collect import pass_counts
 from efficienttrack.config import PRESETS
 from efficienttrack.cycles import generate_references
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.references import Reference, save_references
 from efficienttrack.study import METHODS, Job, available_methods, make_jobs, make_study, report, run_study
 from efficienttrack.study.jobs import LOOPS
-from efficienttrack.study.methods import Method, pass_counts, point
+from efficienttrack.study.methods import Method, point
 from efficienttrack.study.report import FIELDS, METRICS
 from efficienttrack.systems.spec import SystemSpec
 
@@ -64,9 +65,11 @@ def test_pass_counts_follow_1_2_5_within_the_budget():
 
 def test_job_list(refs, monkeypatch):
     study = tiny_study(refs)
-    jobs = make_jobs(study, ["pd", "efficienttrack"], ["closed", "open"], [0, 1, 2])
-    # PD is deterministic: one job stands for every seed; EfficientTrack has no open loop
-    assert [job.name for job in jobs] == ["pd-closed-s0", *(f"efficienttrack-closed-s{s}" for s in range(3))]
+    jobs = make_jobs(study, ["pd", "ilc", "efficienttrack"], ["closed", "open"], [0, 1])
+    # PD and the ILC oracle are deterministic: one job stands for every seed; neither has an open loop
+    assert [job.name for job in jobs] == [
+        "pd-closed-s0", "ilc-closed-s0", *(f"efficienttrack-{loop}-s{s}" for loop in ("closed", "open") for s in (0, 1))
+    ]  # fmt: skip
     assert {job.study for job in jobs} == {study}
     assert [job.method for job in make_jobs(study)] == available_methods()
     for args, message in [
@@ -95,19 +98,24 @@ def test_sb3_methods_are_registered_with_both_loops():
     for name in ("sac", "ppo"):
         assert METHODS[name].loops == LOOPS
         assert "efficienttrack.baselines.sb3" in METHODS[name].requires
+    for name in ("efficienttrack", "supertrack", "tdmpc"):
+        assert METHODS[name].loops == LOOPS
+    assert METHODS["ilc"].loops == ("closed",) and not METHODS["ilc"].seeded
 
 
 def test_study_writes_table_json_and_figure(finished):
     out, study, result, lines = finished
-    names = ("pd-closed-s0", "efficienttrack-closed-s0", "ppo-closed-s0", "ppo-open-s0")
+    names = ("pd-closed-s0", "efficienttrack-closed-s0", "efficienttrack-open-s0", "ppo-closed-s0", "ppo-open-s0")
     assert result.ran == names and not result.failed and not result.skipped
-    assert lines[0].endswith("4 jobs, 0 finished earlier (skipped), 4 to run (local)")
-    assert lines[2].startswith("[2/4] efficienttrack-closed-s0 done in") and lines[2].endswith("at 118 interaction steps")
+    assert lines[0].endswith("5 jobs, 0 finished earlier (skipped), 5 to run (local)")
+    assert lines[2].startswith("[2/5] efficienttrack-closed-s0 done in") and lines[2].endswith("at 118 interaction steps")
     entries = json.loads((out / "study.json").read_text())
     assert [(e["method"], e["loop"], e["seeds"]) for e in entries] == [
-        ("pd", "closed", [0]), ("efficienttrack", "closed", [0]), ("ppo", "closed", [0]), ("ppo", "open", [0])
+        ("pd", "closed", [0]), ("efficienttrack", "closed", [0]), ("efficienttrack", "open", [0]), ("ppo", "closed", [0]),
+        ("ppo", "open", [0]),
     ]  # fmt: skip
-    pd, et, ppo, _ = entries
+    pd, et, et_open, ppo, _ = entries
+    assert et_open["interaction_steps"] == 118 and [p["passes"] for p in et_open["curve"]] == [1]
     assert pd["interaction_steps"] == 0 and pd["interaction_hours"] == 0
     assert et["interaction_steps"] == 118 and et["interaction_hours"] == pytest.approx(118 / 20 / 3600)
     for entry in entries:

@@ -114,6 +114,26 @@ class CollectConfig:
         return mask
 
 
+def pass_counts(budget: int, steps_per_pass: int) -> list[int]:
+    """The collection passes EfficientTrack is run with: 1, 2, 5, 10, 20, 50 … while their steps fit the budget.
+
+    Args:
+        budget: interaction steps allowed.
+        steps_per_pass: interaction steps of one pass (Σ (L_i − 1) over the training references), ≥ 1.
+
+    Returns:
+        The pass counts p (≤ ``collect.MAX_PASSES``) with p · steps_per_pass ≤ budget, ascending; empty when not even
+        one pass fits.
+    """
+    counts, scale = [], 1
+    while True:
+        for p in (scale, 2 * scale, 5 * scale):
+            if p > MAX_PASSES or p * steps_per_pass > budget:
+                return counts
+            counts.append(p)
+        scale *= 10
+
+
 class CollectResult(NamedTuple):
     """Outcome of :func:`collect`.
 

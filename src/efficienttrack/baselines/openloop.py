@@ -32,7 +32,7 @@ import torch
 
 from efficienttrack.baselines.agent import check_run, policy_act
 from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder
-from efficienttrack.collect import MAX_PASSES, CollectConfig, run_pass
+from efficienttrack.collect import MAX_PASSES, CollectConfig, pass_counts, run_pass
 from efficienttrack.configfile import check_seed
 from efficienttrack.dataset import Sequences
 from efficienttrack.dynamics import NORM_SAMPLES, ModelConfig, PlantModel, train_model
@@ -139,20 +139,6 @@ def imitate(
     return pi_phi.eval()
 
 
-def pass_counts(budget: int, steps_per_pass: int) -> list[int]:
-    """The pass counts 1, 2, 5, 10, 20, 50 … (≤ ``collect.MAX_PASSES``) whose interaction steps fit the budget.
-
-    Args:
-        budget: interaction steps allowed.
-        steps_per_pass: interaction steps of one pass over the training references, ≥ 1.
-
-    Returns:
-        The ascending pass counts; empty when not even one pass fits.
-    """
-    counts = [m * 10**k for k in range(len(str(MAX_PASSES))) for m in (1, 2, 5)]
-    return [p for p in counts if p <= MAX_PASSES and p * steps_per_pass <= budget]
-
-
 def train_efficienttrack_open(
     loop: str,
     system: SystemSpec,
@@ -182,7 +168,7 @@ def train_efficienttrack_open(
         folder: output folder for ``curve.json``.
         preset: ``"full"``, ``"quick"`` (:data:`OPEN_PRESETS`) or an :class:`OpenLoopSettings`.
         eval_at: interaction counts; each is measured after the most passes whose steps do not exceed it (at least
-            one). None: the pass counts 1, 2, 5, 10 … that fit the budget (:func:`pass_counts`).
+            one). None: the pass counts 1, 2, 5, 10 … that fit the budget (:func:`~efficienttrack.collect.pass_counts`).
         progress: a display for the interaction count and the last MAE, or None.
 
     Returns:

@@ -9,7 +9,9 @@ held-out references at regular interaction counts, as a list of points::
 ``pd`` (the PD controller alone, one point at 0 interactions), ``efficienttrack`` (the whole pipeline after 1, 2, 5,
 10 … collection passes), the Stable-Baselines3 baselines ``sac`` and ``ppo``
 (:func:`efficienttrack.baselines.sb3.train_baseline`, where that module can be imported), and ``ilc``, the oracle
-lower bound (:func:`efficienttrack.baselines.ilc.train_ilc`; it sees the test references).
+lower bound (:func:`efficienttrack.baselines.ilc.train_ilc`; it sees the test references). EfficientTrack's open loop
+(a plant model and a PWM policy) and ``supertrack`` are in :mod:`efficienttrack.baselines.openloop` and
+:mod:`efficienttrack.baselines.supertrack`.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from typing import Any
 
 from rich.console import Console
 
-from efficienttrack.collect import MAX_PASSES
+from efficienttrack.collect import pass_counts
 from efficienttrack.config import with_overrides
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import write_json
@@ -103,26 +105,6 @@ def run_pd(job: Job, folder: Path) -> list[Point]:
     return [point(0, time.perf_counter() - start, rounded(compute_metrics(records)))]
 
 
-def pass_counts(budget: int, steps_per_pass: int) -> list[int]:
-    """The collection passes EfficientTrack is run with: 1, 2, 5, 10, 20, 50 … while their steps fit the budget.
-
-    Args:
-        budget: interaction steps allowed.
-        steps_per_pass: interaction steps of one pass (Σ (L_i − 1) over the training references), ≥ 1.
-
-    Returns:
-        The pass counts p (≤ ``collect.MAX_PASSES``) with p · steps_per_pass ≤ budget, ascending; empty when not even
-        one pass fits.
-    """
-    counts, scale = [], 1
-    while True:
-        for p in (scale, 2 * scale, 5 * scale):
-            if p > MAX_PASSES or p * steps_per_pass > budget:
-                return counts
-            counts.append(p)
-        scale *= 10
-
-
 def check_passes(study: Study) -> None:
     """Refuse a budget that allows not even one collection pass over the training references (EfficientTrack's minimum).
 
@@ -142,7 +124,9 @@ def check_passes(study: Study) -> None:
 
 
 def run_efficienttrack(job: Job, folder: Path) -> list[Point]:
-    """EfficientTrack (closed loop): the whole pipeline once per pass count of :func:`pass_counts`, each in its folder.
+    """EfficientTrack: the pipeline once per pass count (:func:`~efficienttrack.collect.pass_counts`), each in its folder.
+
+    The open loop (a plant model and a PWM policy) is :func:`efficienttrack.baselines.openloop.train_efficienttrack_open`.
 
     ``folder/passes_<p>/`` is a run folder (:func:`~efficienttrack.pipeline.run_pipeline`, which resumes) with the
     study's ``run_config``, ``job.seed`` as the seed of training and of the collection noise, and ``p`` collection
@@ -162,6 +146,8 @@ def run_efficienttrack(job: Job, folder: Path) -> list[Point]:
     """
     study = job.study
     check_passes(study)
+    if job.loop == "open":
+        return _baseline(job, folder, "efficienttrack.baselines.openloop", "train_efficienttrack_open")
     base = with_overrides(study.run_config, seed=job.seed)
     curve = []
     for passes in pass_counts(job.budget, study.steps_per_pass):
@@ -180,22 +166,24 @@ def run_efficienttrack(job: Job, folder: Path) -> list[Point]:
     return curve
 
 
-def run_sb3(job: Job, folder: Path) -> list[Point]:
-    """A Stable-Baselines3 baseline (``sac`` or ``ppo``): :func:`efficienttrack.baselines.sb3.train_baseline`.
+def _baseline(job: Job, folder: Path, module: str, function: str, **method: str) -> list[Point]:
+    """Run a baseline's ``train_*(loop, system, train_refs, test_refs, budget, seed, folder, preset, progress)``.
 
     Args:
-        job: the job (``job.method`` is the algorithm).
-        folder: the job's folder (the baseline's ``curve.json`` and ``model.zip`` go there).
+        job: the job.
+        folder: the job's folder (the baseline's ``curve.json`` goes there).
+        module: the module that defines the function (imported here: a job imports only what it runs).
+        function: the function's name.
+        **method: ``method=...`` for a function that trains several methods (the SB3 baselines).
 
     Returns:
-        The baseline's curve: its deterministic policy on the test references at its evaluation interaction counts.
+        The baseline's curve.
     """
-    from efficienttrack.baselines.sb3 import train_baseline
-
+    train = getattr(importlib.import_module(module), function)
     study = job.study
     with ProgressDisplay() as progress:  # plain lines in the job's log
-        return train_baseline(
-            method=job.method,
+        return train(
+            **method,
             loop=job.loop,
             system=study.system,
             train_refs=list(study.train),
@@ -206,6 +194,34 @@ def run_sb3(job: Job, folder: Path) -> list[Point]:
             preset=STUDY_PRESETS[study.preset].baselines,
             progress=progress,
         )
+
+
+def run_sb3(job: Job, folder: Path) -> list[Point]:
+    """A Stable-Baselines3 baseline (``sac`` or ``ppo``): :func:`efficienttrack.baselines.sb3.train_baseline`.
+
+    Args:
+        job: the job (``job.method`` is the algorithm).
+        folder: the job's folder (the baseline's ``curve.json`` and ``model.zip`` go there).
+
+    Returns:
+        The baseline's curve: its deterministic policy on the test references at its evaluation interaction counts.
+    """
+    return _baseline(job, folder, "efficienttrack.baselines.sb3", "train_baseline", method=job.method)
+
+
+def run_supertrack(job: Job, folder: Path) -> list[Point]:
+    """SuperTrack (:func:`efficienttrack.baselines.supertrack.train_supertrack`), closed or open loop.
+
+    A world model and a policy trained through it, alternating with collection by the policy.
+
+    Args:
+        job: the job.
+        folder: the job's folder (its ``curve.json`` goes there).
+
+    Returns:
+        Its curve on the test references.
+    """
+    return _baseline(job, folder, "efficienttrack.baselines.supertrack", "train_supertrack")
 
 
 def check_trial(study: Study) -> None:
@@ -238,30 +254,17 @@ def run_ilc(job: Job, folder: Path) -> list[Point]:
     Returns:
         One point per trial: the test metrics after k trials at k × one trial's interaction steps.
     """
-    from efficienttrack.baselines.ilc import train_ilc
-
-    study = job.study
-    with ProgressDisplay() as progress:
-        return train_ilc(
-            loop=job.loop,
-            system=study.system,
-            train_refs=list(study.train),
-            test_refs=list(study.test),
-            budget=job.budget,
-            seed=job.seed,
-            folder=folder,
-            preset=STUDY_PRESETS[study.preset].baselines,
-            progress=progress,
-        )
+    return _baseline(job, folder, "efficienttrack.baselines.ilc", "train_ilc")
 
 
 SB3_MODULES = ("stable_baselines3", "efficienttrack.baselines.sb3")
 """What the SB3 baselines need."""
 METHODS: dict[str, Method] = {
     "pd": Method("pd", "PD", run_pd, ("closed",), seeded=False),
-    "efficienttrack": Method("efficienttrack", "EfficientTrack", run_efficienttrack, ("closed",), check=check_passes),
+    "efficienttrack": Method("efficienttrack", "EfficientTrack", run_efficienttrack, LOOPS, check=check_passes),
     "sac": Method("sac", "SAC", run_sb3, LOOPS, requires=SB3_MODULES),
     "ppo": Method("ppo", "PPO", run_sb3, LOOPS, requires=SB3_MODULES),
+    "supertrack": Method("supertrack", "SuperTrack", run_supertrack, LOOPS),
     "ilc": Method("ilc", "ILC (oracle: sees the test references)", run_ilc, ("closed",), seeded=False, check=check_trial),
 }
 """The methods by name, in the order the reports list them."""
