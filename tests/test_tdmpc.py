@@ -60,7 +60,7 @@ def toy_return(choose, steps=8, machines=3):
 def test_planner_beats_random_and_the_initial_policy_on_a_known_toy_model():
     config = PlannerConfig(
         horizon=4, action_dim=2, iterations=4, num_samples=64, num_pi_samples=4, num_elites=8,
-        temperature=0.5, momentum=0.1, min_std=0.05, discount=0.98,
+        temperature=0.5, momentum=0.1, min_std=0.05, pi_std=0.05, discount=0.98,
     )  # fmt: skip
     generator = torch.Generator().manual_seed(0)
     warm = []

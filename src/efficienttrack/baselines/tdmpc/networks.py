@@ -13,6 +13,9 @@ from torch import nn
 
 from efficienttrack.baselines.tdmpc.settings import TDMPCSettings
 
+NOISE_CLIP = 0.3
+"""π's noise is clipped to ±this before it is added (the public code's truncated normal)."""
+
 
 def _mlp(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
     return nn.Sequential(nn.Linear(in_dim, hidden), nn.ELU(), nn.Linear(hidden, hidden), nn.ELU(), nn.Linear(hidden, out_dim))
@@ -89,10 +92,10 @@ class TOLD(nn.Module):
         return self.Q1(x).squeeze(-1), self.Q2(x).squeeze(-1)
 
     def pi(self, z: torch.Tensor, std: float = 0.0, generator: torch.Generator | None = None) -> torch.Tensor:
-        """π's action: ``tanh(π(z))``, plus Gaussian noise of ``std`` clipped back into [−1, 1] when ``std`` > 0.
+        """π's action: ``tanh(π(z))``, plus Gaussian noise of ``std`` when ``std`` > 0, clipped into [−1, 1].
 
-        The noise is added outside the graph of the clip (the public code's clipped Gaussian): the gradient flows
-        to π's mean as if the clip were the identity.
+        As the public code's truncated normal: the noise is clipped to ±``NOISE_CLIP``, and the action's clip into
+        [−1, 1] passes the gradient to π's mean as if it were the identity.
 
         Args:
             z: (..., latent_dim).
@@ -106,7 +109,7 @@ class TOLD(nn.Module):
         if std <= 0:
             return mu
         eps = torch.randn(mu.shape, generator=generator, device=mu.device, dtype=mu.dtype) * std
-        noisy = mu + eps
+        noisy = mu + eps.clamp(-NOISE_CLIP, NOISE_CLIP)
         return noisy - (noisy - noisy.clamp(-1.0, 1.0)).detach()
 
     def model_parameters(self) -> list[nn.Parameter]:

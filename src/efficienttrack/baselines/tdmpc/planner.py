@@ -47,7 +47,8 @@ class PlannerConfig(NamedTuple):
         num_elites: best sequences refitted to.
         temperature: of the elites' weights.
         momentum: weight of the previous mean.
-        min_std: lower bound of the std (and π's noise).
+        min_std: lower bound of the std (the schedule's value at this step).
+        pi_std: π's noise in its sequences and in the terminal value (the settings' final ``min_std``).
         discount: γ.
     """
 
@@ -60,6 +61,7 @@ class PlannerConfig(NamedTuple):
     temperature: float
     momentum: float
     min_std: float
+    pi_std: float
     discount: float
 
 
@@ -85,7 +87,7 @@ def estimate_value(
         model: the latent model.
         z: (N, K, L) start latents (one per sequence).
         actions: (H, N, K, A) action sequences.
-        config: the planner's knobs (``discount``; π's action at the end has noise ``min_std``, as in the public code).
+        config: the planner's knobs (``discount``; π's action at the end has noise ``pi_std``, as in the public code).
         generator: torch generator of π's noise.
 
     Returns:
@@ -97,7 +99,7 @@ def estimate_value(
         z, reward = model.next(z, a)
         value = value + discount * reward
         discount *= config.discount
-    q1, q2 = model.q(z, model.pi(z, config.min_std, generator))
+    q1, q2 = model.q(z, model.pi(z, config.pi_std, generator))
     return value + discount * torch.minimum(q1, q2)
 
 
@@ -131,7 +133,7 @@ def plan(
         zp = z0[:, None, :].expand(n, config.num_pi_samples, z0.shape[-1])
         steps = []
         for _ in range(horizon):
-            steps.append(model.pi(zp, config.min_std, generator))
+            steps.append(model.pi(zp, config.pi_std, generator))
             zp, _ = model.next(zp, steps[-1])
         pi_actions = torch.stack(steps)  # (H, N, P, A)
     mean = torch.zeros(horizon, n, action_dim, device=device)

@@ -63,6 +63,7 @@ def planner_config(settings: TDMPCSettings, step: int, action_dim: int) -> Plann
         temperature=settings.temperature,
         momentum=settings.momentum,
         min_std=min_std,
+        pi_std=settings.min_std,
         discount=settings.discount,
     )
 
