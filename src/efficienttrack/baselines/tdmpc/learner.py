@@ -59,8 +59,9 @@ class Learner:
     def __init__(self, model: TOLD, settings: TDMPCSettings, generator: torch.Generator) -> None:
         self.model, self.settings, self.generator = model, settings, generator
         self.target = copy.deepcopy(model).requires_grad_(False)
-        self.optim = torch.optim.Adam(model.model_parameters(), lr=settings.learning_rate)
-        self.pi_optim = torch.optim.Adam(model.pi_net.parameters(), lr=settings.learning_rate)
+        self.model_params, self.pi_params = model.model_parameters(), list(model.pi_net.parameters())
+        self.optim = torch.optim.Adam(self.model_params, lr=settings.learning_rate, foreach=True)
+        self.pi_optim = torch.optim.Adam(self.pi_params, lr=settings.learning_rate, foreach=True)
         self.updates = 0
 
     def update(self, batch: Sequences) -> tuple[UpdateInfo, torch.Tensor]:
@@ -105,7 +106,7 @@ class Learner:
         weighted = (total * weight).mean()
         self.optim.zero_grad(set_to_none=True)
         (weighted / horizon).backward()
-        nn.utils.clip_grad_norm_(model.model_parameters(), s.grad_clip_norm)
+        nn.utils.clip_grad_norm_(self.model_params, s.grad_clip_norm, foreach=True)
         self.optim.step()
         # π: through the (frozen) Qs, on the latents of the rollout
         pi_loss = self._update_pi(torch.stack(latents))
@@ -130,7 +131,7 @@ class Learner:
         q1, q2 = model.q(latents, model.pi(latents, s.min_std, self.generator))  # (H + 1, B)
         loss = -(torch.minimum(q1, q2).mean(1) * rho).sum()
         self.pi_optim.zero_grad(set_to_none=True)
-        loss.backward(inputs=list(model.pi_net.parameters()))
-        nn.utils.clip_grad_norm_(model.pi_net.parameters(), s.grad_clip_norm)
+        loss.backward(inputs=self.pi_params)
+        nn.utils.clip_grad_norm_(self.pi_params, s.grad_clip_norm, foreach=True)
         self.pi_optim.step()
         return float(loss.detach())
