@@ -1,0 +1,193 @@
+"""The settings of TD-MPC: one frozen dataclass, presets ``full`` (the paper's TD-MPC config) and ``quick`` (tiny).
+
+``full`` is the configuration the paper gives for its TD-MPC baseline (Hansen et al. 2022), and the public TD-MPC
+code's defaults for what the paper leaves out (each field's docstring says which). ``quick`` shrinks networks,
+samples, batches and the seeding phase so that a few hundred interaction steps take seconds on a CPU (tests and smoke
+runs; its curves say nothing about the method).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from efficienttrack.errors import EfficientTrackError
+
+EVALUATE_WITH = ("policy", "plan")
+"""How the curve's deterministic agent acts: π's mean action, or the planner without exploration noise."""
+
+
+def _check_count(value: object, field: str, low: int = 1) -> None:
+    if not isinstance(value, int) or isinstance(value, bool) or value < low:
+        raise EfficientTrackError(f"tdmpc.{field}: must be an integer ≥ {low}, got {value!r}")
+
+
+def _check_number(value: object, field: str, low: float, high: float, low_open: bool = False) -> None:
+    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    ok = ok and (low < value if low_open else low <= value) and value <= high  # type: ignore[operator]
+    if not ok:
+        interval = f"{'(' if low_open else '['}{low:g}, {high:g}]"
+        raise EfficientTrackError(f"tdmpc.{field}: must be a number in {interval}, got {value!r}")
+
+
+@dataclass(frozen=True)
+class TDMPCSettings:
+    """Settings of TD-MPC: the paper's TD-MPC config where it gives it, the public TD-MPC code's defaults otherwise."""
+
+    horizon: int = 5
+    """Planning horizon H, and the length of the sequences the TOLD model is trained on (paper: 5)."""
+    iterations: int = 6
+    """Planning iterations of the sampling planner per step (paper: 6)."""
+    num_samples: int = 512
+    """Action sequences sampled from the planner's Gaussian per iteration (paper: 512)."""
+    num_elites: int = 64
+    """Best sequences the new mean and standard deviation are fitted to (paper: 64)."""
+    mixture_coef: float = 0.05
+    """Share of extra sequences rolled out with π, ``int(mixture_coef · num_samples)`` of them (paper: 0.05)."""
+    min_std: float = 0.05
+    """Final lower bound of the planner's standard deviation, and π's noise in the TD target and π loss (paper: 0.05)."""
+    std_start: float = 0.5
+    """Lower bound of the planner's standard deviation at step 0, falling linearly to ``min_std`` over
+    ``schedule_steps`` (public code: ``std_schedule: linear(0.5, min_std, 25000)``)."""
+    horizon_start: int = 1
+    """Planning horizon at step 0, rising linearly to ``horizon`` over ``schedule_steps`` (public code:
+    ``horizon_schedule: linear(1, horizon, 25000)``)."""
+    schedule_steps: int = 25_000
+    """Interaction steps over which the two schedules above run (public code: 25,000)."""
+    temperature: float = 0.5
+    """Temperature of the elites' weights ``exp(temperature · (value − max value))`` (paper: 0.5)."""
+    momentum: float = 0.1
+    """Weight of the previous mean in each iteration's new mean (paper: 0.1)."""
+    batch_size: int = 512
+    """Sequences per update (paper: 512)."""
+    buffer_size: int = 180_000
+    """Replay buffer capacity in transitions (paper: 180,000)."""
+    reward_coef: float = 0.5
+    """Weight of the reward prediction loss (paper: 0.5)."""
+    value_coef: float = 0.1
+    """Weight of the Q (TD) loss (paper: 0.1)."""
+    consistency_coef: float = 2.0
+    """Weight of the latent consistency loss (paper: 2)."""
+    rho: float = 0.5
+    """ρ: the loss of horizon step t is weighted ρ^t (paper: 0.5)."""
+    learning_rate: float = 1e-3
+    """Adam learning rate of the model and of π (paper: 1e-3)."""
+    grad_clip_norm: float = 10.0
+    """Gradient-norm clip of both updates (public code: 10)."""
+    seed_steps: int = 5_000
+    """Interaction steps of uniformly random actions before planning; when they end, as many updates run at once, then
+    one per interaction step (paper: 5,000; public code's update schedule)."""
+    target_every: int = 2
+    """Updates between two Polyak steps of the target network (paper: ``update_freq`` 2, the public code's period of
+    the target update)."""
+    tau: float = 0.01
+    """Polyak coefficient of the target network (paper: 0.01)."""
+    latent_dim: int = 50
+    """Size of the latent state z (paper: 50)."""
+    hidden: int = 512
+    """Width of the hidden layers of dynamics, reward, π and Q (paper: MLPs 512 wide)."""
+    encoder_hidden: int = 256
+    """Width of the encoder's hidden layer (public code: ``enc_dim`` 256)."""
+    discount: float = 0.98
+    """Discount factor γ (paper: 0.98)."""
+    per_alpha: float = 0.6
+    """Prioritized replay: sequences are drawn with probability ∝ priority^α (paper: 0.6)."""
+    per_beta: float = 0.4
+    """Prioritized replay: importance weights (n · P(i))^−β, divided by their maximum (paper: 0.4)."""
+    evaluate_with: str = "policy"
+    """The curve's deterministic agent: ``"policy"`` (π's mean action, one network call for all test references) or
+    ``"plan"`` (the planner without exploration noise, as the public code evaluates; vectorized over the test
+    references, but about ``iterations · (num_samples + π samples)`` times the cost; see docs/tdmpc.md)."""
+    device: str = "auto"
+    """Torch device: ``"auto"`` takes CUDA when present, else the CPU."""
+
+    def __post_init__(self) -> None:
+        """Check the values (EfficientTrackError naming the field)."""
+        for field in ("horizon", "iterations", "num_samples", "num_elites", "batch_size", "buffer_size", "target_every"):
+            _check_count(getattr(self, field), field)
+        for field in ("latent_dim", "hidden", "encoder_hidden", "schedule_steps", "horizon_start"):
+            _check_count(getattr(self, field), field)
+        _check_count(self.seed_steps, "seed_steps", 0)
+        if self.horizon_start > self.horizon:
+            raise EfficientTrackError(f"tdmpc.horizon_start: must be ≤ horizon = {self.horizon}, got {self.horizon_start}")
+        if self.num_elites > self.num_samples + self.num_pi_samples:
+            raise EfficientTrackError(
+                f"tdmpc.num_elites: must be ≤ the sequences sampled ({self.num_samples + self.num_pi_samples}), "
+                f"got {self.num_elites}"
+            )
+        if self.buffer_size < self.horizon:
+            raise EfficientTrackError(f"tdmpc.buffer_size: must hold at least one sequence of {self.horizon} steps")
+        for field in ("mixture_coef", "momentum", "rho", "tau", "discount", "per_alpha", "per_beta"):
+            _check_number(getattr(self, field), field, 0.0, 1.0)
+        _check_number(self.min_std, "min_std", 0.0, 2.0, low_open=True)
+        _check_number(self.std_start, "std_start", 0.0, 2.0, low_open=True)
+        for field in ("temperature", "learning_rate", "grad_clip_norm"):
+            _check_number(getattr(self, field), field, 0.0, math.inf, low_open=True)
+        for field in ("reward_coef", "value_coef", "consistency_coef"):
+            _check_number(getattr(self, field), field, 0.0, math.inf)
+        if self.evaluate_with not in EVALUATE_WITH:
+            raise EfficientTrackError(
+                f"tdmpc.evaluate_with: must be one of {', '.join(EVALUATE_WITH)}, got {self.evaluate_with!r}"
+            )
+        if not isinstance(self.device, str) or not self.device:
+            raise EfficientTrackError(f"tdmpc.device: must be 'auto', 'cpu', 'cuda' or 'cuda:<i>', got {self.device!r}")
+
+    @property
+    def num_pi_samples(self) -> int:
+        """Sequences rolled out with π and added to the planner's samples: ``int(mixture_coef · num_samples)``."""
+        return int(self.mixture_coef * self.num_samples)
+
+    def schedule(self, step: int) -> tuple[int, float]:
+        """The planning horizon and the planner's lower bound on its standard deviation at interaction step ``step``.
+
+        Args:
+            step: interaction steps so far.
+
+        Returns:
+            ``(horizon, min_std)``: ``int(linear(horizon_start → horizon))`` and ``linear(std_start → min_std)``, each
+            reaching its final value after ``schedule_steps`` steps.
+        """
+        mix = min(max(step / self.schedule_steps, 0.0), 1.0)
+        horizon = int(min(self.horizon, (1 - mix) * self.horizon_start + mix * self.horizon))
+        return horizon, (1 - mix) * self.std_start + mix * self.min_std
+
+
+PRESETS: dict[str, TDMPCSettings] = {
+    "full": TDMPCSettings(),
+    "quick": TDMPCSettings(
+        horizon=3,
+        iterations=2,
+        num_samples=32,
+        num_elites=8,
+        mixture_coef=0.125,
+        batch_size=16,
+        buffer_size=5_000,
+        seed_steps=50,
+        schedule_steps=200,
+        latent_dim=8,
+        hidden=32,
+        encoder_hidden=32,
+    ),
+}
+"""TD-MPC's presets: ``full`` (the paper's TD-MPC config) and ``quick`` (tiny, for tests and smoke runs)."""
+
+
+def tdmpc_settings(preset: str | TDMPCSettings = "full") -> TDMPCSettings:
+    """The settings by preset name, or ``preset`` itself when it is a :class:`TDMPCSettings`.
+
+    Args:
+        preset: ``"full"``, ``"quick"`` or a :class:`TDMPCSettings`.
+
+    Returns:
+        The settings.
+
+    Raises:
+        EfficientTrackError: an unknown preset name or another type.
+    """
+    if isinstance(preset, TDMPCSettings):
+        return preset
+    if isinstance(preset, str):
+        if preset not in PRESETS:
+            raise EfficientTrackError(f"preset '{preset}': unknown for tdmpc (known: {', '.join(PRESETS)})")
+        return PRESETS[preset]
+    raise EfficientTrackError(f"preset: tdmpc takes a preset name or TDMPCSettings, got {type(preset).__name__}")

@@ -1,0 +1,227 @@
+"""TD-MPC on the tracking environments: interact, store, update, plan; the held-out curve at chosen step counts.
+
+One machine (:class:`efficienttrack.envs.TrackingEnv`) tracks the training references, one episode per reference
+(drawn by the environment's seeded generator). The first ``seed_steps`` interaction steps take uniformly random
+actions; from then on every action is planned (:func:`~.planner.plan`) with exploration noise. When the seeding ends,
+``seed_steps`` updates run at once, then one update per interaction step (the public TD-MPC code's schedule).
+An interaction step is one environment step of the machine (20 Hz), the paper's I.S.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_eval_points, check_refs
+from efficienttrack.baselines.tdmpc.buffer import PrioritizedBuffer
+from efficienttrack.baselines.tdmpc.learner import Learner
+from efficienttrack.baselines.tdmpc.networks import TOLD
+from efficienttrack.baselines.tdmpc.planner import PlannerConfig, plan
+from efficienttrack.baselines.tdmpc.settings import TDMPCSettings, tdmpc_settings
+from efficienttrack.configfile import check_seed
+from efficienttrack.envs.core import LOOPS, open_system
+from efficienttrack.envs.single import TrackingEnv
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.fileio import atomic_write, check_output_folder, output_lock
+from efficienttrack.metrics import MIN_STEPS
+from efficienttrack.nets import resolve_device
+from efficienttrack.progress import ProgressDisplay
+from efficienttrack.references import Reference
+from efficienttrack.systems.spec import SystemSpec
+
+METHOD = "tdmpc"
+"""The method's name in ``curve.json`` and the study."""
+
+MODEL_FILE = "model.pt"
+"""The final TOLD model's ``state_dict`` (``torch.load(..., weights_only=True)`` reads it)."""
+
+
+def planner_config(settings: TDMPCSettings, step: int, action_dim: int) -> PlannerConfig:
+    """The planner's knobs at interaction step ``step`` (the horizon and min-std schedules applied).
+
+    Args:
+        settings: the settings.
+        step: interaction steps so far.
+        action_dim: A.
+
+    Returns:
+        The planner's config.
+    """
+    horizon, min_std = settings.schedule(step)
+    return PlannerConfig(
+        horizon=horizon,
+        action_dim=action_dim,
+        iterations=settings.iterations,
+        num_samples=settings.num_samples,
+        num_pi_samples=settings.num_pi_samples,
+        num_elites=settings.num_elites,
+        temperature=settings.temperature,
+        momentum=settings.momentum,
+        min_std=min_std,
+        pi_std=settings.min_std,
+        discount=settings.discount,
+    )
+
+
+def evaluation_agent(model: TOLD, settings: TDMPCSettings, step: int, seed: int) -> Callable[[np.ndarray], np.ndarray]:
+    """The deterministic agent the curve measures: π's mean action, or the planner without exploration noise.
+
+    Args:
+        model: the TOLD model.
+        settings: ``evaluate_with`` chooses; the planner's knobs as at ``step``.
+        step: interaction steps trained so far (the schedules' position).
+        seed: with ``step``, seeds the planner's own generator (training's generators are left alone).
+
+    Returns:
+        ``act``: observations (N, D) float32 → actions (N, A) in [−1, 1]; N machines planned for in one batch.
+    """
+    device = next(model.parameters()).device
+    if settings.evaluate_with == "policy":
+
+        @torch.no_grad()
+        def act_policy(obs: np.ndarray) -> np.ndarray:
+            return model.pi(model.encode(torch.as_tensor(obs, device=device))).cpu().numpy()
+
+        return act_policy
+    config = planner_config(settings, step, model.action_dim)
+    generator = torch.Generator(device=device).manual_seed(int(np.random.SeedSequence([seed, step]).generate_state(1)[0]))
+    warm: list[torch.Tensor] = []
+
+    @torch.no_grad()
+    def act_plan(obs: np.ndarray) -> np.ndarray:
+        z = model.encode(torch.as_tensor(obs, device=device))
+        previous = warm.pop() if warm and warm[-1].shape[1] == len(z) else None
+        result = plan(model, z, config, generator, previous, explore=False)
+        warm[:] = [result.mean]
+        return result.action.cpu().numpy()
+
+    return act_plan
+
+
+def train_tdmpc(
+    loop: str,
+    system: SystemSpec,
+    train_refs: Sequence[Reference],
+    test_refs: Sequence[Reference],
+    budget: int,
+    seed: int,
+    folder: str | Path,
+    preset: str | TDMPCSettings = "full",
+    eval_at: Sequence[int] | None = None,
+    progress: ProgressDisplay | None = None,
+) -> list[dict[str, Any]]:
+    """Train TD-MPC for ``budget`` interaction steps on one machine; evaluate it on the test references along the way.
+
+    When the interaction count reaches a point of ``eval_at``, the deterministic agent (``settings.evaluate_with``:
+    π's mean action by default, or the planner without noise) runs every test reference once
+    (:func:`efficienttrack.envs.evaluate`) and :func:`efficienttrack.metrics.compute_metrics` scores it.
+    ``folder/curve.json`` (``{"method": "tdmpc", "loop", "seed", "budget", "system", "settings", "curve"}``) is
+    rewritten atomically after each point; a new run in the folder starts over. The final model's ``state_dict`` goes
+    to ``folder/model.pt``. The same seed and settings give the same curve (wall times aside) on one machine and
+    device with the same number of torch threads; the global torch generator is left as it was.
+
+    Args:
+        loop: ``"closed"`` (the agent adjusts the PD reference) or ``"open"`` (the agent sends PWM / 1000; ``system``
+            must name a PWM-level plant, e.g. ``SystemSpec(plant="xe75")`` or the built-in system).
+        system: the system spec training and evaluation run on.
+        train_refs: the training references (``.q`` (T, 4) rad).
+        test_refs: the held-out references the curve is measured on (each ≥ 4 steps).
+        budget: interaction steps to train for (≥ 1), the paper's I.S.
+        seed: seeds the networks' initialization, the planner's and π's noise, the replay sampling, the seeding
+            phase's random actions and the environment's reference draws.
+        folder: output folder for ``curve.json`` and ``model.pt`` (created; other files in it are left alone).
+        preset: ``"full"``, ``"quick"`` (:data:`~efficienttrack.baselines.tdmpc.settings.PRESETS`) or a
+            :class:`~efficienttrack.baselines.tdmpc.settings.TDMPCSettings`.
+        eval_at: interaction counts to evaluate at, each in ``[1, budget]``; None for
+            :func:`~efficienttrack.baselines.curve.default_eval_points`.
+        progress: a display to show the training steps and the last MAE on, or None.
+
+    Returns:
+        One point per evaluation, in order: ``{"interaction_steps": int, "wall_seconds": float (training wall time so
+        far, building included, evaluations excluded), "metrics": dict (compute_metrics of the test episodes)}``.
+
+    Raises:
+        EfficientTrackError: an unknown loop or preset, a budget < 1, an evaluation point outside ``[1, budget]``,
+            a bad seed, a system that is no SystemSpec, no references or a test reference shorter than 4 steps, a
+            device that is not available, an output folder that cannot be written or is being written by another
+            process, or a problem the environment reports (a system spec, a reference outside the limits).
+    """
+    settings = tdmpc_settings(preset)
+    if loop not in LOOPS:
+        raise EfficientTrackError(f"loop '{loop}': unknown (known: {', '.join(LOOPS)})")
+    if not isinstance(budget, int | np.integer) or isinstance(budget, bool) or budget < 1:
+        raise EfficientTrackError(f"budget: must be an integer ≥ 1 interaction step, got {budget!r}")
+    budget = int(budget)
+    points = check_eval_points(eval_at, budget)
+    seed = check_seed(seed, "seed")
+    if not isinstance(system, SystemSpec):
+        raise EfficientTrackError(f"system: expected a SystemSpec (efficienttrack.systems.spec), got {type(system).__name__}")
+    train_refs, test_refs = check_refs(train_refs, "train_refs"), check_refs(test_refs, "test_refs", MIN_STEPS)
+    device = resolve_device(settings.device)
+    folder = check_output_folder(folder, "folder")
+    header = {"method": METHOD, "loop": loop, "seed": seed, "budget": budget, "system": system.to_dict()}
+    header["settings"] = asdict(settings)
+    with output_lock(folder / CURVE_FILE, "folder", folder=False):
+        recorder = CurveRecorder(header, folder / CURVE_FILE, open_system(loop, system), test_refs, progress, budget)
+        env = TrackingEnv(loop, system, train_refs)
+        try:
+            model = _run(env, settings, device, budget, seed, points, recorder)
+            atomic_write(folder / MODEL_FILE, lambda f: torch.save(model.state_dict(), f))
+        finally:
+            env.close()
+            recorder.close()
+    return recorder.curve
+
+
+def _run(
+    env: TrackingEnv,
+    settings: TDMPCSettings,
+    device: torch.device,
+    budget: int,
+    seed: int,
+    points: list[int],
+    recorder: CurveRecorder,
+) -> TOLD:
+    obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
+    rng = np.random.default_rng(seed)
+    generator = torch.Generator(device=device).manual_seed(seed)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        model = TOLD(obs_dim, action_dim, settings).to(device)
+    learner = Learner(model, settings, generator)
+    buffer = PrioritizedBuffer(
+        settings.buffer_size, obs_dim, action_dim, settings.horizon, settings.per_alpha, settings.per_beta
+    )
+    obs, _ = env.reset(seed=seed)
+    first, warm = True, None
+    for count in range(1, budget + 1):
+        # act: random while seeding, then planned with exploration noise
+        if count <= settings.seed_steps:
+            action = rng.uniform(-1.0, 1.0, action_dim).astype(np.float32)
+        else:
+            with torch.no_grad():
+                z = model.encode(torch.as_tensor(obs, device=device)[None])
+            config = planner_config(settings, count - 1, action_dim)
+            result = plan(model, z, config, generator, None if first else warm, explore=True)
+            warm, action = result.mean, result.action[0].cpu().numpy()
+        next_obs, reward, terminated, truncated, _ = env.step(action)
+        buffer.add(obs, action, reward, next_obs, first)
+        first = terminated or truncated
+        obs = env.reset()[0] if first else next_obs
+        # update: seed_steps updates when the seeding ends, then one per interaction step
+        if count >= settings.seed_steps and buffer.starts > 0:
+            for _ in range(settings.seed_steps if count == settings.seed_steps else 1):
+                batch = buffer.sample(settings.batch_size, rng)
+                _, priority = learner.update(batch)
+                buffer.update(batch.index, priority.numpy())
+        # evaluate
+        if points and count >= points[0]:
+            points = [p for p in points if p > count]
+            recorder.measure(evaluation_agent(model, settings, count, seed), count)
+        recorder.show(count)
+    return model

@@ -1,0 +1,240 @@
+"""TD-MPC: the planner on a known toy model, the TOLD loss, prioritized replay, and train_tdmpc end to end."""
+
+import json
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from efficienttrack.baselines.tdmpc import (
+    PRESETS,
+    TOLD,
+    Learner,
+    PlannerConfig,
+    PrioritizedBuffer,
+    Sequences,
+    TDMPCSettings,
+    plan,
+    tdmpc_settings,
+    train_tdmpc,
+)
+from efficienttrack.cycles import generate_references
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.metrics import METRIC_KEYS
+from efficienttrack.references import Reference
+from efficienttrack.systems.spec import SystemSpec
+
+TINY = replace(PRESETS["quick"], seed_steps=20, schedule_steps=40, device="cpu")
+"""The quick preset with a shorter seeding phase, so that a few dozen steps reach the planner and the updates."""
+
+
+class ToyModel:
+    """A known latent system: z' = z + 0.5 a, reward −‖z' − goal‖², Q ≡ 0, π ≡ 0 (plus noise)."""
+
+    goal = torch.tensor([0.8, -0.6])
+
+    def next(self, z, a):
+        z_next = z + 0.5 * a
+        return z_next, -((z_next - self.goal) ** 2).sum(-1)
+
+    def q(self, z, a):
+        zero = torch.zeros(z.shape[:-1])
+        return zero, zero
+
+    def pi(self, z, std=0.0, generator=None):
+        a = torch.zeros(*z.shape[:-1], 2)
+        return a if std <= 0 else (a + std * torch.randn(a.shape, generator=generator)).clamp(-1, 1)
+
+
+def toy_return(choose, steps=8, machines=3):
+    """The toy's true return over ``steps`` steps from z = 0 for ``machines`` machines, actions from ``choose(z, t)``."""
+    model, z, total = ToyModel(), torch.zeros(machines, 2), torch.zeros(machines)
+    for t in range(steps):
+        z, reward = model.next(z, choose(z, t))
+        total += reward
+    return total
+
+
+def test_planner_beats_random_and_the_initial_policy_on_a_known_toy_model():
+    config = PlannerConfig(
+        horizon=4, action_dim=2, iterations=4, num_samples=64, num_pi_samples=4, num_elites=8,
+        temperature=0.5, momentum=0.1, min_std=0.05, pi_std=0.05, discount=0.98,
+    )  # fmt: skip
+    generator = torch.Generator().manual_seed(0)
+    warm = []
+
+    def planned(z, t):
+        result = plan(ToyModel(), z, config, generator, warm[-1] if warm else None, explore=False)
+        warm.append(result.mean)
+        assert result.action.shape == (3, 2) and result.mean.shape == (4, 3, 2)
+        return result.action
+
+    rng = torch.Generator().manual_seed(1)
+    planner = toy_return(planned)
+    random = toy_return(lambda z, t: torch.rand(z.shape, generator=rng) * 2 - 1)
+    initial = toy_return(lambda z, t: ToyModel().pi(z))
+    # the best possible return: reach the goal in two steps (−0.25 − 0 …); π ≡ 0 stays at −1 per step
+    assert initial.tolist() == pytest.approx([-8.0] * 3)
+    assert (planner > -0.6).all(), planner
+    assert (planner > random + 2).all() and (planner > initial + 7).all()
+
+
+def told_batch(rng, batch=32, horizon=3, obs_dim=6):
+    """Sequences of a linear system o' = 0.9 o + B a with reward −‖o'‖²."""
+    b = rng.normal(size=(2, obs_dim)).astype(np.float32) * 0.3
+    obs = rng.normal(size=(batch, obs_dim)).astype(np.float32)
+    action = rng.uniform(-1, 1, (horizon, batch, 2)).astype(np.float32)
+    next_obs, reward, o = [], [], obs
+    for a in action:
+        o = 0.9 * o + a @ b
+        next_obs.append(o)
+        reward.append(-(o**2).sum(-1))
+    return Sequences(obs, np.stack(next_obs), action, np.stack(reward), np.arange(batch), np.ones(batch, np.float32))
+
+
+def test_told_loss_falls_on_a_small_batch():
+    torch.manual_seed(0)
+    settings = replace(TINY, hidden=64, latent_dim=8)
+    model = TOLD(6, 2, settings)
+    learner = Learner(model, settings, torch.Generator().manual_seed(0))
+    batch = told_batch(np.random.default_rng(0))
+    losses = [learner.update(batch)[0] for _ in range(150)]
+    first, last = losses[0], losses[-1]
+    assert last.reward < 0.1 * first.reward
+    assert last.total < 0.5 * first.total
+    assert learner.updates == 150 and all(math.isfinite(x.pi) for x in losses)
+
+
+def test_prioritized_replay_samples_in_proportion_to_priority():
+    buffer = PrioritizedBuffer(capacity=50, obs_dim=1, action_dim=1, horizon=2, alpha=0.6, beta=0.4)
+    for episode, length in enumerate((5, 1, 3)):
+        for t in range(length):
+            value = np.array([10 * episode + t], np.float32)
+            buffer.add(value, value, float(value[0]), value + 1, first=t == 0)
+    # starts: 0…3 (episode 0), none in the one-step episode 1 (position 5), 6 and 7 (episode 2)
+    assert np.flatnonzero(buffer.priority).tolist() == [0, 1, 2, 3, 6, 7]
+    buffer.update(np.array([0, 1, 2, 3, 6, 7]), np.array([1.0, 2.0, 3.0, 4.0, 0.5, 8.0]) - 1e-6)
+    batch = buffer.sample(60_000, np.random.default_rng(0))
+    p = np.array([1.0, 2.0, 3.0, 4.0, 0.5, 8.0]) ** 0.6
+    expected = p / p.sum()
+    frequency = np.array([(batch.index == i).mean() for i in (0, 1, 2, 3, 6, 7)])
+    np.testing.assert_allclose(frequency, expected, atol=0.006)
+    weight = (6 * expected) ** -0.4
+    np.testing.assert_allclose(batch.weight[batch.index == 0][0], weight[0] / weight.max(), rtol=1e-5)
+    assert batch.weight.max() == pytest.approx(1.0)
+    # a sequence is two consecutive steps of one episode
+    assert batch.next_obs.shape == (2, 60_000, 1) and batch.obs.shape == (60_000, 1)
+    np.testing.assert_array_equal(batch.action[1, :, 0], batch.action[0, :, 0] + 1)
+    np.testing.assert_array_equal(batch.next_obs[0], batch.obs + 1)
+    np.testing.assert_array_equal(batch.reward[0], batch.obs[:, 0])
+
+
+def test_replay_overwrites_the_oldest_and_refuses_an_empty_sample():
+    buffer = PrioritizedBuffer(capacity=4, obs_dim=1, action_dim=1, horizon=2, alpha=1.0, beta=0.0)
+    with pytest.raises(EfficientTrackError, match="no sequence of 2 steps stored yet"):
+        buffer.sample(1, np.random.default_rng(0))
+    for t in range(6):
+        buffer.add(np.array([t], np.float32), np.zeros(1, np.float32), 0.0, np.array([t + 1], np.float32), first=t == 0)
+    # positions hold steps 4, 5, 2, 3; starts 2 (2→3), 3 (3→4) and 0 (4→5); position 1 (step 5) waits for step 6
+    assert np.flatnonzero(buffer.priority).tolist() == [0, 2, 3]
+    batch = buffer.sample(200, np.random.default_rng(1))
+    np.testing.assert_array_equal(batch.next_obs[1, :, 0], batch.obs[:, 0] + 2)
+
+
+@pytest.fixture(scope="module")
+def refs():
+    """Two training and two test references, cut short (40 and 30 steps) to keep training and evaluation fast."""
+    cycles = generate_references(4, seed=1)
+    return [Reference(r.name, r.q[:40]) for r in cycles[:2]], [Reference(r.name, r.q[:30]) for r in cycles[2:]]
+
+
+def finite(metrics):
+    return all(math.isfinite(metrics[key]) for key in METRIC_KEYS if key != "per_joint_mae_deg")
+
+
+def test_quick_preset_trains_on_the_closed_loop(refs, tmp_path):
+    train, test = refs
+    settings = replace(tdmpc_settings("quick"), device="cpu")
+    curve = train_tdmpc("closed", SystemSpec(), train, test, 70, 0, tmp_path, settings, eval_at=[1, 50, 70])
+    assert [p["interaction_steps"] for p in curve] == [1, 50, 70]
+    assert all(finite(p["metrics"]) and p["metrics"]["episodes"] == len(test) for p in curve)
+    walls = [p["wall_seconds"] for p in curve]
+    assert walls == sorted(walls) and walls[0] >= 0
+    written = json.loads((tmp_path / "curve.json").read_text())
+    assert (written["method"], written["loop"], written["seed"], written["budget"]) == ("tdmpc", "closed", 0, 70)
+    assert written["curve"] == json.loads(json.dumps(curve))
+    assert written["settings"]["latent_dim"] == 8
+    state = torch.load(tmp_path / "model.pt", weights_only=True)
+    assert state["h.0.weight"].shape == (32, 332)
+
+
+def test_open_loop_trains_and_evaluates_with_the_planner(refs, tmp_path):
+    train, test = refs
+    settings = replace(TINY, evaluate_with="plan")
+    curve = train_tdmpc("open", SystemSpec(plant="xe75"), train, test, 30, 1, tmp_path, settings, eval_at=[30])
+    assert [p["interaction_steps"] for p in curve] == [30] and finite(curve[0]["metrics"])
+
+
+@pytest.mark.parametrize("evaluate_with", ["policy", "plan"])
+def test_same_seed_same_curve(refs, tmp_path, evaluate_with):
+    train, test = refs
+    settings = replace(TINY, evaluate_with=evaluate_with)
+    state = torch.get_rng_state()
+
+    def metrics(seed, name):
+        return train_tdmpc("closed", SystemSpec(), train, test, 30, seed, tmp_path / name, settings, [30])[-1]["metrics"]
+
+    first = metrics(3, "a")
+    assert metrics(3, "b") == first
+    assert metrics(4, "c") != first
+    assert torch.equal(torch.get_rng_state(), state)  # the global generator is left alone
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"loop": "half"}, "loop 'half': unknown"),
+        ({"budget": 0}, "budget: must be an integer ≥ 1"),
+        ({"eval_at": [5, 101]}, r"eval_at: each point must be an integer in \[1, budget = 100\], got 101"),
+        ({"preset": "huge"}, "preset 'huge': unknown for tdmpc"),
+        ({"preset": 3}, "tdmpc takes a preset name or TDMPCSettings, got int"),
+        ({"seed": -1}, "seed: a seed must be an integer"),
+        ({"system": "xe75"}, "system: expected a SystemSpec"),
+        ({"train_refs": []}, "train_refs: no references given"),
+        ({"test_refs": [Reference("short", np.zeros((2, 4)))]}, "test_refs: reference 'short' has 2 steps"),
+    ],
+)
+def test_bad_input_is_refused_before_training(refs, tmp_path, change, message):
+    args = {"loop": "closed", "system": SystemSpec(), "train_refs": refs[0], "test_refs": refs[1], "budget": 100}
+    args |= {"seed": 0, "folder": tmp_path / "out", "preset": "quick", "eval_at": None} | change
+    with pytest.raises(EfficientTrackError, match=message):
+        train_tdmpc(**args)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"horizon": 0}, "tdmpc.horizon: must be an integer ≥ 1"),
+        ({"num_elites": 600}, "tdmpc.num_elites: must be ≤ the sequences sampled"),
+        ({"rho": 1.5}, r"tdmpc.rho: must be a number in \[0, 1\]"),
+        ({"min_std": 0.0}, r"tdmpc.min_std: must be a number in \(0, 2\]"),
+        ({"learning_rate": float("nan")}, "tdmpc.learning_rate: must be a number"),
+        ({"horizon_start": 6}, "tdmpc.horizon_start: must be ≤ horizon = 5"),
+        ({"evaluate_with": "mean"}, "tdmpc.evaluate_with: must be one of policy, plan"),
+    ],
+)
+def test_bad_settings_name_the_field(change, message):
+    with pytest.raises(EfficientTrackError, match=message):
+        replace(TDMPCSettings(), **change)
+
+
+def test_presets_keep_the_papers_settings_and_schedules():
+    full = tdmpc_settings("full")
+    assert (full.horizon, full.iterations, full.num_samples, full.num_elites, full.num_pi_samples) == (5, 6, 512, 64, 25)
+    assert (full.batch_size, full.buffer_size, full.seed_steps, full.latent_dim, full.hidden) == (512, 180_000, 5000, 50, 512)
+    assert (full.reward_coef, full.value_coef, full.consistency_coef, full.rho, full.discount) == (0.5, 0.1, 2.0, 0.5, 0.98)
+    assert full.schedule(0) == (1, 0.5) and full.schedule(25_000) == (5, 0.05) and full.schedule(12_500)[0] == 3
+    assert tdmpc_settings("quick").latent_dim == 8 and tdmpc_settings("quick").hidden == 32
