@@ -73,7 +73,7 @@ def test_job_list(refs, monkeypatch):
     assert {job.study for job in jobs} == {study}
     assert [job.method for job in make_jobs(study)] == available_methods()
     for args, message in [
-        ((["pd", "tdmpc"],), "--methods tdmpc: unknown"),
+        ((["pd", "dreamer"],), "--methods dreamer: unknown"),
         ((["pd", "pd"],), "--methods pd,pd: give each method once"),
         ((["pd"], ["sideways"]), "--loops sideways: unknown"),
         ((["pd"], ["open"]), "none of these methods has these loops"),
@@ -115,7 +115,9 @@ def test_study_writes_table_json_and_figure(finished):
         ("ppo", "open", [0]),
     ]  # fmt: skip
     pd, et, et_open, ppo, _ = entries
-    assert et_open["interaction_steps"] == 118 and [p["passes"] for p in et_open["curve"]] == [1]
+    assert et_open["interaction_steps"] == 118
+    open_job = json.loads((out / "jobs" / "efficienttrack-open-s0" / "result.json").read_text())
+    assert [p["passes"] for p in open_job["curve"]] == [1]
     assert pd["interaction_steps"] == 0 and pd["interaction_hours"] == 0
     assert et["interaction_steps"] == 118 and et["interaction_hours"] == pytest.approx(118 / 20 / 3600)
     for entry in entries:
@@ -258,7 +260,7 @@ def test_a_method_budget_replaces_the_study_budget_for_that_method(refs):
     study = make_study(SystemSpec(), train, test, budget=2 * 59, preset="quick", run_config=FAST, method_budgets={"ppo": 64})
     jobs = {job.method: job for job in make_jobs(study, ["efficienttrack", "ppo"])}
     assert jobs["ppo"].budget == 64 and jobs["efficienttrack"].budget == 2 * 59
-    assert study.identity()["method_budgets"] == {"ppo": 64}
+    assert study.identity()["method_budgets"] == {"ppo": 64, "tdmpc": 2_000}  # the quick preset's own for TD-MPC
     with pytest.raises(EfficientTrackError, match="--method-budget efficienttrack=50: less than one collection pass"):
         make_jobs(make_study(SystemSpec(), train, test, 2 * 59, "quick", FAST, {"efficienttrack": 50}), ["efficienttrack"])
     with pytest.raises(EfficientTrackError, match="--method-budget nope=…: unknown method"):
@@ -273,3 +275,10 @@ def test_the_ilc_oracle_runs_as_a_study_method_below_pd(refs, tmp_path):
     assert "ILC (oracle" in result.report.markdown
     with pytest.raises(EfficientTrackError, match="--method-budget ilc=10: less than one ILC trial .*59 steps"):
         make_jobs(make_study(SystemSpec(), *refs, 2 * 59, "quick", FAST, {"ilc": 10}), ["ilc"])
+
+
+def test_the_quick_preset_gives_td_mpc_a_smaller_budget_that_the_user_may_override(refs):
+    train, test = refs
+    assert make_study(SystemSpec(), train, test, preset="quick").budget_of("tdmpc") == 2_000
+    assert make_study(SystemSpec(), train, test, preset="quick", method_budgets={"tdmpc": 500}).budget_of("tdmpc") == 500
+    assert make_study(SystemSpec(), train, test, preset="full").budget_of("tdmpc") == 200_000

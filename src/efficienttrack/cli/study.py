@@ -45,7 +45,7 @@ def study_command(
     limits: LimitsOpt = None,
     methods: Annotated[
         str | None,
-        typer.Option("--methods", help="Comma-separated: pd, efficienttrack, sac, ppo, ilc (default: all available)."),
+        typer.Option("--methods", help="Comma-separated: pd, efficienttrack, sac, ppo, tdmpc, supertrack, ilc (default all)."),
     ] = None,
     loops: Annotated[
         str, typer.Option("--loops", help="closed and/or open (open: only methods that have it; needs a plant).")

@@ -40,13 +40,16 @@ class StudyPreset:
     """The baselines' settings: the name of their presets (``quick``, ``full``) in :mod:`efficienttrack.baselines`."""
     budget: int
     """Interaction steps per job when the study gives none."""
+    method_budgets: tuple[tuple[str, int], ...] = ()
+    """(method, interaction steps) replacing ``budget`` for that method when the study gives none for it."""
 
 
 STUDY_PRESETS: dict[str, StudyPreset] = {
-    "quick": StudyPreset(run="tiny", baselines="quick", budget=20_000),
+    "quick": StudyPreset(run="tiny", baselines="quick", budget=20_000, method_budgets=(("tdmpc", 2_000),)),
     "full": StudyPreset(run="cpu", baselines="full", budget=200_000),
 }
-"""``quick``: tiny networks, minutes (the tests); ``full``: the ``cpu`` preset, and the baselines' full settings."""
+"""``quick``: tiny networks, minutes (the tests; TD-MPC, which updates and plans at every step, gets 2,000 steps);
+``full``: the ``cpu`` preset, and the baselines' full settings."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -145,7 +148,8 @@ def make_study(
         budget: interaction steps per job (None: the preset's).
         preset: ``quick`` or ``full`` (:data:`STUDY_PRESETS`).
         run_config: EfficientTrack's settings (None: the preset's ``run`` preset).
-        method_budgets: method name → interaction steps for that method's jobs instead of ``budget``.
+        method_budgets: method name → interaction steps for that method's jobs instead of ``budget`` (added to, and
+            overriding, the preset's own).
 
     Returns:
         The study.
@@ -163,7 +167,7 @@ def make_study(
         budget=sizes.budget if budget is None else budget,
         preset=preset,
         run_config=PRESETS[sizes.run] if run_config is None else run_config,
-        method_budgets=tuple(sorted((method_budgets or {}).items())),
+        method_budgets=tuple(sorted({**dict(sizes.method_budgets), **(method_budgets or {})}.items())),
     )
 
 

@@ -7,11 +7,11 @@ held-out references at regular interaction counts, as a list of points::
     {"interaction_steps": int, "wall_seconds": float, "metrics": compute_metrics(...) of the test episodes, ...}
 
 ``pd`` (the PD controller alone, one point at 0 interactions), ``efficienttrack`` (the whole pipeline after 1, 2, 5,
-10 … collection passes), the Stable-Baselines3 baselines ``sac`` and ``ppo``
-(:func:`efficienttrack.baselines.sb3.train_baseline`, where that module can be imported), and ``ilc``, the oracle
-lower bound (:func:`efficienttrack.baselines.ilc.train_ilc`; it sees the test references). EfficientTrack's open loop
-(a plant model and a PWM policy) and ``supertrack`` are in :mod:`efficienttrack.baselines.openloop` and
-:mod:`efficienttrack.baselines.supertrack`.
+10 … collection passes; in the open loop a plant model and a PWM policy, :mod:`efficienttrack.baselines.openloop`),
+the Stable-Baselines3 baselines ``sac`` and ``ppo`` (:func:`efficienttrack.baselines.sb3.train_baseline`, where
+that module can be imported), ``tdmpc`` and ``supertrack`` (:mod:`efficienttrack.baselines.tdmpc`,
+:mod:`efficienttrack.baselines.supertrack`), and ``ilc``, the oracle lower bound
+(:func:`efficienttrack.baselines.ilc.train_ilc`; it sees the test references).
 """
 
 from __future__ import annotations
@@ -224,6 +224,19 @@ def run_supertrack(job: Job, folder: Path) -> list[Point]:
     return _baseline(job, folder, "efficienttrack.baselines.supertrack", "train_supertrack")
 
 
+def run_tdmpc(job: Job, folder: Path) -> list[Point]:
+    """TD-MPC (:func:`efficienttrack.baselines.tdmpc.train_tdmpc`), closed or open loop.
+
+    Args:
+        job: the job.
+        folder: the job's folder (its ``curve.json`` and ``model.pt`` go there).
+
+    Returns:
+        Its curve on the test references.
+    """
+    return _baseline(job, folder, "efficienttrack.baselines.tdmpc", "train_tdmpc")
+
+
 def check_trial(study: Study) -> None:
     """Refuse a budget smaller than one ILC trial (every test reference once).
 
@@ -264,6 +277,7 @@ METHODS: dict[str, Method] = {
     "efficienttrack": Method("efficienttrack", "EfficientTrack", run_efficienttrack, LOOPS, check=check_passes),
     "sac": Method("sac", "SAC", run_sb3, LOOPS, requires=SB3_MODULES),
     "ppo": Method("ppo", "PPO", run_sb3, LOOPS, requires=SB3_MODULES),
+    "tdmpc": Method("tdmpc", "TD-MPC", run_tdmpc, LOOPS),
     "supertrack": Method("supertrack", "SuperTrack", run_supertrack, LOOPS),
     "ilc": Method("ilc", "ILC (oracle: sees the test references)", run_ilc, ("closed",), seeded=False, check=check_trial),
 }
