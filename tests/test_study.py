@@ -15,7 +15,7 @@ from efficienttrack.config import PRESETS
 from efficienttrack.cycles import generate_references
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.references import Reference, save_references
-from efficienttrack.study import METHODS, Job, available_methods, make_jobs, make_study, report, run_study
+from efficienttrack.study import METHODS, Job, Study, available_methods, make_jobs, make_study, report, run_study
 from efficienttrack.study.jobs import LOOPS
 from efficienttrack.study.methods import Method, point
 from efficienttrack.study.report import FIELDS, METRICS
@@ -282,3 +282,8 @@ def test_the_quick_preset_gives_td_mpc_a_smaller_budget_that_the_user_may_overri
     assert make_study(SystemSpec(), train, test, preset="quick").budget_of("tdmpc") == 2_000
     assert make_study(SystemSpec(), train, test, preset="quick", method_budgets={"tdmpc": 500}).budget_of("tdmpc") == 500
     assert make_study(SystemSpec(), train, test, preset="full").budget_of("tdmpc") == 200_000
+
+
+def test_a_study_refuses_an_unknown_preset(refs):
+    with pytest.raises(EfficientTrackError, match="--preset 'huge': unknown"):
+        Study(SystemSpec(), tuple(refs[0]), tuple(refs[1]), 118, "huge", FAST)

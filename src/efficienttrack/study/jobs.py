@@ -87,6 +87,8 @@ class Study:
         names = [method for method, _ in self.method_budgets]
         if len(set(names)) != len(names):
             raise EfficientTrackError(f"--method-budget: a method is given twice ({', '.join(names)})")
+        if self.preset not in STUDY_PRESETS:
+            raise EfficientTrackError(f"--preset '{self.preset}': unknown, choose one of {', '.join(STUDY_PRESETS)}")
 
     def budget_of(self, method: str) -> int:
         """Interaction steps a job of ``method`` may spend: its ``method_budgets`` entry, else ``budget``.
@@ -98,8 +100,6 @@ class Study:
             The budget.
         """
         return dict(self.method_budgets).get(method, self.budget)
-        if self.preset not in STUDY_PRESETS:
-            raise EfficientTrackError(f"--preset '{self.preset}': unknown, choose one of {', '.join(STUDY_PRESETS)}")
 
     @property
     def steps_per_pass(self) -> int:
