@@ -3,7 +3,7 @@
 One module per command group: :mod:`~efficienttrack.cli.data` (references, metrics, conversion, collection),
 :mod:`~efficienttrack.cli.runs` (run, demo, evaluate), :mod:`~efficienttrack.cli.learning` (training, model error,
 rounds), :mod:`~efficienttrack.cli.deployment` (export, deploy), :mod:`~efficienttrack.cli.sim` (the simulator's fit),
-:mod:`~efficienttrack.cli.study` (the comparative study);
+:mod:`~efficienttrack.cli.study` (the comparative study), :mod:`~efficienttrack.cli.ablate` (the ablations);
 :mod:`~efficienttrack.cli.common` holds the app and what several commands share. Importing a module registers its
 commands, in the order ``--help`` lists them.
 """
@@ -22,7 +22,7 @@ from efficienttrack.fileio import os_error_text
 
 # isort: split
 # Importing a command module registers its commands, and in this order ``efficienttrack --help`` lists them.
-from efficienttrack.cli import data, runs, learning, deployment, sim, study  # noqa: F401, I001
+from efficienttrack.cli import data, runs, learning, deployment, sim, study, ablate  # noqa: F401, I001
 
 # isort: split
 from efficienttrack.cli.common import app, parse_options, wide_console

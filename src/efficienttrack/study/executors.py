@@ -78,8 +78,8 @@ def execute(job: Job, out: Path, threads: int = 1) -> Outcome:
 
     What the method prints goes to the folder's ``job.log``. On success ``result.json`` is written last:
     ``{"job", "method", "loop", "seed", "budget", "curve": [point, ...] sorted by interaction steps, "wall_seconds",
-    "provenance"}``; on failure ``error.json`` (``{"job", "error", "traceback"}``). torch uses ``threads`` CPU
-    threads while the job runs.
+    "provenance"}`` (and ``"variant"``: name, label, overrides, for an ablation's job); on failure ``error.json``
+    (``{"job", "error", "traceback"}``). torch uses ``threads`` CPU threads while the job runs.
 
     Args:
         job: the job.
@@ -115,6 +115,8 @@ def execute(job: Job, out: Path, threads: int = 1) -> Outcome:
         "wall_seconds": round(wall, 2),
         "provenance": provenance(wall_seconds=wall),
     }
+    if job.variant is not None:
+        result["variant"] = job.variant.to_dict()
     (folder / ERROR).unlink(missing_ok=True)
     write_json(folder / RESULT, result)
     return Outcome(job.name, result, None)

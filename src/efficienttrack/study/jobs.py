@@ -3,16 +3,19 @@
 A job is one method trained with one seed in one loop (``closed``: the policy adjusts the PD controller's
 reference; ``open``: the policy sends PWM), evaluated on the held-out references at regular interaction counts,
 giving a curve of test metrics against interaction steps. Each job owns the folder ``OUT/jobs/<method>-<loop>-s<seed>/``.
+A job of an ablation (:mod:`~efficienttrack.study.ablations`) also carries a :class:`Variant` of EfficientTrack's
+settings, and owns ``OUT/jobs/<method>-<variant>-s<seed>/``.
 """
 
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from efficienttrack.config import PRESETS, RunConfig
+from efficienttrack.config import PRESETS, RunConfig, from_dict, with_overrides
 from efficienttrack.configfile import check_seed
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.references import Reference
@@ -28,6 +31,8 @@ RESULT = "result.json"
 """Written last by a finished job: a rerun skips the job."""
 ERROR = "error.json"
 """Written by a failed job (removed when it succeeds on a rerun)."""
+Point = dict[str, Any]
+"""One point of a method's curve: ``{"interaction_steps", "wall_seconds", "metrics", ...}`` (:func:`point`)."""
 
 
 @dataclass(frozen=True)
@@ -172,20 +177,61 @@ def make_study(
 
 
 @dataclass(frozen=True, eq=False)
+class Variant:
+    """EfficientTrack's settings changed in one way: a variant of an ablation.
+
+    Attributes:
+        name: its name in job folders (letters, digits, ``.``, ``_``, ``-``), e.g. ``ratio-9-2``.
+        label: its name in the table and the figure, e.g. ``9:2``.
+        overrides: the RunConfig fields it sets, as a plain mapping in :meth:`RunConfig.to_dict`'s form, e.g.
+            ``{"collect": {"noise_ratio": [9, 2]}}`` (a section's fields not named keep the study's).
+    """
+
+    name: str
+    label: str
+    overrides: Mapping[str, Any]
+
+    def apply(self, cfg: RunConfig) -> RunConfig:
+        """``cfg`` with the overrides, checked field by field.
+
+        Args:
+            cfg: the study's settings.
+
+        Returns:
+            The variant's settings.
+
+        Raises:
+            EfficientTrackError: an override names an unknown field or gives a bad value (naming the variant).
+        """
+        merged = cfg.to_dict()
+        for key, value in self.overrides.items():
+            merged[key] = (
+                {**merged[key], **value} if isinstance(value, Mapping) and isinstance(merged.get(key), dict) else value
+            )
+        return from_dict(merged, f"variant {self.name}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """``{"name", "label", "overrides"}`` (JSON-serializable)."""
+        return {"name": self.name, "label": self.label, "overrides": dict(self.overrides)}
+
+
+@dataclass(frozen=True, eq=False)
 class Job:
-    """One method, one loop, one seed of a study.
+    """One method, one loop, one seed of a study (and, in an ablation, one variant of EfficientTrack's settings).
 
     Attributes:
         method: a name of :data:`efficienttrack.study.methods.METHODS`.
         loop: ``closed`` or ``open``.
         seed: the seed of everything random in the job (training, collection noise).
         study: the study it belongs to.
+        variant: None, or the variant of the study's EfficientTrack settings the job runs (an ablation's job).
     """
 
     method: str
     loop: str
     seed: int
     study: Study
+    variant: Variant | None = None
 
     @property
     def budget(self) -> int:
@@ -194,8 +240,14 @@ class Job:
 
     @property
     def name(self) -> str:
-        """``<method>-<loop>-s<seed>``: the job's folder name."""
-        return f"{self.method}-{self.loop}-s{self.seed}"
+        """``<method>-<loop>-s<seed>``, or ``<method>-<variant>-s<seed>`` for a variant: the job's folder name."""
+        return f"{self.method}-{self.loop if self.variant is None else self.variant.name}-s{self.seed}"
+
+    @property
+    def run_config(self) -> RunConfig:
+        """EfficientTrack's settings for this job: the study's, the variant's overrides, ``seed`` as every seed."""
+        cfg = self.study.run_config if self.variant is None else self.variant.apply(self.study.run_config)
+        return with_overrides(cfg, seed=self.seed)
 
 
 def job_folder(out: str | Path, name: str) -> Path:
@@ -230,3 +282,19 @@ def check_seeds(seeds: list[int] | tuple[int, ...]) -> tuple[int, ...]:
     if len(set(seeds)) != len(seeds):
         raise EfficientTrackError(f"--seeds {','.join(map(str, seeds))}: a seed is repeated")
     return tuple(seeds)
+
+
+def point(interaction_steps: int, wall_seconds: float, metrics: dict[str, Any], **extra: Any) -> Point:
+    """A point of a curve.
+
+    Args:
+        interaction_steps: training interactions with the system so far.
+        wall_seconds: wall time the method took to get there.
+        metrics: :func:`~efficienttrack.metrics.compute_metrics` of the test episodes.
+        **extra: further facts of the point (e.g. ``passes``).
+
+    Returns:
+        ``{"interaction_steps", "wall_seconds", "metrics", **extra}``.
+    """
+    return {"interaction_steps": int(interaction_steps), "wall_seconds": round(float(wall_seconds), 2), "metrics": metrics,
+            **extra}  # fmt: skip

@@ -22,22 +22,18 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
 
 from rich.console import Console
 
 from efficienttrack.collect import pass_counts
-from efficienttrack.config import with_overrides
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import write_json
 from efficienttrack.metrics import compute_metrics, rounded
 from efficienttrack.pipeline import run_pipeline
 from efficienttrack.progress import ProgressDisplay
 from efficienttrack.runtime import track
-from efficienttrack.study.jobs import LOOPS, STUDY_PRESETS, Job, Study, check_seeds
-
-Point = dict[str, Any]
-"""One point of a curve: ``{"interaction_steps", "wall_seconds", "metrics", ...}`` (see the module docstring)."""
+from efficienttrack.study.ablations import run_variant
+from efficienttrack.study.jobs import LOOPS, STUDY_PRESETS, Job, Point, Study, check_seeds, point
 
 
 @dataclass(frozen=True)
@@ -72,22 +68,6 @@ class Method:
             except ImportError:  # a parent package is missing
                 return False
         return True
-
-
-def point(interaction_steps: int, wall_seconds: float, metrics: dict[str, Any], **extra: Any) -> Point:
-    """A point of a curve.
-
-    Args:
-        interaction_steps: training interactions with the system so far.
-        wall_seconds: wall time the method took to get there.
-        metrics: :func:`~efficienttrack.metrics.compute_metrics` of the test episodes.
-        **extra: further facts of the point (e.g. ``passes``).
-
-    Returns:
-        ``{"interaction_steps", "wall_seconds", "metrics", **extra}``.
-    """
-    return {"interaction_steps": int(interaction_steps), "wall_seconds": round(float(wall_seconds), 2), "metrics": metrics,
-            **extra}  # fmt: skip
 
 
 def run_pd(job: Job, folder: Path) -> list[Point]:
@@ -126,7 +106,9 @@ def check_passes(study: Study) -> None:
 def run_efficienttrack(job: Job, folder: Path) -> list[Point]:
     """EfficientTrack: the pipeline once per pass count (:func:`~efficienttrack.collect.pass_counts`), each in its folder.
 
-    The open loop (a plant model and a PWM policy) is :func:`efficienttrack.baselines.openloop.train_efficienttrack_open`.
+    The open loop (a plant model and a PWM policy) is :func:`efficienttrack.baselines.openloop.train_efficienttrack_open`;
+    an ablation's job (one variant of the settings, at the study's passes) is
+    :func:`efficienttrack.study.ablations.run_variant`.
 
     ``folder/passes_<p>/`` is a run folder (:func:`~efficienttrack.pipeline.run_pipeline`, which resumes) with the
     study's ``run_config``, ``job.seed`` as the seed of training and of the collection noise, and ``p`` collection
@@ -146,9 +128,11 @@ def run_efficienttrack(job: Job, folder: Path) -> list[Point]:
     """
     study = job.study
     check_passes(study)
+    if job.variant is not None:
+        return run_variant(job, folder)
     if job.loop == "open":
         return _baseline(job, folder, "efficienttrack.baselines.openloop", "train_efficienttrack_open")
-    base = with_overrides(study.run_config, seed=job.seed)
+    base = job.run_config
     curve = []
     for passes in pass_counts(job.budget, study.steps_per_pass):
         run_folder = folder / f"passes_{passes}"

@@ -85,8 +85,43 @@ def read_result(path: Path) -> dict[str, Any] | None:
     return result
 
 
-def _stats(values: Sequence[float]) -> tuple[float | None, float | None]:
-    """Mean and sample standard deviation (None for a single value; both None without values)."""
+def read_jobs(out: Path) -> tuple[list[dict[str, Any]], dict[str, str]]:
+    """The finished jobs' results and the failed jobs' errors in a study folder.
+
+    Args:
+        out: the study folder (``out/jobs/<name>/result.json`` or ``error.json``).
+
+    Returns:
+        The results (:func:`read_result`), in the order of the folders' names, and job name → error of the jobs with an
+        ``error.json`` and no result.
+
+    Raises:
+        EfficientTrackError: ``out`` holds no study (no ``jobs`` folder).
+    """
+    if not (out / JOBS).is_dir():
+        raise EfficientTrackError(f"--out {out}: no study here (no {JOBS}/ folder)")
+    results, failed = [], {}
+    for folder in sorted(path for path in (out / JOBS).iterdir() if path.is_dir()):
+        result = read_result(folder / RESULT)
+        if result is not None:
+            results.append(result)
+        elif (folder / ERROR).exists():
+            try:
+                failed[folder.name] = str(json.loads((folder / ERROR).read_text())["error"])
+            except (OSError, ValueError, KeyError, TypeError):
+                failed[folder.name] = f"unreadable {ERROR}"
+    return results, failed
+
+
+def stats(values: Sequence[float]) -> tuple[float | None, float | None]:
+    """Mean and sample standard deviation (None for a single value; both None without values).
+
+    Args:
+        values: the values (one per seed).
+
+    Returns:
+        (mean, std).
+    """
     if not values:
         return None, None
     return float(np.mean(values)), (float(np.std(values, ddof=1)) if len(values) > 1 else None)
@@ -116,7 +151,7 @@ def _flat(p: dict[str, Any]) -> dict[str, Any]:
 
 def _mean_point(steps: int, maes: list[float]) -> dict[str, Any]:
     """A point of the mean curve: the seeds' MAE at ``steps`` interaction steps, mean and std."""
-    mae, std = _stats(maes)
+    mae, std = stats(maes)
     return {"interaction_steps": steps, "interaction_hours": interaction_hours(steps), "mae_deg": mae, "mae_deg_std": std,
             "seeds": len(maes)}  # fmt: skip
 
@@ -145,7 +180,7 @@ def summarize(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
         best = [{"seed": c["seed"], **min(c["points"], key=lambda p: p["mae_deg"])} for c in curves]
         entry: dict[str, Any] = {"method": method, "loop": loop, "seeds": [c["seed"] for c in curves]}
         for field in FIELDS:
-            entry[field], entry[f"{field}_std"] = _stats([b[field] for b in best if b[field] is not None])
+            entry[field], entry[f"{field}_std"] = stats([b[field] for b in best if b[field] is not None])
         entry["per_joint_mae_deg"] = np.mean([b["per_joint_mae_deg"] for b in best], axis=0).tolist()
         entry["episodes"], entry["steps"] = best[0].get("episodes"), best[0].get("steps")
         entry["best"] = best
@@ -159,7 +194,17 @@ def summarize(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     return entries
 
 
-def _cell(mean: float | None, std: float | None, fmt: str) -> str:
+def cell(mean: float | None, std: float | None, fmt: str) -> str:
+    """A table cell: ``mean ± std`` in ``fmt`` (``mean`` alone without a spread, ``–`` without a value).
+
+    Args:
+        mean: the mean.
+        std: the standard deviation, or None.
+        fmt: the number format, e.g. ``.2f``.
+
+    Returns:
+        The cell's text.
+    """
     if mean is None:
         return "–"
     return f"{mean:{fmt}}" if std is None else f"{mean:{fmt}} ± {std:{fmt}}"
@@ -184,7 +229,7 @@ def markdown_table(entries: Sequence[dict[str, Any]], failed: dict[str, str]) ->
     ]
     for e in entries:
         cells = [_label(e["method"]), e["loop"], str(len(e["seeds"]))]
-        cells += [_cell(e[field], e[f"{field}_std"], COLUMNS[field][1]) for field in FIELDS]
+        cells += [cell(e[field], e[f"{field}_std"], COLUMNS[field][1]) for field in FIELDS]
         lines.append("| " + " | ".join(cells) + " |")
     if not entries:
         lines.append("")
@@ -254,18 +299,7 @@ def report(out: str | Path) -> Report:
         EfficientTrackError: ``out`` holds no study (no ``jobs`` folder).
     """
     out = Path(out)
-    if not (out / JOBS).is_dir():
-        raise EfficientTrackError(f"--out {out}: no study here (no {JOBS}/ folder)")
-    results, failed = [], {}
-    for folder in sorted(path for path in (out / JOBS).iterdir() if path.is_dir()):
-        result = read_result(folder / RESULT)
-        if result is not None:
-            results.append(result)
-        elif (folder / ERROR).exists():
-            try:
-                failed[folder.name] = str(json.loads((folder / ERROR).read_text())["error"])
-            except (OSError, ValueError, KeyError, TypeError):
-                failed[folder.name] = f"unreadable {ERROR}"
+    results, failed = read_jobs(out)
     entries = summarize(results)
     markdown = markdown_table(entries, failed)
     header = ["method", "loop", "seeds", *(name for field in FIELDS for name in (field, f"{field}_std"))]
