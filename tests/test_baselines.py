@@ -125,7 +125,7 @@ def test_same_seed_same_curve(refs, tmp_path, method):
     ("change", "message"),
     [
         ({"method": "td3"}, "method 'td3': unknown"),
-        ({"loop": "half"}, "loop 'half': unknown"),
+        ({"loop": "half"}, "loop: unknown loop 'half'"),
         ({"budget": 0}, "budget: must be an integer ≥ 1"),
         ({"budget": 2.5}, "budget: must be an integer ≥ 1"),
         ({"eval_at": [5, 101]}, r"eval_at: each point must be an integer in \[1, budget = 100\], got 101"),

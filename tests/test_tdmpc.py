@@ -195,7 +195,7 @@ def test_same_seed_same_curve(refs, tmp_path, evaluate_with):
 @pytest.mark.parametrize(
     ("change", "message"),
     [
-        ({"loop": "half"}, "loop 'half': unknown"),
+        ({"loop": "half"}, "loop: unknown loop 'half'"),
         ({"budget": 0}, "budget: must be an integer ≥ 1"),
         ({"eval_at": [5, 101]}, r"eval_at: each point must be an integer in \[1, budget = 100\], got 101"),
         ({"preset": "huge"}, "preset 'huge': unknown for tdmpc"),

@@ -15,23 +15,16 @@ either loop, so the networks see in the environments what they saw in training.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from pathlib import Path
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
 import torch
 
-from efficienttrack.baselines.curve import check_eval_points, check_refs
-from efficienttrack.configfile import check_seed
 from efficienttrack.envs.core import FUTURE, HISTORY, check_loop
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import check_output_folder
 from efficienttrack.joints import N_JOINTS, OBS_DIM
-from efficienttrack.metrics import MIN_STEPS
 from efficienttrack.policy import AdjustmentPolicy, PWMPolicy
-from efficienttrack.references import Reference
-from efficienttrack.systems.spec import SystemSpec
 
 Act = Callable[[np.ndarray], np.ndarray]
 """An agent: observations (N, 332) float32 → actions (N, 4) in [−1, 1]."""
@@ -141,64 +134,3 @@ def policy_act(policy: AdjustmentPolicy | None, loop: str, noise: Noise | None =
         return a if noise is None else a + noise(len(a))
 
     return act
-
-
-class Run(NamedTuple):
-    """The checked arguments of a training run (:func:`check_run`).
-
-    Attributes:
-        train_refs: the training references.
-        test_refs: the held-out references (each ≥ ``metrics.MIN_STEPS`` steps).
-        budget: interaction steps, ≥ 1.
-        points: the evaluation points (:func:`~efficienttrack.baselines.curve.check_eval_points`).
-        folder: the output folder (created).
-    """
-
-    train_refs: list[Reference]
-    test_refs: list[Reference]
-    budget: int
-    points: list[int]
-    folder: Path
-
-
-def check_run(
-    loop: str,
-    system: SystemSpec,
-    train_refs: Sequence[Reference],
-    test_refs: Sequence[Reference],
-    budget: int,
-    seed: int,
-    folder: str | Path,
-    eval_at: Sequence[int] | None,
-) -> Run:
-    """Check the arguments every ``train_<method>`` of this family takes, before any work.
-
-    Args:
-        loop: ``"closed"`` or ``"open"``; the open loop needs a plant under ``system``.
-        system: the system spec.
-        train_refs: the training references.
-        test_refs: the held-out references.
-        budget: interaction steps, an integer ≥ 1.
-        seed: the seed.
-        folder: the output folder.
-        eval_at: interaction counts to evaluate at, or None.
-
-    Returns:
-        The checked arguments.
-
-    Raises:
-        EfficientTrackError: naming the argument and the problem.
-    """
-    check_loop(loop)
-    if not isinstance(budget, int | np.integer) or isinstance(budget, bool) or budget < 1:
-        raise EfficientTrackError(f"budget: must be an integer ≥ 1 interaction step, got {budget!r}")
-    points = check_eval_points(eval_at, int(budget))
-    check_seed(seed, "seed")
-    if not isinstance(system, SystemSpec):
-        raise EfficientTrackError(f"system: expected a SystemSpec (efficienttrack.systems.spec), got {type(system).__name__}")
-    if loop == "open" and system.open_plant() is None:
-        raise EfficientTrackError(
-            f"system '{system.system_name}': the open loop needs a PWM-level plant under it; give SystemSpec(plant=...)"
-        )
-    train, test = check_refs(train_refs, "train_refs", 3), check_refs(test_refs, "test_refs", MIN_STEPS)
-    return Run(train, test, int(budget), points, check_output_folder(folder, "folder"))

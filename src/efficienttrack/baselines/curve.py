@@ -11,17 +11,20 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
+from efficienttrack.configfile import check_seed
+from efficienttrack.envs.core import check_loop
 from efficienttrack.envs.evaluation import evaluate
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import write_json
-from efficienttrack.metrics import compute_metrics
+from efficienttrack.fileio import check_output_folder, write_json
+from efficienttrack.metrics import MIN_STEPS, compute_metrics
 from efficienttrack.progress import ProgressDisplay
 from efficienttrack.references import Reference
 from efficienttrack.systems.protocol import BatchedSystem
+from efficienttrack.systems.spec import SystemSpec
 
 CURVE_FILE = "curve.json"
 """The curve's file in the output folder, rewritten atomically after every evaluation point."""
@@ -168,3 +171,64 @@ def check_refs(refs: Sequence[Reference], name: str, min_steps: int = 2) -> list
         if len(ref) < min_steps:
             raise EfficientTrackError(f"{name}: reference '{ref.name}' has {len(ref)} steps, needs at least {min_steps}")
     return refs
+
+
+class Run(NamedTuple):
+    """The checked arguments of a training run (:func:`check_run`).
+
+    Attributes:
+        train_refs: the training references.
+        test_refs: the held-out references (each ≥ ``metrics.MIN_STEPS`` steps).
+        budget: interaction steps, ≥ 1.
+        points: the evaluation points (:func:`~efficienttrack.baselines.curve.check_eval_points`).
+        folder: the output folder (created).
+    """
+
+    train_refs: list[Reference]
+    test_refs: list[Reference]
+    budget: int
+    points: list[int]
+    folder: Path
+
+
+def check_run(
+    loop: str,
+    system: SystemSpec,
+    train_refs: Sequence[Reference],
+    test_refs: Sequence[Reference],
+    budget: int,
+    seed: int,
+    folder: str | Path,
+    eval_at: Sequence[int] | None,
+) -> Run:
+    """Check the arguments every ``train_<method>`` of this family takes, before any work.
+
+    Args:
+        loop: ``"closed"`` or ``"open"``; the open loop needs a plant under ``system``.
+        system: the system spec.
+        train_refs: the training references.
+        test_refs: the held-out references.
+        budget: interaction steps, an integer ≥ 1.
+        seed: the seed.
+        folder: the output folder.
+        eval_at: interaction counts to evaluate at, or None.
+
+    Returns:
+        The checked arguments.
+
+    Raises:
+        EfficientTrackError: naming the argument and the problem.
+    """
+    check_loop(loop)
+    if not isinstance(budget, int | np.integer) or isinstance(budget, bool) or budget < 1:
+        raise EfficientTrackError(f"budget: must be an integer ≥ 1 interaction step, got {budget!r}")
+    points = check_eval_points(eval_at, int(budget))
+    check_seed(seed, "seed")
+    if not isinstance(system, SystemSpec):
+        raise EfficientTrackError(f"system: expected a SystemSpec (efficienttrack.systems.spec), got {type(system).__name__}")
+    if loop == "open" and system.open_plant() is None:
+        raise EfficientTrackError(
+            f"system '{system.system_name}': the open loop needs a PWM-level plant under it; give SystemSpec(plant=...)"
+        )
+    train, test = check_refs(train_refs, "train_refs", 3), check_refs(test_refs, "test_refs", MIN_STEPS)
+    return Run(train, test, int(budget), points, check_output_folder(folder, "folder"))

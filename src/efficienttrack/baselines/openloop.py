@@ -30,8 +30,8 @@ from typing import Any
 
 import torch
 
-from efficienttrack.baselines.agent import check_run, policy_act
-from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder
+from efficienttrack.baselines.agent import policy_act
+from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_run
 from efficienttrack.collect import MAX_PASSES, CollectConfig, pass_counts, run_pass
 from efficienttrack.configfile import check_seed
 from efficienttrack.dataset import Sequences

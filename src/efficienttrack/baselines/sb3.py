@@ -17,18 +17,15 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
-from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_eval_points, check_refs
+from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_run
 from efficienttrack.baselines.settings import PPOSettings, SACSettings, method_settings
 from efficienttrack.baselines.vec_env import SB3VecEnv
-from efficienttrack.configfile import check_seed
 from efficienttrack.envs.core import open_system
 from efficienttrack.envs.vector import TrackingVectorEnv
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import atomic_write, check_output_folder, output_lock
-from efficienttrack.metrics import MIN_STEPS
+from efficienttrack.fileio import atomic_write, output_lock
 from efficienttrack.progress import ProgressDisplay
 from efficienttrack.references import Reference
 from efficienttrack.systems.spec import SystemSpec
@@ -114,18 +111,10 @@ def train_baseline(
             another process, or a problem the environments report (a system spec, a reference outside the limits).
     """
     settings = method_settings(method, preset)
-    if loop not in LOOPS:
-        raise EfficientTrackError(f"loop '{loop}': unknown (known: {', '.join(LOOPS)})")
-    if not isinstance(budget, int | np.integer) or isinstance(budget, bool) or budget < 1:
-        raise EfficientTrackError(f"budget: must be an integer ≥ 1 interaction step, got {budget!r}")
-    budget = int(budget)
-    points = check_eval_points(eval_at, budget)
-    if check_seed(seed, "seed") > MAX_SB3_SEED:
+    if isinstance(seed, int) and seed > MAX_SB3_SEED:  # before check_run, which creates the folder
         raise EfficientTrackError(f"seed: SB3 needs a seed in [0, {MAX_SB3_SEED}], got {seed}")
-    if not isinstance(system, SystemSpec):
-        raise EfficientTrackError(f"system: expected a SystemSpec (efficienttrack.systems.spec), got {type(system).__name__}")
-    train_refs, test_refs = check_refs(train_refs, "train_refs"), check_refs(test_refs, "test_refs", MIN_STEPS)
-    folder = check_output_folder(folder, "folder")
+    run = check_run(loop, system, train_refs, test_refs, budget, seed, folder, eval_at)
+    budget, points, folder, train_refs, test_refs = run.budget, run.points, run.folder, run.train_refs, run.test_refs
     header = {
         "method": method,
         "loop": loop,

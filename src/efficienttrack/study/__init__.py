@@ -12,7 +12,7 @@ from efficienttrack.study.ablations import ABLATIONS, Ablation, ablation_jobs, g
 from efficienttrack.study.jobs import STUDY_PRESETS, Job, Study, Variant, make_study
 from efficienttrack.study.methods import METHODS, available_methods, make_jobs
 from efficienttrack.study.report import Report, report
-from efficienttrack.study.run import AblationResult, StudyResult, run_ablation, run_study
+from efficienttrack.study.run import StudyResult, run_ablation, run_study
 
 __all__ = [
     "ABLATIONS",
@@ -20,7 +20,6 @@ __all__ = [
     "STUDY_PRESETS",
     "Ablation",
     "AblationReport",
-    "AblationResult",
     "Job",
     "Report",
     "Study",

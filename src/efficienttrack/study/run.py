@@ -38,41 +38,22 @@ ABLATION_OUTPUTS = (STUDY_CONFIG, JOBS, *ABLATION_REPORT)
 
 
 @dataclass(frozen=True)
-class AblationResult:
-    """Outcome of :func:`run_ablation`.
-
-    Attributes:
-        out: the ablation folder.
-        ran: names of the jobs that ran and finished now.
-        skipped: names of the jobs found finished and skipped.
-        failed: job name → error, of the jobs that failed now.
-        report: the rebuilt report (every finished job in the folder).
-    """
-
-    out: Path
-    ran: tuple[str, ...]
-    skipped: tuple[str, ...]
-    failed: dict[str, str]
-    report: AblationReport
-
-
-@dataclass(frozen=True)
 class StudyResult:
-    """Outcome of :func:`run_study`.
+    """Outcome of :func:`run_study` or :func:`run_ablation`.
 
     Attributes:
         out: the study folder.
         ran: names of the jobs that ran and finished now.
         skipped: names of the jobs found finished and skipped.
         failed: job name → error, of the jobs that failed now.
-        report: the rebuilt report (every finished job in the folder).
+        report: the rebuilt report (every finished job in the folder): the study's, or the ablation's.
     """
 
     out: Path
     ran: tuple[str, ...]
     skipped: tuple[str, ...]
     failed: dict[str, str]
-    report: Report
+    report: Report | AblationReport
 
 
 def progress_line(outcome: Outcome, count: int, total: int) -> str:
@@ -208,7 +189,7 @@ def run_ablation(
     threads: int = 1,
     address: str | None = None,
     log: Callable[[str], None] = print,
-) -> AblationResult:
+) -> StudyResult:
     """Run an ablation's jobs not finished yet, each in its own folder, then rebuild its report from every job folder.
 
     ``OUT/study_config.json`` records the study and the ablation's name: a folder holding a study or another ablation
@@ -235,4 +216,4 @@ def run_ablation(
         raise EfficientTrackError("run_ablation: every job must be a variant of the study given")
     identity = {**study.identity(), "ablation": ablation.name}
     out, ran, skipped, failed = run_jobs(identity, jobs, out, executor, workers, threads, address, log, "ablation")
-    return AblationResult(out, ran, skipped, failed, ablation_report(out))
+    return StudyResult(out, ran, skipped, failed, ablation_report(out))

@@ -31,8 +31,8 @@ from typing import Any
 
 import numpy as np
 
-from efficienttrack.baselines.agent import Noise, check_run, policy_act
-from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder
+from efficienttrack.baselines.agent import Noise, policy_act
+from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_run
 from efficienttrack.baselines.supertrack.settings import SuperTrackSettings, supertrack_settings
 from efficienttrack.dynamics import ClosedLoopModel, PlantModel, train_model
 from efficienttrack.envs.core import open_system

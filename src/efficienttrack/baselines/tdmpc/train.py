@@ -17,18 +17,15 @@ from typing import Any
 import numpy as np
 import torch
 
-from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_eval_points, check_refs
+from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_run
 from efficienttrack.baselines.tdmpc.buffer import PrioritizedBuffer
 from efficienttrack.baselines.tdmpc.learner import Learner
 from efficienttrack.baselines.tdmpc.networks import TOLD
 from efficienttrack.baselines.tdmpc.planner import PlannerConfig, plan
 from efficienttrack.baselines.tdmpc.settings import TDMPCSettings, tdmpc_settings
-from efficienttrack.configfile import check_seed
-from efficienttrack.envs.core import LOOPS, open_system
+from efficienttrack.envs.core import open_system
 from efficienttrack.envs.single import TrackingEnv
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import atomic_write, check_output_folder, output_lock
-from efficienttrack.metrics import MIN_STEPS
+from efficienttrack.fileio import atomic_write, output_lock
 from efficienttrack.nets import resolve_device
 from efficienttrack.progress import ProgressDisplay
 from efficienttrack.references import Reference
@@ -152,18 +149,9 @@ def train_tdmpc(
             process, or a problem the environment reports (a system spec, a reference outside the limits).
     """
     settings = tdmpc_settings(preset)
-    if loop not in LOOPS:
-        raise EfficientTrackError(f"loop '{loop}': unknown (known: {', '.join(LOOPS)})")
-    if not isinstance(budget, int | np.integer) or isinstance(budget, bool) or budget < 1:
-        raise EfficientTrackError(f"budget: must be an integer ≥ 1 interaction step, got {budget!r}")
-    budget = int(budget)
-    points = check_eval_points(eval_at, budget)
-    seed = check_seed(seed, "seed")
-    if not isinstance(system, SystemSpec):
-        raise EfficientTrackError(f"system: expected a SystemSpec (efficienttrack.systems.spec), got {type(system).__name__}")
-    train_refs, test_refs = check_refs(train_refs, "train_refs"), check_refs(test_refs, "test_refs", MIN_STEPS)
+    run = check_run(loop, system, train_refs, test_refs, budget, seed, folder, eval_at)
+    budget, points, folder, train_refs, test_refs = run.budget, run.points, run.folder, run.train_refs, run.test_refs
     device = resolve_device(settings.device)
-    folder = check_output_folder(folder, "folder")
     header = {"method": METHOD, "loop": loop, "seed": seed, "budget": budget, "system": system.to_dict()}
     header["settings"] = asdict(settings)
     with output_lock(folder / CURVE_FILE, "folder", folder=False):
