@@ -9,7 +9,16 @@ import typer
 
 from efficienttrack.cli.common import LimitsOpt, PdOpt, PlantOpt, SystemOpt, SystemOpts, _lock, _system_spec, app
 from efficienttrack.cli.sim import parse_ints
-from efficienttrack.cli.study import _names
+from efficienttrack.cli.study import (
+    AddressOpt,
+    ExecutorOpt,
+    JobsOpt,
+    JobThreadsOpt,
+    StudyPresetOpt,
+    TestRefsOpt,
+    TrainRefsOpt,
+    comma_names,
+)
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import check_output_folder, prepare_output_folder
 
@@ -19,8 +28,8 @@ def ablate_command(
     ctx: typer.Context,
     ablation_name: Annotated[str, typer.Argument(metavar="ABLATION", help="noise-ratio, k-smooth or history.")],
     out: Annotated[Path, typer.Option("--out", help="Ablation folder; rerunning skips the finished jobs.")],
-    train_refs: Annotated[Path | None, typer.Option("--train-refs", help="Folder of training references.")] = None,
-    test_refs: Annotated[Path | None, typer.Option("--test-refs", help="Folder of held-out test references.")] = None,
+    train_refs: TrainRefsOpt = None,
+    test_refs: TestRefsOpt = None,
     system: SystemOpt = None,
     plant: PlantOpt = None,
     pd: PdOpt = "xe75",
@@ -38,13 +47,11 @@ def ablate_command(
     passes: Annotated[
         int | None, typer.Option("--passes", help="Collection passes of every variant (default: the preset's, full 10).")
     ] = None,
-    preset_name: Annotated[str, typer.Option("--preset", help="quick (tiny networks, minutes) or full.")] = "full",
-    executor: Annotated[str, typer.Option("--executor", help="local (this machine) or ray.")] = "local",
-    jobs: Annotated[int, typer.Option("--jobs", help="Jobs at once (local processes, or CPUs of a local Ray instance).")] = 1,
-    address: Annotated[
-        str | None, typer.Option("--address", help="HOST:PORT of a running Ray cluster's head (default: a local instance).")
-    ] = None,
-    threads: Annotated[int, typer.Option("--threads", help="torch CPU threads of each job (0: torch's default).")] = 1,
+    preset_name: StudyPresetOpt = "full",
+    executor: ExecutorOpt = "local",
+    jobs: JobsOpt = 1,
+    address: AddressOpt = None,
+    threads: JobThreadsOpt = 1,
     report_only: Annotated[
         bool, typer.Option("--report-only", help="Run nothing: rebuild the table, ablation.json and figure from OUT's jobs.")
     ] = False,
@@ -80,7 +87,7 @@ def ablate_command(
     spec = _system_spec(system, plant, pd, system_opt, limits)
     study = make_ablation_study(spec, load_references(train_refs), load_references(test_refs), preset_name, passes)
     job_list = ablation_jobs(
-        ablation, study, parse_ints(seeds, "--seeds"), None if values is None else _names(values, "--values")
+        ablation, study, parse_ints(seeds, "--seeds"), None if values is None else comma_names(values, "--values")
     )
     _lock(ctx, out)
     resumable = (out / STUDY_CONFIG).exists() or all(entry.name in ABLATION_OUTPUTS for entry in out.iterdir())

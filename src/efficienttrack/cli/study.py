@@ -13,8 +13,16 @@ from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import check_output_folder, prepare_output_folder
 
 
-def _names(text: str, flag: str) -> list[str]:
-    """``a,b`` → ``["a", "b"]``; an empty item is an error naming ``flag``."""
+def comma_names(text: str, flag: str) -> list[str]:
+    """``a,b`` → ``["a", "b"]``; an empty item is an error naming ``flag``.
+
+    Args:
+        text: the option's value.
+        flag: the option, for the error.
+
+    Returns:
+        The names, stripped.
+    """
     names = [item.strip() for item in text.split(",")]
     if not all(names):
         raise EfficientTrackError(f"{flag} '{text}': expected comma-separated names, e.g. pd,efficienttrack")
@@ -32,12 +40,24 @@ def _method_budgets(items: list[str]) -> dict[str, int]:
     return budgets
 
 
+StudyPresetOpt = Annotated[str, typer.Option("--preset", help="quick (tiny networks, minutes) or full.")]
+ExecutorOpt = Annotated[str, typer.Option("--executor", help="local (this machine) or ray.")]
+JobsOpt = Annotated[int, typer.Option("--jobs", help="Jobs at once (local processes, or CPUs of a local Ray instance).")]
+AddressOpt = Annotated[
+    str | None, typer.Option("--address", help="HOST:PORT of a running Ray cluster's head (default: a local instance).")
+]
+JobThreadsOpt = Annotated[int, typer.Option("--threads", help="torch CPU threads of each job (0: torch's default).")]
+TrainRefsOpt = Annotated[Path | None, typer.Option("--train-refs", help="Folder of training references.")]
+TestRefsOpt = Annotated[Path | None, typer.Option("--test-refs", help="Folder of held-out test references.")]
+"""The options ``study`` and ``ablate`` share."""
+
+
 @app.command("study")
 def study_command(
     ctx: typer.Context,
     out: Annotated[Path, typer.Option("--out", help="Study folder; rerunning skips the finished jobs.")],
-    train_refs: Annotated[Path | None, typer.Option("--train-refs", help="Folder of training references.")] = None,
-    test_refs: Annotated[Path | None, typer.Option("--test-refs", help="Folder of held-out test references.")] = None,
+    train_refs: TrainRefsOpt = None,
+    test_refs: TestRefsOpt = None,
     system: SystemOpt = None,
     plant: PlantOpt = None,
     pd: PdOpt = "xe75",
@@ -58,13 +78,11 @@ def study_command(
         list[str] | None,
         typer.Option("--method-budget", help="METHOD=N: that method's interaction steps instead of --budget (repeatable)."),
     ] = None,
-    preset_name: Annotated[str, typer.Option("--preset", help="quick (tiny networks, minutes) or full.")] = "full",
-    executor: Annotated[str, typer.Option("--executor", help="local (this machine) or ray.")] = "local",
-    jobs: Annotated[int, typer.Option("--jobs", help="Jobs at once (local processes, or CPUs of a local Ray instance).")] = 1,
-    address: Annotated[
-        str | None, typer.Option("--address", help="HOST:PORT of a running Ray cluster's head (default: a local instance).")
-    ] = None,
-    threads: Annotated[int, typer.Option("--threads", help="torch CPU threads of each job (0: torch's default).")] = 1,
+    preset_name: StudyPresetOpt = "full",
+    executor: ExecutorOpt = "local",
+    jobs: JobsOpt = 1,
+    address: AddressOpt = None,
+    threads: JobThreadsOpt = 1,
     report_only: Annotated[
         bool, typer.Option("--report-only", help="Run nothing: rebuild the table, study.json and figure from OUT's jobs.")
     ] = False,
@@ -93,8 +111,8 @@ def study_command(
     spec = _system_spec(system, plant, pd, system_opt, limits)
     budgets = _method_budgets(method_budget or [])
     study = make_study(spec, load_references(train_refs), load_references(test_refs), budget, preset_name, None, budgets)
-    names = None if methods is None else _names(methods, "--methods")
-    job_list = make_jobs(study, names, _names(loops, "--loops"), parse_ints(seeds, "--seeds"))
+    names = None if methods is None else comma_names(methods, "--methods")
+    job_list = make_jobs(study, names, comma_names(loops, "--loops"), parse_ints(seeds, "--seeds"))
     _lock(ctx, out)
     resumable = (out / STUDY_CONFIG).exists() or all(entry.name in STUDY_OUTPUTS for entry in out.iterdir())
     if force or not resumable:
