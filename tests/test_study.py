@@ -18,7 +18,7 @@ from efficienttrack.references import Reference, save_references
 from efficienttrack.study import METHODS, Job, Study, available_methods, make_jobs, make_study, report, run_study
 from efficienttrack.study.jobs import LOOPS
 from efficienttrack.study.methods import Method, point
-from efficienttrack.study.report import FIELDS, METRICS
+from efficienttrack.study.report import FIELDS, METRICS, log_mae_axis
 from efficienttrack.systems.spec import SystemSpec
 
 TINY = PRESETS["tiny"]
@@ -181,6 +181,17 @@ def test_report_is_rebuilt_from_the_folders(finished, tmp_path):
     assert json.loads((out / "study.json").read_text()) == json.loads(json.dumps(rebuilt.entries))
     with pytest.raises(EfficientTrackError, match="no study here"):
         report(tmp_path / "nothing")
+
+
+def test_the_figure_draws_mae_on_a_log_axis_only_when_the_curves_span_a_decade():
+    def entries(*maes):
+        return [{"curve": [{"interaction_steps": 0, "mae_deg": maes[0]}]},
+                {"curve": [{"interaction_steps": n, "mae_deg": m} for n, m in enumerate(maes[1:], 1)]}]  # fmt: skip
+
+    assert not log_mae_axis(entries(4.9, 1.5, 0.7))  # the closed-loop curves: 7× apart, a linear axis from 0
+    assert log_mae_axis(entries(4.9, 38.9, 0.69))  # an open-loop start at 39° beside 0.69°
+    assert not log_mae_axis(entries(0.0, 5.0, 0.6))  # an MAE of 0 has no logarithm and is left out
+    assert not log_mae_axis([])
 
 
 def test_a_failing_job_is_reported_and_the_others_finish(refs, tmp_path, monkeypatch):

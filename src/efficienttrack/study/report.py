@@ -47,6 +47,8 @@ COLUMNS = {
 """Column heading and number format of each field in ``study.md``."""
 OUTPUTS = ("study.json", "study.md", "study.csv", "study.png")
 """The report's files in the study folder."""
+LOG_MAE_SPAN = 10.0
+"""The figure's MAE axis is logarithmic when the largest MAE drawn is more than this many times the smallest."""
 
 
 @dataclass(frozen=True)
@@ -241,11 +243,27 @@ def markdown_table(entries: Sequence[dict[str, Any]], failed: dict[str, str]) ->
     return "\n".join(lines) + "\n"
 
 
+def log_mae_axis(entries: Sequence[dict[str, Any]]) -> bool:
+    """Whether the figure draws MAE on a log axis.
+
+    A curve far above the others (an open-loop start, say) would flatten them on a linear one.
+
+    Args:
+        entries: :func:`summarize`'s entries (their ``curve``).
+
+    Returns:
+        True when the largest positive MAE of the curves is more than :data:`LOG_MAE_SPAN` times the smallest.
+    """
+    maes = [p["mae_deg"] for e in entries for p in e["curve"] if p["mae_deg"] > 0]
+    return bool(maes) and max(maes) > LOG_MAE_SPAN * min(maes)
+
+
 def plot_study(entries: Sequence[dict[str, Any]], path: str | Path) -> Path:
     """MAE against interaction time, as the paper's figure: one line per method and loop, a star at its minimum.
 
     Closed loop in the dark, open loop in the light shade of the method's hue; a method evaluated only without
-    training (PD) is a horizontal line. The x axis is logarithmic.
+    training (PD) is a horizontal line. The x axis is logarithmic, and so is the y axis when the MAEs span more than
+    :data:`LOG_MAE_SPAN` times.
 
     Args:
         entries: :func:`summarize`'s entries (their ``curve``).
@@ -273,9 +291,13 @@ def plot_study(entries: Sequence[dict[str, Any]], path: str | Path) -> Path:
         drawn = True
     if drawn:
         ax.set_xscale("log")
-    ax.set_ylim(bottom=0)
+    log_mae = log_mae_axis(entries)
+    if log_mae:
+        ax.set_yscale("log")
+    else:
+        ax.set_ylim(bottom=0)
     ax.set_xlabel("interaction time (h, at 20 Hz)")
-    ax.set_ylabel("test MAE (°)")
+    ax.set_ylabel("test MAE (°, log)" if log_mae else "test MAE (°)")
     ax.set_title("MAE against interaction time (★ the best point)")
     ax.grid(alpha=0.3, which="both")
     if entries:
