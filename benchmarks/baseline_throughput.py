@@ -78,6 +78,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=1000, help="interaction steps timed per method")
     args = parser.parse_args()
+    warm_up = method_settings("sac").learning_starts
+    if args.steps <= warm_up:
+        parser.error(f"--steps must exceed SAC's {warm_up} warm-up steps (the per-step time is measured after them)")
     torch.set_num_threads(1)
     refs = generate_references(16, seed=0)
     train, test = refs[:8], refs[8:]

@@ -20,6 +20,7 @@ import torch
 
 from efficienttrack.dynamics import MODEL_PRESETS, train_model
 from efficienttrack.records import EpisodeRecord
+from efficienttrack.training import MAX_STEPS
 
 
 def synthetic_records(episodes: int = 20, steps: int = 500, seed: int = 0) -> list[EpisodeRecord]:
@@ -34,7 +35,7 @@ def synthetic_records(episodes: int = 20, steps: int = 500, seed: int = 0) -> li
 
 
 def seconds_per_step(cfg, records, device: str, steps: int) -> float:
-    base = dataclasses.replace(cfg, steps=1, epochs=None, save_every=10**9)
+    base = dataclasses.replace(cfg, steps=1, epochs=None, save_every=MAX_STEPS)
     train_model(base, records, device=device, progress=False)  # warm-up: one-time allocations and kernel set-up
     short = train_model(base, records, device=device, progress=False).seconds
     long = train_model(dataclasses.replace(base, steps=1 + steps), records, device=device, progress=False).seconds
