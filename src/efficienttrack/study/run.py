@@ -127,7 +127,8 @@ def run_jobs(
     (out / JOBS).mkdir(exist_ok=True)
     todo = [job for job in jobs if read_result(job_folder(out, job.name) / RESULT) is None]
     skipped = tuple(job.name for job in jobs if job not in todo)
-    log(f"{what} {out}: {len(jobs)} jobs, {len(skipped)} finished earlier (skipped), {len(todo)} to run ({executor})")
+    count = f"{len(jobs)} job" + ("" if len(jobs) == 1 else "s")
+    log(f"{what} {out}: {count}, {len(skipped)} finished earlier (skipped), {len(todo)} to run ({executor})")
     ended: list[Outcome] = []
 
     def on_done(outcome: Outcome) -> None:
