@@ -29,7 +29,8 @@ import pytest
 import torch
 import typer
 
-from efficienttrack import cli, training
+from efficienttrack import checkpoints, cli
+from efficienttrack.checkpoints import load_tensors
 from efficienttrack.collect import CollectConfig, collect
 from efficienttrack.dynamics import MODEL_PRESETS, save_model, train_model
 from efficienttrack.errors import EfficientTrackError
@@ -41,7 +42,6 @@ from efficienttrack.systems.hydraulic import preset_path
 from efficienttrack.systems.limits import GuardLimits
 from efficienttrack.systems.pd import PD_PRESETS
 from efficienttrack.systems.protocol import BatchedSystem
-from efficienttrack.training import load_tensors
 from test_records import make_record
 from test_rosbag import references, states, write_bag
 from toy_system import LagSystem, sine_refs
@@ -591,7 +591,7 @@ def test_a_compressed_checkpoint_may_not_expand_beyond_the_limit(tmp_path, monke
         for member in archive.infolist():
             small.writestr(member.filename, archive.read(member), zipfile.ZIP_DEFLATED)
     assert (tmp_path / "small.pt").stat().st_size < 2**14  # the same checkpoint, a few KB
-    monkeypatch.setattr(training, "MAX_EXPANDED_BYTES", 2**19)
+    monkeypatch.setattr(checkpoints, "MAX_EXPANDED_BYTES", 2**19)
     assert load_tensors(tmp_path / "plain.pt")["w"].shape == (2**18,)  # a file may always be as large as it is
     with pytest.raises(EfficientTrackError, match=r"small.pt: refused to load: its \d+-byte archive expands to 1.0 MiB"):
         load_tensors(tmp_path / "small.pt")

@@ -8,7 +8,7 @@ import pytest
 import torch
 from rich.console import Console
 
-from efficienttrack import pipeline, training
+from efficienttrack import checkpoints, pipeline, training
 from efficienttrack.dynamics import MODEL_PRESETS, ClosedLoopModel, load_model, save_model, train_model
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import finite_json, write_json
@@ -57,7 +57,7 @@ def test_a_nan_loss_keeps_the_last_good_training_state(tmp_path):
             if step == 6:
                 net.w.data.fill_(float("nan"))
             loop.record(step, loss)
-    state = training.load_tensors(checkpoint)
+    state = checkpoints.load_tensors(checkpoint)
     assert state["step"] == 5 and torch.equal(state["module"]["w"], torch.ones(3))
 
 

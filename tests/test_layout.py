@@ -14,7 +14,7 @@ LAYERS = (
     ("episode loop", {"episodes"}),
     ("collection", {"collect"}),
     ("environments", {"envs"}),
-    ("learning", {"dataset", "nets", "training", "dynamics", "policy"}),
+    ("learning", {"dataset", "nets", "checkpoints", "training", "dynamics", "policy"}),
     ("deployment", {"guard", "runtime", "onnx_runtime", "export", "learned_system", "next_round", "loop", "deploy"}),
     ("baselines", {"baselines"}),
     ("reports", {"plots"}),

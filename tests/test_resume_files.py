@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from efficienttrack import training
+from efficienttrack import checkpoints, training
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.provenance import claim_folder
 from efficienttrack.stages import Stages
@@ -71,7 +71,7 @@ def state_file(tmp_path):
         first.record(step, 1.0 / (step + 1))
         if step == 5:
             break
-    assert training.load_tensors(path)["step"] == 5
+    assert checkpoints.load_tensors(path)["step"] == 5
     return path
 
 
@@ -94,7 +94,7 @@ def test_a_good_state_resumes(state_file):
     ],
 )
 def test_a_damaged_training_state_is_refused_naming_the_file_and_the_fix(state_file, change, problem):
-    state = training.load_tensors(state_file)
+    state = checkpoints.load_tensors(state_file)
     change(state)
     torch.save(state, state_file)
     with pytest.raises(EfficientTrackError, match=rf"m.state.pt: .*{problem}") as caught:

@@ -36,6 +36,7 @@ import torch
 from torch import nn
 
 from efficienttrack.angles import wrap
+from efficienttrack.checkpoints import load_checkpoint, save_checkpoint, warm_start
 from efficienttrack.dataset import Sequences
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.metrics import position_error
@@ -52,15 +53,7 @@ from efficienttrack.nets import (
     resolve_device,
 )
 from efficienttrack.records import EpisodeRecord
-from efficienttrack.training import (
-    TrainingSchedule,
-    TrainLoop,
-    fingerprint,
-    held_out_subset,
-    load_checkpoint,
-    save_checkpoint,
-    warm_start,
-)
+from efficienttrack.training import TrainingSchedule, TrainLoop, fingerprint, held_out_subset
 from efficienttrack.windows import push
 
 NORM_SAMPLES = 65536

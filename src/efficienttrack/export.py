@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 import efficienttrack
+from efficienttrack.checkpoints import config_path
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import atomic_write, write_json
 from efficienttrack.joints import DT, JOINT_NAMES
@@ -40,7 +41,6 @@ from efficienttrack.onnx_runtime import (
     load_onnx_policy,
 )
 from efficienttrack.policy import AdjustmentPolicy, seen_lengths
-from efficienttrack.training import config_path
 
 OPSET = 17
 """ONNX opset of the graph (17: the first with LayerNormalization as one operator)."""

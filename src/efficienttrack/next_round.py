@@ -145,7 +145,7 @@ def next_round(
 ) -> RoundResult:
     """Round k: train g_θk from ``model`` and then π_φk from ``policy`` through g_θk, on the new (and old) records.
 
-    Both trainings start from the given networks (weights and feature scaling, :func:`~efficienttrack.training.warm_start`)
+    Both trainings start from the given networks (weights and feature scaling, :func:`~efficienttrack.checkpoints.warm_start`)
     and see the same episodes: ``new_records`` followed by ``old_records``. The policy's windows start the model
     rollouts it is trained through.
 

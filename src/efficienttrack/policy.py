@@ -33,6 +33,7 @@ import torch
 from torch import nn
 
 from efficienttrack.angles import wrap
+from efficienttrack.checkpoints import load_checkpoint, save_checkpoint, warm_start
 from efficienttrack.dataset import Sequences
 from efficienttrack.dynamics import NORM_SAMPLES, ClosedLoopModel
 from efficienttrack.errors import EfficientTrackError
@@ -50,15 +51,7 @@ from efficienttrack.nets import (
 )
 from efficienttrack.records import EpisodeRecord
 from efficienttrack.systems.limits import XE75_MAX_ADJUST
-from efficienttrack.training import (
-    TrainingSchedule,
-    TrainLoop,
-    fingerprint,
-    held_out_subset,
-    load_checkpoint,
-    save_checkpoint,
-    warm_start,
-)
+from efficienttrack.training import TrainingSchedule, TrainLoop, fingerprint, held_out_subset
 from efficienttrack.windows import push
 
 EVAL_CHUNK = 8192

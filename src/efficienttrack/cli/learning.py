@@ -52,7 +52,7 @@ InitPolicyOpt = Annotated[
 
 def _check_checkpoint(out: Path) -> None:
     """Check that checkpoint ``out`` (a ``.pt``) and its log folder (``OUT`` with ``.logs``) can be written."""
-    from efficienttrack.training import check_checkpoint_path
+    from efficienttrack.checkpoints import check_checkpoint_path
 
     check_output_file(out)
     check_checkpoint_path(out)
