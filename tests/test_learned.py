@@ -57,6 +57,38 @@ def test_learned_system_takes_single_machines_and_wraps_the_swing():
     check_system(LearnedSystem(random_model(), device="cpu"))
 
 
+def test_learned_system_restarts_some_machines_while_the_others_run_on():
+    model = random_model()
+    rng = np.random.default_rng(1)
+    q0, q_new, q_ref = rng.uniform(-0.5, 0.5, (3, 4)), rng.uniform(-0.5, 0.5, (1, 4)), rng.uniform(-0.5, 0.5, (7, 3, 4))
+    restarted, uninterrupted, fresh = (LearnedSystem(model, device="cpu") for _ in range(3))
+    restarted.reset(q0)
+    uninterrupted.reset(q0)
+    for r in q_ref[:4]:
+        restarted.step(r)
+        uninterrupted.step(r)
+    np.testing.assert_array_equal(restarted.reset_machines(np.array([1]), q_new), fresh.reset(q_new))
+    after = np.stack([restarted.step(r) for r in q_ref[4:]])
+    np.testing.assert_allclose(after[:, [0, 2]], np.stack([uninterrupted.step(r) for r in q_ref[4:]])[:, [0, 2]], atol=1e-6)
+    np.testing.assert_allclose(after[:, 1], np.stack([fresh.step(r[1:2]) for r in q_ref[4:]])[:, 0], atol=1e-6)
+
+
+def test_the_vector_env_runs_episodes_side_by_side_on_a_learned_system(tmp_path):
+    from efficienttrack.envs import TrackingVectorEnv
+    from efficienttrack.references import Reference
+
+    save_model(random_model(), tmp_path / "model.pt")
+    refs = [Reference(f"r{k}", np.linspace(0, 0.1 * (k + 1), 6 + 3 * k)[:, None].repeat(4, 1)) for k in range(2)]
+    vec = TrackingVectorEnv(2, system="learned", system_opts={"model": str(tmp_path / "model.pt")}, refs=refs)
+    vec.reset(seed=0, options={"reference": [0, 1]})
+    ends = []
+    for t in range(1, 10):  # the short episode ends and restarts alone while the long one runs on to its own end
+        _, reward, terminated, truncated, _ = vec.step(np.zeros((2, 4)))
+        assert np.isfinite(reward).all()
+        ends += [(t, k) for k in np.flatnonzero(terminated | truncated)]
+    assert ends[:2] == [(len(refs[0]) - 1, 0), (len(refs[1]) - 1, 1)]
+
+
 def test_learned_system_reports_misuse():
     system = LearnedSystem(random_model(), device="cpu")
     with pytest.raises(EfficientTrackError, match="before reset"):
@@ -66,6 +98,11 @@ def test_learned_system_reports_misuse():
     system.reset(np.zeros((2, 4)))
     with pytest.raises(EfficientTrackError, match=r"q_ref of shape \(2, 4\)"):
         system.step(np.zeros((3, 4)))
+    with pytest.raises(EfficientTrackError, match=r"indices below N = 2 and q0 of shape \(K, 4\)"):
+        system.reset_machines(np.array([2]), np.zeros((1, 4)))
+    system.reset(np.zeros(4))
+    with pytest.raises(EfficientTrackError, match="needs a batched reset"):
+        system.reset_machines(np.array([0]), np.zeros((1, 4)))
     with pytest.raises(EfficientTrackError, match="dt"):
         LearnedSystem(random_model(), dt=0.0)
 

@@ -5,7 +5,8 @@ the model g_θ of :mod:`efficienttrack.dynamics` on its own predictions, one ref
 stand wherever a :class:`~efficienttrack.systems.protocol.ClosedLoopSystem` can: ``sim fidelity`` compares it
 with real logs exactly as it does the physical simulator, and ``evaluate`` runs a policy against it. A reset puts
 every machine at rest with a history of that one observation and the reference at its position, as the training
-windows begin an episode.
+windows begin an episode; ``reset_machines`` does the same for some machines while the others run on, so the
+environments can run N episodes side by side on it (:class:`~efficienttrack.envs.TrackingVectorEnv`).
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ class LearnedSystem:
     name   shape        unit                       meaning
     ====== ============ ========================== ==========================================
     q0     (4,)/(N, 4)  rad                        ``reset``: positions, at rest
+    index  (K,)         –                          ``reset_machines``: which machines restart
     q_ref  (4,)/(N, 4)  rad                        ``step``: the reference for the next step
     obs    (8,)/(N, 8)  [q rad, q̇ rad/s]           the model's prediction (swing wrapped to (−π, π])
     ====== ============ ========================== ==========================================
@@ -61,11 +63,36 @@ class LearnedSystem:
         if q0.shape[-1:] != (N_JOINTS,) or q0.ndim not in (1, 2):
             raise EfficientTrackError(f"learned system: reset expects q0 of shape (4,) or (N, 4), got {q0.shape}")
         self._single = q0.ndim == 1
-        obs = np.hstack([q0.reshape(-1, N_JOINTS), np.zeros((q0.size // N_JOINTS, N_JOINTS))])
-        h = self.model.cfg.history_length
-        history = torch.as_tensor(obs, dtype=torch.float32, device=self.device)[:, None].repeat(1, h, 1)
+        obs, history = self._at_rest(q0.reshape(-1, N_JOINTS))
         self._obs_hist, self._qref_hist = history, history[..., :N_JOINTS].clone()
         return obs[0] if self._single else obs
+
+    @torch.inference_mode()
+    def reset_machines(self, index: np.ndarray, q0: np.ndarray) -> np.ndarray:
+        """Put machines ``index`` (K,) at rest at ``q0`` (K, 4) rad, as :meth:`reset` does; the others run on.
+
+        Returns:
+            (K, 8) [rad, rad/s], their observations.
+        """
+        if self._obs_hist is None or self._qref_hist is None or self._single:
+            raise EfficientTrackError("learned system: reset_machines needs a batched reset (N, 4) first")
+        index, q0 = np.asarray(index, dtype=np.int64), np.asarray(q0, dtype=np.float64)
+        n = len(self._obs_hist)
+        if index.ndim != 1 or q0.shape != (len(index), N_JOINTS) or not np.all((index >= 0) & (index < n)):
+            raise EfficientTrackError(
+                f"learned system: reset_machines expects indices below N = {n} and q0 of shape (K, 4), got "
+                f"{index.shape} indices and q0 of shape {q0.shape}"
+            )
+        obs, history = self._at_rest(q0)
+        rows = torch.as_tensor(index, device=self.device)
+        self._obs_hist[rows], self._qref_hist[rows] = history, history[..., :N_JOINTS]
+        return obs
+
+    def _at_rest(self, q0: np.ndarray) -> tuple[np.ndarray, torch.Tensor]:
+        """Observations (K, 8) of machines at rest at ``q0`` (K, 4), and their history (K, h, 8): that one repeated."""
+        obs = np.hstack([q0, np.zeros_like(q0)])
+        h = self.model.cfg.history_length
+        return obs, torch.as_tensor(obs, dtype=torch.float32, device=self.device)[:, None].repeat(1, h, 1)
 
     @torch.inference_mode()
     def step(self, q_ref: np.ndarray) -> np.ndarray:
