@@ -6,10 +6,14 @@ import math
 
 import numpy as np
 import pytest
+import torch
 from gymnasium.vector import SyncVectorEnv
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from efficienttrack.baselines import PPOSettings, SACSettings, SB3VecEnv, default_eval_points, method_settings, train_baseline
+from efficienttrack.baselines.curve import CurveRecorder
+from efficienttrack.baselines.sb3_state import STATE_FILE, restore_state, save_state
+from efficienttrack.checkpoints import load_tensors
 from efficienttrack.cycles import generate_references
 from efficienttrack.envs import TrackingEnv, TrackingVectorEnv
 from efficienttrack.errors import EfficientTrackError
@@ -119,6 +123,73 @@ def test_same_seed_same_curve(refs, tmp_path, method):
     first = metrics(3, "a")
     assert metrics(3, "b") == first
     assert metrics(4, "c") != first
+
+
+class Interrupted(Exception):
+    """Stands for a run killed mid-way."""
+
+
+RESUMED_RUNS = [("ppo", TINY_PPO, [16, 48, 96], 64), ("sac", TINY_SAC, [10, 30, 60], 59)]
+"""Method, settings, points, and the count of the last state saved before the last point (a rollout's start)."""
+
+
+@pytest.mark.parametrize(("method", "settings", "points", "saved_at"), RESUMED_RUNS, ids=["ppo", "sac"])
+def test_an_interrupted_run_resumes_from_its_training_state(refs, tmp_path, monkeypatch, method, settings, points, saved_at):
+    train, test = refs
+    measure = CurveRecorder.measure
+
+    def killed_at_the_last_point(recorder, act, count, *args):
+        if count >= points[-1]:
+            raise Interrupted
+        measure(recorder, act, count, *args)
+
+    def run(seed=0):
+        return train_baseline(method, "closed", SystemSpec(), train, test, points[-1], seed, tmp_path, settings, points,
+                              save_every_seconds=0)  # fmt: skip
+
+    monkeypatch.setattr(CurveRecorder, "measure", killed_at_the_last_point)
+    with pytest.raises(Interrupted):
+        run()
+    monkeypatch.undo()
+    assert load_tensors(tmp_path / STATE_FILE)["num_timesteps"] == saved_at
+    before = json.loads((tmp_path / "curve.json").read_text())["curve"]
+    assert [p["interaction_steps"] for p in before] == points[:-1]
+    with pytest.raises(EfficientTrackError, match="training_state.pt: the training state of another run"):
+        run(seed=1)
+    curve = run()
+    assert [p["interaction_steps"] for p in curve] == points
+    assert curve[:-1] == before  # kept as measured (wall times too), not measured again
+    assert curve[-1]["wall_seconds"] >= before[-1]["wall_seconds"] and finite(curve[-1]["metrics"])
+    assert not (tmp_path / STATE_FILE).exists() and (tmp_path / "model.zip").exists()
+
+
+@pytest.mark.parametrize("settings", [TINY_PPO, TINY_SAC], ids=["ppo", "sac"])
+def test_a_restored_state_is_the_saved_one(refs, tmp_path, settings):
+    env = SB3VecEnv(TrackingVectorEnv(settings.n_envs, refs=refs[0]))
+    model = settings.build(env, seed=0)
+    model.learn(total_timesteps=40)
+    save_state(model, tmp_path / STATE_FILE, "run", [{"interaction_steps": 1}], 2.5)
+    torch_draws, numpy_draws = torch.rand(3), np.random.rand(3)  # what the saved random states give next
+    fresh = settings.build(env, seed=5)
+    assert restore_state(fresh, tmp_path / STATE_FILE, "run") == ([{"interaction_steps": 1}], 2.5)
+    assert torch.equal(torch.rand(3), torch_draws) and np.array_equal(np.random.rand(3), numpy_draws)
+    for name, tensor in model.policy.state_dict().items():
+        assert torch.equal(fresh.policy.state_dict()[name], tensor), name
+    assert (fresh.num_timesteps, fresh._n_updates) == (model.num_timesteps, model._n_updates) and model._n_updates > 0
+    if settings is TINY_SAC:
+        filled = model.replay_buffer.pos
+        assert filled == 40 and fresh.replay_buffer.pos == filled
+        np.testing.assert_array_equal(fresh.replay_buffer.observations[:filled], model.replay_buffer.observations[:filled])
+        assert torch.equal(fresh.log_ent_coef, model.log_ent_coef)
+    with pytest.raises(EfficientTrackError, match="another run"):
+        restore_state(fresh, tmp_path / STATE_FILE, "another")
+    (tmp_path / "junk.pt").write_bytes(b"not a state")
+    with pytest.raises(EfficientTrackError, match="junk.pt: refused to load"):
+        restore_state(fresh, tmp_path / "junk.pt", "run")
+    torch.save({"run": "run", "modules": {}}, tmp_path / "partial.pt")
+    with pytest.raises(EfficientTrackError, match=r"partial.pt: a damaged training state \(KeyError"):
+        restore_state(fresh, tmp_path / "partial.pt", "run")
+    env.close()
 
 
 @pytest.mark.parametrize(

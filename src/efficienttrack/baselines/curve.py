@@ -8,6 +8,7 @@ deterministic policy on the held-out references (:func:`efficienttrack.envs.eval
 
 from __future__ import annotations
 
+import hashlib
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -98,6 +99,24 @@ class CurveRecorder:
         self.task = None if progress is None else progress.add_task(label, total=budget)
         write_json(path, {**header, "curve": self.curve})
 
+    @property
+    def wall_seconds(self) -> float:
+        """The training wall time so far, evaluations excluded."""
+        return time.perf_counter() - self.start - self.evaluating
+
+    def resume(self, curve: list[dict[str, Any]], wall_seconds: float) -> None:
+        """Continue a run from its saved state: the points it measured, and its wall time up to the state.
+
+        Args:
+            curve: the points measured before the state was saved (later ones are measured again).
+            wall_seconds: the training wall time at the state; the wall times of new points continue from it.
+        """
+        self.curve = list(curve)
+        self.start, self.evaluating = time.perf_counter() - wall_seconds, 0.0
+        write_json(self.path, {**self.header, "curve": self.curve})
+        if self.curve and self.progress is not None and self.task is not None:
+            self.progress.update(self.task, completed=self.curve[-1]["interaction_steps"])
+
     def measure(
         self,
         act: Callable[[np.ndarray], np.ndarray],
@@ -114,9 +133,9 @@ class CurveRecorder:
                 EfficientTrack: one run per pass count); None: the recorder's time so far, evaluations excluded.
             extra: further facts of the point (e.g. ``{"passes": 2}``), added to it.
         """
+        wall = self.wall_seconds if wall_seconds is None else wall_seconds
         began = time.perf_counter()
         records = evaluate(act, self.test_refs, loop=self.header["loop"], system=self.system)
-        wall = began - self.start - self.evaluating if wall_seconds is None else wall_seconds
         self.add(count, wall, compute_metrics(records), extra)
         self.evaluating += time.perf_counter() - began
 
@@ -171,6 +190,24 @@ def check_refs(refs: Sequence[Reference], name: str, min_steps: int = 2) -> list
         if len(ref) < min_steps:
             raise EfficientTrackError(f"{name}: reference '{ref.name}' has {len(ref)} steps, needs at least {min_steps}")
     return refs
+
+
+def references_digest(*sets: Sequence[Reference]) -> str:
+    """SHA-256 of reference sets (names and positions, in order): a saved training state is resumed only with them.
+
+    Args:
+        *sets: lists of references, e.g. the training and the test references.
+
+    Returns:
+        The hex digest.
+    """
+    digest = hashlib.sha256()
+    for refs in sets:
+        digest.update(b"set")
+        for ref in refs:
+            digest.update(ref.name.encode() + b"\0")
+            digest.update(np.ascontiguousarray(ref.q, dtype=np.float64).tobytes())
+    return digest.hexdigest()
 
 
 class Run(NamedTuple):

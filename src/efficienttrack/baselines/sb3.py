@@ -12,14 +12,18 @@ interaction steps, which is how the paper counts I.S. and what SB3's ``num_times
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import json
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
-from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_run
+from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_run, references_digest
+from efficienttrack.baselines.sb3_state import STATE_FILE, restore_state, save_state
 from efficienttrack.baselines.settings import PPOSettings, SACSettings, method_settings
 from efficienttrack.baselines.vec_env import SB3VecEnv
 from efficienttrack.envs.core import open_system
@@ -36,20 +40,31 @@ LOOPS = ("closed", "open")
 MAX_SB3_SEED = 2**32 - 1025
 """Largest seed: SB3 seeds numpy's legacy generator (< 2^32) and gives environment i the seed + i."""
 
+SAVE_EVERY_SECONDS = 300.0
+"""Default wall seconds between saves of the training state: an interruption loses at most about this much."""
 MODEL_FILE = "model.zip"
 """The final model, saved with SB3's ``save`` for the user's own use; efficienttrack never loads it."""
 
 
 class _Curve(BaseCallback):
-    """SB3 callback: evaluate at the requested interaction counts, stop at the budget.
+    """SB3 callback: evaluate at the requested interaction counts, stop at the budget, save the state between rollouts.
 
     A point is measured at the first step whose count ``num_timesteps`` reaches it; with N environments the count
-    moves in steps of N, so points reached in the same step are measured once, at that step's count.
+    moves in steps of N, so points reached in the same step are measured once, at that step's count. At the start of
+    a rollout (the previous update done) the training state is saved when ``every`` seconds have passed since the last.
     """
 
-    def __init__(self, points: list[int], budget: int, recorder: CurveRecorder) -> None:
+    def __init__(
+        self, points: list[int], budget: int, recorder: CurveRecorder, save: Callable[[], None], every: float
+    ) -> None:
         super().__init__()
         self.points, self.budget, self.recorder = list(points), budget, recorder
+        self.save, self.every, self.saved = save, every, time.perf_counter()
+
+    def _on_rollout_start(self) -> None:
+        if time.perf_counter() - self.saved >= self.every:
+            self.save()
+            self.saved = time.perf_counter()
 
     def _on_step(self) -> bool:
         count = self.num_timesteps
@@ -72,6 +87,7 @@ def train_baseline(
     preset: str | PPOSettings | SACSettings = "full",
     eval_at: Sequence[int] | None = None,
     progress: ProgressDisplay | None = None,
+    save_every_seconds: float = SAVE_EVERY_SECONDS,
 ) -> list[dict[str, Any]]:
     """Train PPO or SAC with Stable-Baselines3 for ``budget`` interaction steps; evaluate it along the way.
 
@@ -80,9 +96,12 @@ def train_baseline(
     reaches a point of ``eval_at``, the deterministic policy (the mean action, clipped to [−1, 1]) runs every test
     reference once (:func:`efficienttrack.envs.evaluate`) and :func:`efficienttrack.metrics.compute_metrics` scores it.
     ``folder/curve.json`` (``{"method", "loop", "seed", "budget", "system", "settings", "curve": [point, ...]}``) is
-    rewritten atomically after each point, so an interrupted run keeps every point it measured; a new run in the
-    folder starts over (same seed, same points). The final model goes to ``folder/model.zip`` (SB3's format, for the
-    user; nothing here loads it). The same seed and settings give the same curve (wall times aside) on one machine.
+    rewritten atomically after each point. Between rollouts, every ``save_every_seconds``, the training state goes to
+    ``folder/training_state.pt`` (:mod:`.sb3_state`: no pickle); the same run started again in the folder resumes
+    from it, keeping the points measured up to it, with fresh episodes (so not bit-identical to an uninterrupted
+    run). The state is removed once the run has finished; the final model goes to ``folder/model.zip`` (SB3's
+    format, for the user; nothing here loads it). The same seed and settings give the same curve (wall times aside)
+    on one machine when the run is not interrupted.
 
     Args:
         method: ``"ppo"`` or ``"sac"``.
@@ -98,6 +117,7 @@ def train_baseline(
         preset: ``"full"``, ``"quick"`` (:data:`~efficienttrack.baselines.settings.PRESETS`) or the method's settings.
         eval_at: interaction counts to evaluate at, each in ``[1, budget]``; None for :func:`default_eval_points`.
         progress: a display to show the training steps and the last MAE on, or None for no progress.
+        save_every_seconds: wall seconds between saves of the training state (0: at every rollout's start).
 
     Returns:
         One point per measurement, in order: ``{"interaction_steps": int (the count when measured: the first
@@ -108,7 +128,8 @@ def train_baseline(
         EfficientTrackError: an unknown method, loop or preset, a budget < 1, an evaluation point outside
             ``[1, budget]``, a bad seed, a system that is no SystemSpec, no references or a test reference shorter
             than 4 steps, an output folder that cannot be written or is being written by
-            another process, or a problem the environments report (a system spec, a reference outside the limits).
+            another process, a training state in the folder from another run, or a problem the environments report
+            (a system spec, a reference outside the limits).
     """
     settings = method_settings(method, preset)
     if isinstance(seed, int) and seed > MAX_SB3_SEED:  # before check_run, which creates the folder
@@ -123,13 +144,26 @@ def train_baseline(
         "system": system.to_dict(),
         "settings": asdict(settings),
     }
+    run_id = json.dumps({**header, "references": references_digest(train_refs, test_refs)}, sort_keys=True)
+    state_file = folder / STATE_FILE
     with output_lock(folder / CURVE_FILE, "folder", folder=False):
         recorder = CurveRecorder(header, folder / CURVE_FILE, open_system(loop, system), test_refs, progress, budget)
         env = SB3VecEnv(TrackingVectorEnv(settings.n_envs, loop=loop, system=system, refs=train_refs))
         try:
             model = settings.build(env, seed)
-            model.learn(total_timesteps=budget, callback=_Curve(points, budget, recorder))
+            if state_file.exists():
+                recorder.resume(*restore_state(model, state_file, run_id))
+                env.seed(int(np.random.SeedSequence([seed, model.num_timesteps]).generate_state(1)[0]) % MAX_SB3_SEED)
+            done = model.num_timesteps
+            todo = [p for p in points if p > done]
+
+            def save() -> None:
+                save_state(model, state_file, run_id, recorder.curve, recorder.wall_seconds)
+
+            callback = _Curve(todo, budget, recorder, save, save_every_seconds)
+            model.learn(total_timesteps=budget - done, callback=callback, reset_num_timesteps=done == 0)
             atomic_write(folder / MODEL_FILE, model.save)
+            state_file.unlink(missing_ok=True)
         finally:
             env.close()
             recorder.close()
