@@ -12,7 +12,8 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 
 from efficienttrack.baselines import PPOSettings, SACSettings, SB3VecEnv, default_eval_points, method_settings, train_baseline
 from efficienttrack.baselines.curve import CurveRecorder
-from efficienttrack.baselines.sb3_state import STATE_FILE, restore_state, save_state
+from efficienttrack.baselines.resume import STATE_FILE
+from efficienttrack.baselines.sb3_state import restore_state, save_state
 from efficienttrack.checkpoints import load_tensors
 from efficienttrack.cycles import generate_references
 from efficienttrack.envs import TrackingEnv, TrackingVectorEnv

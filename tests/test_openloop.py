@@ -8,9 +8,11 @@ import pytest
 import torch
 
 from efficienttrack.baselines.agent import policy_act
-from efficienttrack.baselines.curve import CURVE_FILE
+from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder
 from efficienttrack.baselines.openloop import OPEN_PRESETS, imitate, pass_counts, train_efficienttrack_open
+from efficienttrack.baselines.resume import STATE_FILE
 from efficienttrack.baselines.supertrack import SUPERTRACK_PRESETS, train_supertrack
+from efficienttrack.checkpoints import load_tensors
 from efficienttrack.collect import CollectConfig, run_pass
 from efficienttrack.cycles import generate_references
 from efficienttrack.dataset import Sequences
@@ -128,6 +130,39 @@ def test_supertrack_quick_curve_and_determinism(tmp_path, loop):
     assert saved["method"] == "supertrack" and saved["loop"] == loop and len(saved["curve"]) == 2
     again = train_supertrack(loop, SystemSpec(), TRAIN, TEST, 300, 3, tmp_path / "b", preset=settings)
     assert again[0]["metrics"] == curve[0]["metrics"]
+
+
+def test_an_interrupted_supertrack_run_resumes_as_if_uninterrupted(tmp_path, monkeypatch):
+    settings = dataclasses.replace(SUPERTRACK_PRESETS["quick"], steps_per_iteration=300)
+
+    def run(folder, seed=3):
+        return train_supertrack("closed", SystemSpec(), TRAIN, TEST, 700, seed, folder, settings, [300, 700],
+                                save_every_seconds=0)  # fmt: skip
+
+    uninterrupted = run(tmp_path / "a")
+    measure = CurveRecorder.measure
+
+    def killed_at_the_last_point(recorder, act, count, *args, **kwargs):
+        if count >= 700:
+            raise KeyboardInterrupt
+        measure(recorder, act, count, *args, **kwargs)
+
+    monkeypatch.setattr(CurveRecorder, "measure", killed_at_the_last_point)
+    with pytest.raises(KeyboardInterrupt):
+        run(tmp_path / "b")
+    monkeypatch.undo()
+    assert load_tensors(tmp_path / "b" / STATE_FILE)["iteration"] == 2
+    before = json.loads((tmp_path / "b" / CURVE_FILE).read_text())["curve"]
+    with pytest.raises(EfficientTrackError, match="training_state.pt: the training state of another run"):
+        run(tmp_path / "b", seed=4)
+    resumed = run(tmp_path / "b")
+    assert resumed[0] == before[0]  # kept as measured (its wall time too), not measured again
+    assert [p["metrics"] for p in resumed] == [p["metrics"] for p in uninterrupted]
+    assert [p["iterations"] for p in resumed] == [1, 3] and not (tmp_path / "b" / STATE_FILE).exists()
+    (tmp_path / "c").mkdir()
+    (tmp_path / "c" / STATE_FILE).write_bytes(b"not a state")
+    with pytest.raises(EfficientTrackError, match="training_state.pt: refused to load"):
+        run(tmp_path / "c")
 
 
 def test_bad_input_is_refused(tmp_path):

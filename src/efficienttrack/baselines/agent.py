@@ -95,6 +95,15 @@ class Noise:
         self.sigma, self.rho, self.rng = sigma, rho, rng
         self._n: np.ndarray | None = None
 
+    @property
+    def last(self) -> np.ndarray | None:
+        """The last (n, 4) noise drawn (None before the first draw): what the next one is correlated with."""
+        return self._n
+
+    def resume(self, last: np.ndarray | None) -> None:
+        """Continue from a saved :attr:`last` (the generator's state is restored by its owner)."""
+        self._n = last
+
     def __call__(self, n: int) -> np.ndarray:
         """The next (n, 4) noise; a new batch size starts from the stationary distribution."""
         fresh = self.rng.normal(0.0, self.sigma, size=(n, N_JOINTS))

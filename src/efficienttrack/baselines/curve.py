@@ -8,7 +8,6 @@ deterministic policy on the held-out references (:func:`efficienttrack.envs.eval
 
 from __future__ import annotations
 
-import hashlib
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -190,24 +189,6 @@ def check_refs(refs: Sequence[Reference], name: str, min_steps: int = 2) -> list
         if len(ref) < min_steps:
             raise EfficientTrackError(f"{name}: reference '{ref.name}' has {len(ref)} steps, needs at least {min_steps}")
     return refs
-
-
-def references_digest(*sets: Sequence[Reference]) -> str:
-    """SHA-256 of reference sets (names and positions, in order): a saved training state is resumed only with them.
-
-    Args:
-        *sets: lists of references, e.g. the training and the test references.
-
-    Returns:
-        The hex digest.
-    """
-    digest = hashlib.sha256()
-    for refs in sets:
-        digest.update(b"set")
-        for ref in refs:
-            digest.update(ref.name.encode() + b"\0")
-            digest.update(np.ascontiguousarray(ref.q, dtype=np.float64).tobytes())
-    return digest.hexdigest()
 
 
 class Run(NamedTuple):

@@ -22,8 +22,9 @@ from typing import Any
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
-from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_run, references_digest
-from efficienttrack.baselines.sb3_state import STATE_FILE, restore_state, save_state
+from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_run
+from efficienttrack.baselines.resume import SAVE_EVERY_SECONDS, STATE_FILE, references_digest
+from efficienttrack.baselines.sb3_state import restore_state, save_state
 from efficienttrack.baselines.settings import PPOSettings, SACSettings, method_settings
 from efficienttrack.baselines.vec_env import SB3VecEnv
 from efficienttrack.envs.core import open_system
@@ -40,8 +41,6 @@ LOOPS = ("closed", "open")
 MAX_SB3_SEED = 2**32 - 1025
 """Largest seed: SB3 seeds numpy's legacy generator (< 2^32) and gives environment i the seed + i."""
 
-SAVE_EVERY_SECONDS = 300.0
-"""Default wall seconds between saves of the training state: an interruption loses at most about this much."""
 MODEL_FILE = "model.zip"
 """The final model, saved with SB3's ``save`` for the user's own use; efficienttrack never loads it."""
 

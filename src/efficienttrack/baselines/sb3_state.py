@@ -21,12 +21,10 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.save_util import recursive_getattr
 
-from efficienttrack.checkpoints import CHECKPOINT_READ_ERRORS, load_tensors
-from efficienttrack.errors import EfficientTrackError
+from efficienttrack.baselines.resume import damaged, read_state
+from efficienttrack.checkpoints import CHECKPOINT_READ_ERRORS
 from efficienttrack.fileio import atomic_write
 
-STATE_FILE = "training_state.pt"
-"""The run's training state in its folder while it trains; removed once the run has finished."""
 BUFFER_FIELDS = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
 """The arrays of SB3's ``ReplayBuffer`` (``(buffer_size, n_envs, ...)``) that are saved, up to the filled row."""
 
@@ -81,11 +79,7 @@ def restore_state(model: BaseAlgorithm, path: Path, run: str) -> tuple[list[dict
         EfficientTrackError: a file of another run (other method, loop, seed, budget, system, settings or references),
             or an unreadable or damaged one; the message names the file and what to do.
     """
-    state = load_tensors(path)
-    fix = f"delete {path} (or use another folder) to start this run afresh"
-    if state.get("run") != run:
-        raise EfficientTrackError(f"{path}: the training state of another run (method, loop, seed, budget, system, "
-                                  f"settings or references differ); {fix}")  # fmt: skip
+    state = read_state(path, run)
     try:
         for name, tensors in state["modules"].items():
             recursive_getattr(model, name).load_state_dict(tensors)
@@ -102,7 +96,7 @@ def restore_state(model: BaseAlgorithm, path: Path, run: str) -> tuple[list[dict
         np.random.set_state(_numpy_state(state["numpy_rng"]))
         curve, wall = json.loads(state["curve"]), float(state["wall_seconds"])
     except (*CHECKPOINT_READ_ERRORS, AttributeError) as exc:
-        raise EfficientTrackError(f"{path}: a damaged training state ({type(exc).__name__}: {exc}); {fix}") from exc
+        raise damaged(path, exc) from exc
     return curve, wall
 
 

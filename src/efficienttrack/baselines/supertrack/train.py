@@ -24,6 +24,8 @@ losses on rigid-body positions and rotations become the joint tracking error of 
 
 from __future__ import annotations
 
+import json
+import time
 from collections.abc import Sequence
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -33,7 +35,9 @@ import numpy as np
 
 from efficienttrack.baselines.agent import Noise, policy_act
 from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_run
+from efficienttrack.baselines.resume import SAVE_EVERY_SECONDS, STATE_FILE, references_digest
 from efficienttrack.baselines.supertrack.settings import SuperTrackSettings, supertrack_settings
+from efficienttrack.baselines.supertrack.state import Progress, restore_state, save_state
 from efficienttrack.dynamics import ClosedLoopModel, PlantModel, train_model
 from efficienttrack.envs.core import open_system
 from efficienttrack.envs.evaluation import evaluate
@@ -87,11 +91,14 @@ def train_supertrack(
     preset: str | SuperTrackSettings = "full",
     eval_at: Sequence[int] | None = None,
     progress: ProgressDisplay | None = None,
+    save_every_seconds: float = SAVE_EVERY_SECONDS,
 ) -> list[dict[str, Any]]:
     """Train SuperTrack for ``budget`` interaction steps (module docstring); the curve of its test metrics.
 
     The last iteration collects only what is left of the budget (whole episodes, so it may end up to one episode
-    past it). ``folder/curve.json`` is rewritten after each point; a new run in the folder starts over.
+    past it). ``folder/curve.json`` is rewritten after each point. After an iteration, every ``save_every_seconds``,
+    the state goes to ``folder/training_state.pt`` (:mod:`.state`: no pickle); the same run started again in the folder
+    resumes from it and continues as the uninterrupted run would. The state is removed once the run has finished.
 
     Args:
         loop: ``"closed"`` (the policy adjusts the PD reference) or ``"open"`` (the policy sends PWM / 1000 to the
@@ -106,6 +113,7 @@ def train_supertrack(
         eval_at: interaction counts to evaluate at, each in ``[1, budget]``; None: 1, 2, 5 × 10^k and the budget.
             A point is measured after the first iteration whose count reaches it (points reached together once).
         progress: a display for the interaction count and the last MAE, or None.
+        save_every_seconds: wall seconds between saves of the state (0: after every iteration).
 
     Returns:
         One point per measurement: ``{"interaction_steps", "wall_seconds" (training so far, evaluations excluded),
@@ -113,7 +121,7 @@ def train_supertrack(
 
     Raises:
         EfficientTrackError: an unknown loop or preset, the open loop without a plant, a bad budget, seed, evaluation
-            point, reference or folder.
+            point, reference or folder, or a training state in the folder from another run.
     """
     settings = supertrack_settings(preset)
     run = check_run(loop, system, train_refs, test_refs, budget, seed, folder, eval_at)
@@ -128,10 +136,17 @@ def train_supertrack(
     noise = Noise(settings.noise(loop), settings.noise_rho, rng)
     buffer: list[EpisodeRecord] = []
     model, policy = None, None
-    points, count, iteration = list(run.points), 0, 0
+    count, iteration = 0, 0
+    run_id = json.dumps({**header, "references": references_digest(run.train_refs, run.test_refs)}, sort_keys=True)
+    state_file, saved = run.folder / STATE_FILE, time.perf_counter()
     with output_lock(run.folder / CURVE_FILE, "folder", folder=False):
         recorder = CurveRecorder(header, run.folder / CURVE_FILE, stepped, run.test_refs, progress, run.budget)
         try:
+            if state_file.exists():
+                model, policy = world(settings.model), actor(policy_cfg)
+                count, iteration, buffer, curve, wall = restore_state(state_file, run_id, model, policy, rng, noise)
+                recorder.resume(curve, wall)
+            points = [p for p in run.points if p > count]
             while count < run.budget:
                 # collect: the policy plus noise on references drawn at random
                 drawn = draw_references(run.train_refs, min(settings.steps_per_iteration, run.budget - count), rng)
@@ -150,6 +165,11 @@ def train_supertrack(
                     points = [p for p in points if p > count]
                     recorder.measure(policy_act(policy, loop), count, extra={"iterations": iteration})
                 recorder.show(count)
+                if time.perf_counter() - saved >= save_every_seconds and count < run.budget:
+                    done = Progress(count, iteration, buffer, recorder.curve, recorder.wall_seconds)
+                    save_state(state_file, run_id, done, model, policy, rng, noise)
+                    saved = time.perf_counter()
+            state_file.unlink(missing_ok=True)
         finally:
             recorder.close()
     return recorder.curve
