@@ -9,3 +9,22 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+@pytest.fixture
+def interrupt_at(monkeypatch):
+    """``interrupt_at(count)``: the baseline runs that follow are killed (KeyboardInterrupt) when they would measure a
+    point at ``count`` interaction steps or beyond, as a user's Ctrl-C would; ``monkeypatch.undo()`` ends it."""
+    from efficienttrack.baselines.curve import CurveRecorder
+
+    measure = CurveRecorder.measure
+
+    def arm(count):
+        def killed(recorder, act, at, *args, **kwargs):
+            if at >= count:
+                raise KeyboardInterrupt
+            measure(recorder, act, at, *args, **kwargs)
+
+        monkeypatch.setattr(CurveRecorder, "measure", killed)
+
+    return arm

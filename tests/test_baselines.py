@@ -11,7 +11,6 @@ from gymnasium.vector import SyncVectorEnv
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from efficienttrack.baselines import PPOSettings, SACSettings, SB3VecEnv, default_eval_points, method_settings, train_baseline
-from efficienttrack.baselines.curve import CurveRecorder
 from efficienttrack.baselines.resume import STATE_FILE
 from efficienttrack.baselines.sb3_state import restore_state, save_state
 from efficienttrack.checkpoints import load_tensors
@@ -126,30 +125,22 @@ def test_same_seed_same_curve(refs, tmp_path, method):
     assert metrics(4, "c") != first
 
 
-class Interrupted(Exception):
-    """Stands for a run killed mid-way."""
-
-
 RESUMED_RUNS = [("ppo", TINY_PPO, [16, 48, 96], 64), ("sac", TINY_SAC, [10, 30, 60], 59)]
 """Method, settings, points, and the count of the last state saved before the last point (a rollout's start)."""
 
 
 @pytest.mark.parametrize(("method", "settings", "points", "saved_at"), RESUMED_RUNS, ids=["ppo", "sac"])
-def test_an_interrupted_run_resumes_from_its_training_state(refs, tmp_path, monkeypatch, method, settings, points, saved_at):
+def test_an_interrupted_run_resumes_from_its_training_state(
+    refs, tmp_path, monkeypatch, interrupt_at, method, settings, points, saved_at
+):
     train, test = refs
-    measure = CurveRecorder.measure
-
-    def killed_at_the_last_point(recorder, act, count, *args):
-        if count >= points[-1]:
-            raise Interrupted
-        measure(recorder, act, count, *args)
 
     def run(seed=0):
         return train_baseline(method, "closed", SystemSpec(), train, test, points[-1], seed, tmp_path, settings, points,
                               save_every_seconds=0)  # fmt: skip
 
-    monkeypatch.setattr(CurveRecorder, "measure", killed_at_the_last_point)
-    with pytest.raises(Interrupted):
+    interrupt_at(points[-1])
+    with pytest.raises(KeyboardInterrupt):
         run()
     monkeypatch.undo()
     assert load_tensors(tmp_path / STATE_FILE)["num_timesteps"] == saved_at

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from efficienttrack.baselines.agent import policy_act
-from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder
+from efficienttrack.baselines.curve import CURVE_FILE
 from efficienttrack.baselines.openloop import OPEN_PRESETS, imitate, pass_counts, train_efficienttrack_open
 from efficienttrack.baselines.resume import STATE_FILE
 from efficienttrack.baselines.supertrack import SUPERTRACK_PRESETS, train_supertrack
@@ -132,7 +132,7 @@ def test_supertrack_quick_curve_and_determinism(tmp_path, loop):
     assert again[0]["metrics"] == curve[0]["metrics"]
 
 
-def test_an_interrupted_supertrack_run_resumes_as_if_uninterrupted(tmp_path, monkeypatch):
+def test_an_interrupted_supertrack_run_resumes_as_if_uninterrupted(tmp_path, monkeypatch, interrupt_at):
     settings = dataclasses.replace(SUPERTRACK_PRESETS["quick"], steps_per_iteration=300)
 
     def run(folder, seed=3):
@@ -140,14 +140,7 @@ def test_an_interrupted_supertrack_run_resumes_as_if_uninterrupted(tmp_path, mon
                                 save_every_seconds=0)  # fmt: skip
 
     uninterrupted = run(tmp_path / "a")
-    measure = CurveRecorder.measure
-
-    def killed_at_the_last_point(recorder, act, count, *args, **kwargs):
-        if count >= 700:
-            raise KeyboardInterrupt
-        measure(recorder, act, count, *args, **kwargs)
-
-    monkeypatch.setattr(CurveRecorder, "measure", killed_at_the_last_point)
+    interrupt_at(700)
     with pytest.raises(KeyboardInterrupt):
         run(tmp_path / "b")
     monkeypatch.undo()

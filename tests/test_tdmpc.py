@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from efficienttrack.baselines.resume import STATE_FILE
 from efficienttrack.baselines.tdmpc import (
     PRESETS,
     TOLD,
@@ -20,6 +21,7 @@ from efficienttrack.baselines.tdmpc import (
     tdmpc_settings,
     train_tdmpc,
 )
+from efficienttrack.checkpoints import load_tensors
 from efficienttrack.cycles import generate_references
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.metrics import METRIC_KEYS
@@ -190,6 +192,28 @@ def test_same_seed_same_curve(refs, tmp_path, evaluate_with):
     assert metrics(3, "b") == first
     assert metrics(4, "c") != first
     assert torch.equal(torch.get_rng_state(), state)  # the global generator is left alone
+
+
+def test_an_interrupted_run_resumes_as_if_uninterrupted(refs, tmp_path, monkeypatch, interrupt_at):
+    train = [Reference(r.name, r.q[:11]) for r in generate_references(8, seed=2)]  # 10-step episodes, drawn at random
+    test = refs[1]
+
+    def run(folder, seed=3):
+        return train_tdmpc("closed", SystemSpec(), train, test, 120, seed, folder, TINY, [25, 50, 120], save_every_seconds=0)
+
+    uninterrupted = run(tmp_path / "a")
+    interrupt_at(50)
+    with pytest.raises(KeyboardInterrupt):
+        run(tmp_path / "b")
+    monkeypatch.undo()
+    assert load_tensors(tmp_path / "b" / STATE_FILE)["count"] == 40  # the end of the fourth episode
+    before = json.loads((tmp_path / "b" / "curve.json").read_text())["curve"]
+    with pytest.raises(EfficientTrackError, match="training_state.pt: the training state of another run"):
+        run(tmp_path / "b", seed=4)
+    resumed = run(tmp_path / "b")
+    assert resumed[0] == before[0]  # kept as measured (its wall time too), not measured again
+    assert [p["metrics"] for p in resumed] == [p["metrics"] for p in uninterrupted]  # 8 episodes drawn after the state
+    assert not (tmp_path / "b" / STATE_FILE).exists()
 
 
 @pytest.mark.parametrize(

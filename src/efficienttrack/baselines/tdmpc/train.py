@@ -9,20 +9,24 @@ An interaction step is one environment step of the machine (20 Hz), the paper's 
 
 from __future__ import annotations
 
+import json
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 
 from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_run
+from efficienttrack.baselines.resume import SAVE_EVERY_SECONDS, STATE_FILE, references_digest
 from efficienttrack.baselines.tdmpc.buffer import PrioritizedBuffer
 from efficienttrack.baselines.tdmpc.learner import Learner
 from efficienttrack.baselines.tdmpc.networks import TOLD
 from efficienttrack.baselines.tdmpc.planner import PlannerConfig, plan
 from efficienttrack.baselines.tdmpc.settings import TDMPCSettings, tdmpc_settings
+from efficienttrack.baselines.tdmpc.state import Generators, restore_state, save_state
 from efficienttrack.envs.core import open_system
 from efficienttrack.envs.single import TrackingEnv
 from efficienttrack.fileio import atomic_write, output_lock
@@ -111,6 +115,7 @@ def train_tdmpc(
     preset: str | TDMPCSettings = "full",
     eval_at: Sequence[int] | None = None,
     progress: ProgressDisplay | None = None,
+    save_every_seconds: float = SAVE_EVERY_SECONDS,
 ) -> list[dict[str, Any]]:
     """Train TD-MPC for ``budget`` interaction steps on one machine; evaluate it on the test references along the way.
 
@@ -118,9 +123,11 @@ def train_tdmpc(
     π's mean action by default, or the planner without noise) runs every test reference once
     (:func:`efficienttrack.envs.evaluate`) and :func:`efficienttrack.metrics.compute_metrics` scores it.
     ``folder/curve.json`` (``{"method": "tdmpc", "loop", "seed", "budget", "system", "settings", "curve"}``) is
-    rewritten atomically after each point; a new run in the folder starts over. The final model's ``state_dict`` goes
-    to ``folder/model.pt``. The same seed and settings give the same curve (wall times aside) on one machine and
-    device with the same number of torch threads; the global torch generator is left as it was.
+    rewritten atomically after each point. Between episodes, every ``save_every_seconds``, the state goes to
+    ``folder/training_state.pt`` (:mod:`.state`: no pickle); the same run started again in the folder resumes from it
+    and continues as the uninterrupted run would; the state is removed once the run has finished. The final model's
+    ``state_dict`` goes to ``folder/model.pt``. The same seed and settings give the same curve (wall times aside) on
+    one machine and device with the same number of torch threads; the global torch generator is left as it was.
 
     Args:
         loop: ``"closed"`` (the agent adjusts the PD reference) or ``"open"`` (the agent sends PWM / 1000; ``system``
@@ -137,6 +144,7 @@ def train_tdmpc(
         eval_at: interaction counts to evaluate at, each in ``[1, budget]``; None for
             :func:`~efficienttrack.baselines.curve.default_eval_points`.
         progress: a display to show the training steps and the last MAE on, or None.
+        save_every_seconds: wall seconds between saves of the state (0: at every episode's end).
 
     Returns:
         One point per evaluation, in order: ``{"interaction_steps": int, "wall_seconds": float (training wall time so
@@ -146,7 +154,8 @@ def train_tdmpc(
         EfficientTrackError: an unknown loop or preset, a budget < 1, an evaluation point outside ``[1, budget]``,
             a bad seed, a system that is no SystemSpec, no references or a test reference shorter than 4 steps, a
             device that is not available, an output folder that cannot be written or is being written by another
-            process, or a problem the environment reports (a system spec, a reference outside the limits).
+            process, a training state in the folder from another run, or a problem the environment reports (a system
+            spec, a reference outside the limits).
     """
     settings = tdmpc_settings(preset)
     run = check_run(loop, system, train_refs, test_refs, budget, seed, folder, eval_at)
@@ -154,16 +163,27 @@ def train_tdmpc(
     device = resolve_device(settings.device)
     header = {"method": METHOD, "loop": loop, "seed": seed, "budget": budget, "system": system.to_dict()}
     header["settings"] = asdict(settings)
+    run_id = json.dumps({**header, "references": references_digest(train_refs, test_refs)}, sort_keys=True)
     with output_lock(folder / CURVE_FILE, "folder", folder=False):
         recorder = CurveRecorder(header, folder / CURVE_FILE, open_system(loop, system), test_refs, progress, budget)
         env = TrackingEnv(loop, system, train_refs)
         try:
-            model = _run(env, settings, device, budget, seed, points, recorder)
+            resume = Resume(folder / STATE_FILE, run_id, save_every_seconds)
+            model = _run(env, settings, device, budget, seed, points, recorder, resume)
             atomic_write(folder / MODEL_FILE, lambda f: torch.save(model.state_dict(), f))
+            resume.state_file.unlink(missing_ok=True)
         finally:
             env.close()
             recorder.close()
     return recorder.curve
+
+
+class Resume(NamedTuple):
+    """Where and how often a run saves its state, and what the run is (:mod:`.state`)."""
+
+    state_file: Path
+    run: str
+    every: float
 
 
 def _run(
@@ -174,6 +194,7 @@ def _run(
     seed: int,
     points: list[int],
     recorder: CurveRecorder,
+    resume: Resume,
 ) -> TOLD:
     obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
     rng = np.random.default_rng(seed)
@@ -185,9 +206,19 @@ def _run(
     buffer = PrioritizedBuffer(
         settings.buffer_size, obs_dim, action_dim, settings.horizon, settings.per_alpha, settings.per_beta
     )
-    obs, _ = env.reset(seed=seed)
-    first, warm = True, None
-    for count in range(1, budget + 1):
+    start, obs = 0, None
+    if resume.state_file.exists():
+        generators = Generators(rng, generator, env.np_random)
+        start, curve, wall = restore_state(resume.state_file, resume.run, learner, buffer, generators)
+        recorder.resume(curve, wall)
+    else:
+        obs = env.reset(seed=seed)[0]
+    generators = Generators(rng, generator, env.np_random)  # a seeded reset gives the environment a new generator
+    points = [p for p in points if p > start]
+    first, warm, saved = True, None, time.perf_counter()
+    for count in range(start + 1, budget + 1):
+        if obs is None:  # the next episode (after a resumed state, or when the last one ended)
+            obs = env.reset()[0]
         # act: random while seeding, then planned with exploration noise
         if count <= settings.seed_steps:
             action = rng.uniform(-1.0, 1.0, action_dim).astype(np.float32)
@@ -200,7 +231,7 @@ def _run(
         next_obs, reward, terminated, truncated, _ = env.step(action)
         buffer.add(obs, action, reward, next_obs, first)
         first = terminated or truncated
-        obs = env.reset()[0] if first else next_obs
+        obs = None if first else next_obs
         # update: seed_steps updates when the seeding ends, then one per interaction step
         if count >= settings.seed_steps and buffer.starts > 0:
             for _ in range(settings.seed_steps if count == settings.seed_steps else 1):
@@ -212,4 +243,9 @@ def _run(
             points = [p for p in points if p > count]
             recorder.measure(evaluation_agent(model, settings, count, seed), count)
         recorder.show(count)
+        # save between episodes, when due
+        if first and count < budget and time.perf_counter() - saved >= resume.every:
+            save_state(resume.state_file, resume.run, count, learner, buffer, generators, recorder.curve,
+                       recorder.wall_seconds)  # fmt: skip
+            saved = time.perf_counter()
     return model
