@@ -120,6 +120,22 @@ def test_open_loop_efficienttrack_quick_curve_and_determinism(tmp_path):
     assert again[0]["metrics"] == curve[0]["metrics"]
 
 
+def test_an_interrupted_open_loop_efficienttrack_run_keeps_its_finished_pass_counts(tmp_path, monkeypatch, interrupt_at):
+    def run(folder, seed=0, budget=1000):
+        return train_efficienttrack_open("open", SystemSpec(), TRAIN, TEST, budget, seed, folder, preset="quick")
+
+    interrupt_at(632)  # killed when it would measure two passes
+    with pytest.raises(KeyboardInterrupt):
+        run(tmp_path)
+    monkeypatch.undo()
+    before = json.loads((tmp_path / CURVE_FILE).read_text())["curve"]
+    assert [p["passes"] for p in before] == [1]
+    resumed = run(tmp_path)
+    assert [p["passes"] for p in resumed] == [1, 2] and resumed[0] == before[0]  # one pass kept, not trained again
+    assert resumed[1]["metrics"] == run(tmp_path / "uninterrupted")[1]["metrics"]
+    assert run(tmp_path, seed=1, budget=400)[0]["metrics"] != resumed[0]["metrics"]  # another run starts over
+
+
 @pytest.mark.parametrize("loop", ["closed", "open"])
 def test_supertrack_quick_curve_and_determinism(tmp_path, loop):
     settings = dataclasses.replace(SUPERTRACK_PRESETS["quick"], steps_per_iteration=300)

@@ -8,6 +8,7 @@ deterministic policy on the held-out references (:func:`efficienttrack.envs.eval
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -164,6 +165,30 @@ class CurveRecorder:
         """Stop showing the task."""
         if self.progress is not None and self.task is not None:
             self.progress.remove_task(self.task)
+
+
+def earlier_points(path: Path, header: dict[str, Any]) -> list[dict[str, Any]]:
+    """The points an earlier run with the same ``header`` wrote to ``path``; none for another run or no readable file.
+
+    For a method whose points are separate trainings (open-loop EfficientTrack: one per pass count), which resumes by
+    keeping the points already measured.
+
+    Args:
+        path: the run's ``curve.json``.
+        header: this run's header (method, loop, seed, budget, system, settings, references).
+
+    Returns:
+        The earlier run's points, in order.
+    """
+    try:
+        earlier = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return []
+    same = isinstance(earlier, dict) and all(
+        earlier.get(key) == json.loads(json.dumps(value)) for key, value in header.items()
+    )
+    points = earlier.get("curve") if same else None
+    return points if isinstance(points, list) and all(isinstance(p, dict) for p in points) else []
 
 
 def check_refs(refs: Sequence[Reference], name: str, min_steps: int = 2) -> list[Reference]:

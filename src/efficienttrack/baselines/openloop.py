@@ -31,7 +31,8 @@ from typing import Any
 import torch
 
 from efficienttrack.baselines.agent import policy_act
-from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_run
+from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_run, earlier_points
+from efficienttrack.baselines.resume import references_digest
 from efficienttrack.collect import MAX_PASSES, CollectConfig, pass_counts, run_pass
 from efficienttrack.configfile import check_seed
 from efficienttrack.dataset import Sequences
@@ -156,7 +157,8 @@ def train_efficienttrack_open(
     The passes are collected once, in order, with the PD controller on ``system``'s closed loop (pass k's noise seeded
     by (seed, k), so p passes are the same whatever the budget); after p passes, a plant model and a PWM policy are
     trained from scratch on them (seeded by ``seed``) and the policy runs every test reference once on the plant.
-    ``folder/curve.json`` is rewritten after each point.
+    ``folder/curve.json`` is rewritten after each point; the same run started again in the folder keeps the points
+    it finds there and trains only the pass counts still missing (the passes are collected again: they are the same).
 
     Args:
         loop: must be ``"open"`` (the closed loop is :func:`efficienttrack.pipeline.run_pipeline`).
@@ -195,13 +197,16 @@ def train_efficienttrack_open(
     closed = system.open()
     collect_cfg = CollectConfig(sigma_max=settings.sigma_max, noise_ratio=settings.noise_ratio, passes=1, seed=seed)
     header = {"method": "efficienttrack", "loop": loop, "seed": seed, "budget": run.budget, "system": system.to_dict(),
-              "settings": asdict(settings)}  # fmt: skip
+              "settings": asdict(settings), "references": references_digest(run.train_refs, run.test_refs)}  # fmt: skip
     records: list[EpisodeRecord] = []
     collect_seconds: list[float] = []
     with output_lock(run.folder / CURVE_FILE, "folder", folder=False):
+        earlier = earlier_points(run.folder / CURVE_FILE, header)
         recorder = CurveRecorder(header, run.folder / CURVE_FILE, plant, run.test_refs, progress, run.budget)
         try:
-            for passes in counts:
+            recorder.resume(earlier, 0.0)
+            done = {point.get("passes") for point in earlier}
+            for passes in (p for p in counts if p not in done):
                 while len(collect_seconds) < passes:  # collect
                     began = time.perf_counter()
                     records += run_pass(closed, run.train_refs, collect_cfg, len(collect_seconds))
