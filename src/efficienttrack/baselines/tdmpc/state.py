@@ -71,7 +71,7 @@ def save_state(
         "optim": learner.optim.state_dict(),
         "pi_optim": learner.pi_optim.state_dict(),
         "updates": int(learner.updates),
-        "buffer": {name: torch.from_numpy(getattr(buffer, name)[:rows].copy()) for name in BUFFER_ARRAYS},
+        "buffer": {name: torch.from_numpy(getattr(buffer, name)[:rows]) for name in BUFFER_ARRAYS},
         "buffer_counters": [float(buffer.max_priority), int(buffer.position), int(buffer.run)],
         "rng": json.dumps(generators.rng.bit_generator.state),
         "env_rng": json.dumps(generators.env.bit_generator.state),
