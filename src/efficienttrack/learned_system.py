@@ -71,20 +71,16 @@ class LearnedSystem:
     def reset_machines(self, index: np.ndarray, q0: np.ndarray) -> np.ndarray:
         """Put machines ``index`` (K,) at rest at ``q0`` (K, 4) rad, as :meth:`reset` does; the others run on.
 
+        The indices and shapes are checked by the system protocol's wrapper
+        (:meth:`~efficienttrack.systems.protocol.BatchedSystem.reset_machines`), as for the other systems.
+
         Returns:
             (K, 8) [rad, rad/s], their observations.
         """
         if self._obs_hist is None or self._qref_hist is None or self._single:
             raise EfficientTrackError("learned system: reset_machines needs a batched reset (N, 4) first")
-        index, q0 = np.asarray(index, dtype=np.int64), np.asarray(q0, dtype=np.float64)
-        n = len(self._obs_hist)
-        if index.ndim != 1 or q0.shape != (len(index), N_JOINTS) or not np.all((index >= 0) & (index < n)):
-            raise EfficientTrackError(
-                f"learned system: reset_machines expects indices below N = {n} and q0 of shape (K, 4), got "
-                f"{index.shape} indices and q0 of shape {q0.shape}"
-            )
-        obs, history = self._at_rest(q0)
-        rows = torch.as_tensor(index, device=self.device)
+        obs, history = self._at_rest(np.asarray(q0, dtype=np.float64))
+        rows = torch.as_tensor(np.asarray(index, dtype=np.int64), device=self.device)
         self._obs_hist[rows], self._qref_hist[rows] = history, history[..., :N_JOINTS]
         return obs
 

@@ -1,20 +1,23 @@
 """What the resumable baselines share: the state file, how often it is saved, and how a saved state is checked.
 
 A baseline saves its training state (tensors and plain values, no pickle) to :data:`STATE_FILE` in its folder; the
-same run started again reads it back with :func:`read_state`, which refuses the state of another run, and turns any
-problem with its contents into :func:`damaged` errors that name the file.
+same run started again (:func:`run_identity`) reads it back with :func:`read_state`, which refuses the state of
+another run, and restores from it inside :func:`restoring`, which turns any problem with its contents into an error
+that names the file.
 """
 
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Sequence
+import json
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from efficienttrack.checkpoints import load_tensors
+from efficienttrack.checkpoints import CHECKPOINT_READ_ERRORS, load_tensors
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.references import Reference
 
@@ -42,6 +45,20 @@ def references_digest(*sets: Sequence[Reference]) -> str:
     return digest.hexdigest()
 
 
+def run_identity(header: dict[str, Any], train_refs: Sequence[Reference], test_refs: Sequence[Reference]) -> str:
+    """What a run is, as saved with its state: its header (method, loop, seed, budget, system, settings), references.
+
+    Args:
+        header: the run's ``curve.json`` header.
+        train_refs: the training references.
+        test_refs: the held-out references.
+
+    Returns:
+        JSON text; equal for the same run.
+    """
+    return json.dumps({**header, "references": references_digest(train_refs, test_refs)}, sort_keys=True)
+
+
 def _fix(path: Path) -> str:
     return f"delete {path} (or use another folder) to start this run afresh"
 
@@ -65,11 +82,16 @@ def read_state(path: Path, run: str) -> dict[str, Any]:
     return state
 
 
-def damaged(path: Path, exc: Exception) -> EfficientTrackError:
-    """The error for a state whose contents do not fit the run (a missing entry, a tensor of another shape).
+@contextmanager
+def restoring(path: Path) -> Iterator[None]:
+    """Restore from the state at ``path`` inside this block, with errors that name the file.
+
+    A missing entry or a tensor that does not fit the run becomes an EfficientTrackError saying what to do.
 
     Args:
         path: the state file.
-        exc: what went wrong while restoring from it.
     """
-    return EfficientTrackError(f"{path}: a damaged training state ({type(exc).__name__}: {exc}); {_fix(path)}")
+    try:
+        yield
+    except (*CHECKPOINT_READ_ERRORS, AttributeError) as exc:
+        raise EfficientTrackError(f"{path}: a damaged training state ({type(exc).__name__}: {exc}); {_fix(path)}") from exc

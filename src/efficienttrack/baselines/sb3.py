@@ -12,7 +12,6 @@ interaction steps, which is how the paper counts I.S. and what SB3's ``num_times
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict
@@ -23,7 +22,7 @@ import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
 from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_run
-from efficienttrack.baselines.resume import SAVE_EVERY_SECONDS, STATE_FILE, references_digest
+from efficienttrack.baselines.resume import SAVE_EVERY_SECONDS, STATE_FILE, run_identity
 from efficienttrack.baselines.sb3_state import restore_state, save_state
 from efficienttrack.baselines.settings import PPOSettings, SACSettings, method_settings
 from efficienttrack.baselines.vec_env import SB3VecEnv
@@ -143,7 +142,7 @@ def train_baseline(
         "system": system.to_dict(),
         "settings": asdict(settings),
     }
-    run_id = json.dumps({**header, "references": references_digest(train_refs, test_refs)}, sort_keys=True)
+    run_id = run_identity(header, train_refs, test_refs)
     state_file = folder / STATE_FILE
     with output_lock(folder / CURVE_FILE, "folder", folder=False):
         recorder = CurveRecorder(header, folder / CURVE_FILE, open_system(loop, system), test_refs, progress, budget)

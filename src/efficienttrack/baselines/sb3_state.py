@@ -21,8 +21,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.save_util import recursive_getattr
 
-from efficienttrack.baselines.resume import damaged, read_state
-from efficienttrack.checkpoints import CHECKPOINT_READ_ERRORS
+from efficienttrack.baselines.resume import read_state, restoring
 from efficienttrack.fileio import atomic_write
 
 BUFFER_FIELDS = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
@@ -80,7 +79,7 @@ def restore_state(model: BaseAlgorithm, path: Path, run: str) -> tuple[list[dict
             or an unreadable or damaged one; the message names the file and what to do.
     """
     state = read_state(path, run)
-    try:
+    with restoring(path):
         for name, tensors in state["modules"].items():
             recursive_getattr(model, name).load_state_dict(tensors)
         for name, tensor in state["variables"].items():
@@ -95,8 +94,6 @@ def restore_state(model: BaseAlgorithm, path: Path, run: str) -> tuple[list[dict
         torch.set_rng_state(state["torch_rng"])
         np.random.set_state(_numpy_state(state["numpy_rng"]))
         curve, wall = json.loads(state["curve"]), float(state["wall_seconds"])
-    except (*CHECKPOINT_READ_ERRORS, AttributeError) as exc:
-        raise damaged(path, exc) from exc
     return curve, wall
 
 

@@ -17,8 +17,7 @@ import torch
 from torch import nn
 
 from efficienttrack.baselines.agent import Noise
-from efficienttrack.baselines.resume import damaged, read_state
-from efficienttrack.checkpoints import CHECKPOINT_READ_ERRORS
+from efficienttrack.baselines.resume import read_state, restoring
 from efficienttrack.fileio import atomic_write
 from efficienttrack.records import EpisodeRecord
 
@@ -93,7 +92,7 @@ def restore_state(
         EfficientTrackError: a file of another run, or an unreadable or damaged one, naming the file.
     """
     state = read_state(path, run)
-    try:
+    with restoring(path):
         model.load_state_dict(state["model"])
         policy.load_state_dict(state["policy"])
         rng.bit_generator.state = json.loads(state["rng"])
@@ -101,8 +100,6 @@ def restore_state(
         buffer = [_record(saved) for saved in state["buffer"]]
         return Progress(int(state["count"]), int(state["iteration"]), buffer, json.loads(state["curve"]),
                         float(state["wall_seconds"]))  # fmt: skip
-    except (*CHECKPOINT_READ_ERRORS, AttributeError) as exc:
-        raise damaged(path, exc) from exc
 
 
 def _record_state(record: EpisodeRecord) -> dict[str, Any]:

@@ -24,7 +24,6 @@ losses on rigid-body positions and rotations become the joint tracking error of 
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, replace
@@ -35,7 +34,7 @@ import numpy as np
 
 from efficienttrack.baselines.agent import Noise, policy_act
 from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_run
-from efficienttrack.baselines.resume import SAVE_EVERY_SECONDS, STATE_FILE, references_digest
+from efficienttrack.baselines.resume import SAVE_EVERY_SECONDS, STATE_FILE, run_identity
 from efficienttrack.baselines.supertrack.settings import SuperTrackSettings, supertrack_settings
 from efficienttrack.baselines.supertrack.state import Progress, restore_state, save_state
 from efficienttrack.dynamics import ClosedLoopModel, PlantModel, train_model
@@ -137,7 +136,7 @@ def train_supertrack(
     buffer: list[EpisodeRecord] = []
     model, policy = None, None
     count, iteration = 0, 0
-    run_id = json.dumps({**header, "references": references_digest(run.train_refs, run.test_refs)}, sort_keys=True)
+    run_id = run_identity(header, run.train_refs, run.test_refs)
     state_file, saved = run.folder / STATE_FILE, time.perf_counter()
     with output_lock(run.folder / CURVE_FILE, "folder", folder=False):
         recorder = CurveRecorder(header, run.folder / CURVE_FILE, stepped, run.test_refs, progress, run.budget)

@@ -16,10 +16,9 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from efficienttrack.baselines.resume import damaged, read_state
+from efficienttrack.baselines.resume import read_state, restoring
 from efficienttrack.baselines.tdmpc.buffer import PrioritizedBuffer
 from efficienttrack.baselines.tdmpc.learner import Learner
-from efficienttrack.checkpoints import CHECKPOINT_READ_ERRORS
 from efficienttrack.fileio import atomic_write
 
 BUFFER_ARRAYS = ("obs", "next_obs", "action", "reward", "priority")
@@ -101,7 +100,7 @@ def restore_state(
         EfficientTrackError: a file of another run, or an unreadable or damaged one, naming the file.
     """
     state = read_state(path, run)
-    try:
+    with restoring(path):
         learner.model.load_state_dict(state["model"])
         learner.target.load_state_dict(state["target"])
         learner.optim.load_state_dict(state["optim"])
@@ -116,5 +115,3 @@ def restore_state(
         generators.env.bit_generator.state = json.loads(state["env_rng"])
         generators.torch.set_state(state["torch_generator"])
         return int(state["count"]), json.loads(state["curve"]), float(state["wall_seconds"])
-    except (*CHECKPOINT_READ_ERRORS, AttributeError) as exc:
-        raise damaged(path, exc) from exc

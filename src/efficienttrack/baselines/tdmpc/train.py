@@ -9,7 +9,6 @@ An interaction step is one environment step of the machine (20 Hz), the paper's 
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict
@@ -20,7 +19,7 @@ import numpy as np
 import torch
 
 from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_run
-from efficienttrack.baselines.resume import SAVE_EVERY_SECONDS, STATE_FILE, references_digest
+from efficienttrack.baselines.resume import SAVE_EVERY_SECONDS, STATE_FILE, run_identity
 from efficienttrack.baselines.tdmpc.buffer import PrioritizedBuffer
 from efficienttrack.baselines.tdmpc.learner import Learner
 from efficienttrack.baselines.tdmpc.networks import TOLD
@@ -163,7 +162,7 @@ def train_tdmpc(
     device = resolve_device(settings.device)
     header = {"method": METHOD, "loop": loop, "seed": seed, "budget": budget, "system": system.to_dict()}
     header["settings"] = asdict(settings)
-    run_id = json.dumps({**header, "references": references_digest(train_refs, test_refs)}, sort_keys=True)
+    run_id = run_identity(header, train_refs, test_refs)
     with output_lock(folder / CURVE_FILE, "folder", folder=False):
         recorder = CurveRecorder(header, folder / CURVE_FILE, open_system(loop, system), test_refs, progress, budget)
         env = TrackingEnv(loop, system, train_refs)
