@@ -8,7 +8,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "src" / "efficienttrack"
 
 LAYERS = (
-    ("base", {"errors", "fileio", "npyfile", "angles", "joints", "configfile", "progress", "provenance"}),
+    ("base", {"errors", "fileio", "npyfile", "angles", "joints", "configfile", "progress", "provenance", "stop_signals"}),
     ("data", {"kinematics", "references", "cycles", "records", "rosbag", "metrics", "windows"}),
     ("systems", {"systems"}),
     ("episode loop", {"episodes"}),

@@ -3,6 +3,7 @@
 import json
 import math
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -48,7 +49,8 @@ class FaultyMachine(SimulatedMachine):
     """The toy system with faults per tick k (read call k; call 0 is the start's reading).
 
     slow_read/slow_send: seconds a read/send takes; old: stamps that many s in the past; nan/drop/raise_read: ticks
-    whose reading is NaN, None, or raises; raise_send: tick whose send raises; clamp: the machine clamps the boom.
+    whose reading is NaN, None, or raises; raise_send: tick whose send raises; clamp: the machine clamps the boom;
+    interrupt: the tick whose read is cut by Ctrl-C; stop_signal: (tick, signal) sent to this process at that read.
     """
 
     def __init__(
@@ -64,12 +66,13 @@ class FaultyMachine(SimulatedMachine):
         raise_send=None,
         clamp=None,
         interrupt=None,
+        stop_signal=None,
     ):
         super().__init__(BatchedSystem(make()), q0, clock)
         self.slow_read = slow_read or (lambda k: 0.0)
         self.old = old or (lambda k: 0.0)
         self.slow_send, self.nan, self.drop, self.raise_read = slow_send, set(nan), set(drop), set(raise_read)
-        self.raise_send, self.clamp, self.interrupt = raise_send, clamp, interrupt
+        self.raise_send, self.clamp, self.interrupt, self.stop_signal = raise_send, clamp, interrupt, stop_signal
         self.reads, self.sent, self.opened, self.closed = 0, [], 0, 0
 
     def __enter__(self):
@@ -85,6 +88,10 @@ class FaultyMachine(SimulatedMachine):
         self.clock.advance(self.slow_read(k))
         if k == self.interrupt:
             raise KeyboardInterrupt
+        if self.stop_signal is not None and k == self.stop_signal[0]:
+            # without a handler the signal would end the test run: fail instead
+            assert signal.getsignal(self.stop_signal[1]) is not signal.SIG_DFL, "the loop does not handle the signal"
+            os.kill(os.getpid(), self.stop_signal[1])
         if k in self.raise_read:
             raise OSError("CAN bus error")
         if k in self.drop:
@@ -260,6 +267,15 @@ def test_ctrl_c_sends_raw_and_ends_the_log(ref, tmp_path):
     result, machine, ticks, end, _ = run(ref, tmp_path, interrupt=8)
     assert result.reason == end["reason"] == "interrupted" and machine.closed == 1
     np.testing.assert_array_equal(machine.sent[-1], ref.q[9])
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP])
+def test_a_stop_signal_sends_raw_closes_and_ends_the_log_like_ctrl_c(ref, tmp_path, signum):
+    result, machine, ticks, end, _ = run(ref, tmp_path, stop_signal=(8, signum))
+    assert result.reason == end["reason"] == "interrupted" and end["error"] == signal.Signals(signum).name
+    assert machine.closed == 1 and len(ticks) == 8
+    np.testing.assert_array_equal(machine.sent[-1], ref.q[9])
+    assert signal.getsignal(signum) is signal.SIG_DFL  # the handler lasts the run only
 
 
 def test_a_machine_that_clamps_is_logged_and_the_history_follows(ref, tmp_path):

@@ -11,7 +11,8 @@ asks the runtime for the reference of step k+1 and sends it. What it sends is de
 
 1. **stop** (the raw reference ``q*_{k+1}`` is sent once more, then the run ends): the tick is the
    ``stop_after``-th overrun in a row; the last good reading is older than ``stop_stale_ticks``; the machine's
-   ``read`` raised or gave a malformed reading; the runtime raised; Ctrl-C. A ``send`` that raises or reports a
+   ``read`` raised or gave a malformed reading; the runtime raised; Ctrl-C, SIGTERM or SIGHUP
+   (:mod:`~efficienttrack.stop_signals`). A ``send`` that raises or reports a
    malformed reference ends the run at once (nothing more can be sent);
 2. **a = 0** (the raw reference) for this tick: the first tick (every run starts with a = 0); shadow mode; the
    ``hold_after``-th overrun in a row or later; a reading older than ``stale_ticks`` (or missing: a dropped
@@ -48,6 +49,7 @@ from efficienttrack.angles import wrap
 from efficienttrack.episodes import Guard, Sent
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.joints import DT, SWING
+from efficienttrack.stop_signals import interrupt_name, stop_signals_as_interrupt
 from efficienttrack.systems.limits import GuardLimits
 
 STOP_REASONS = ("overruns", "stale_sensor", "read_error", "send_error", "runtime_error", "interrupted")
@@ -364,7 +366,7 @@ class Loop:
         last = len(q_des) - 2  # the last tick
         result = LoopResult(name=name)
         dt = self.cfg.dt
-        with self.machine:
+        with stop_signals_as_interrupt(), self.machine:
             self._good = self._start(q_des[0], name)
             self.runtime.start(self._good.obs[None])
             self._a_sent = np.zeros(4)
@@ -403,8 +405,8 @@ class Loop:
                     k += 1
             except _Stop as stop:
                 result.reason, result.error = stop.reason, stop.error
-            except KeyboardInterrupt:
-                result.reason, result.error = "interrupted", "Ctrl-C"
+            except KeyboardInterrupt as interrupt:  # Ctrl-C, or SIGTERM / SIGHUP (stop_signals)
+                result.reason, result.error = "interrupted", interrupt_name(interrupt)
                 self._send_raw_quietly(q_des[min(k, last) + 1])
             finally:
                 self.runtime.stop()
