@@ -14,10 +14,11 @@ import torch
 from typer.testing import CliRunner
 
 from efficienttrack.cli import app
-from efficienttrack.deploy import SimulatedClock, SimulatedMachine, deploy, load_machine
+from efficienttrack.deploy import SimulatedClock, SimulatedMachine, deploy, load_machine, records_from_log
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.loop import Loop, LoopConfig, Reading, TickLog
 from efficienttrack.policy import POLICY_PRESETS, AdjustmentPolicy, save_policy
+from efficienttrack.records import load_records
 from efficienttrack.references import Reference, load_references, save_references
 from efficienttrack.runtime import Runtime, track
 from efficienttrack.systems.limits import DEFAULT_LIMITS
@@ -150,6 +151,43 @@ def test_shadow_run_follows_the_same_path_as_the_controller_alone(ref, tmp_path)
     _, _, ticks, _, _ = run(ref, tmp_path, shadow=True)
     record = track(BatchedSystem(make()), None, [ref], progress=False)[0]
     np.testing.assert_array_equal(np.array([t["obs"][:4] for t in ticks]), record.q)
+
+
+def test_a_shadow_runs_records_are_those_of_the_controller_alone(ref, tmp_path):
+    run(ref, tmp_path, shadow=True)
+    [from_log] = records_from_log(tmp_path / "log.jsonl", shadow=True)
+    record = track(BatchedSystem(make()), None, [ref], progress=False)[0]
+    for name in ("q", "qd", "q_ref", "q_des", "t"):
+        np.testing.assert_allclose(getattr(from_log, name), getattr(record, name), atol=1e-12, err_msg=name)
+    assert from_log.meta == {"name": "log", "reference": "log", "source": "deploy", "first_tick": 0, "shadow": True}
+
+
+def test_records_from_a_log_leave_out_missing_stale_and_skipped_ticks(ref, tmp_path):
+    _, machine, ticks, _, _ = run(ref, tmp_path, drop={10}, nan={20}, old=lambda k: 0.2 if k == 30 else 0.0)
+    records = records_from_log(tmp_path / "log.jsonl")
+    assert [r.meta["name"] for r in records] == ["log", "log-2", "log-3", "log-4"]
+    assert [(r.meta["first_tick"], len(r)) for r in records] == [(0, 10), (11, 9), (21, 9), (31, len(ticks) - 31)]
+    np.testing.assert_array_equal(records[1].q_ref, np.array([t["q_ref"] for t in ticks[11:20]]))
+    np.testing.assert_array_equal(records[3].q[0], ticks[31]["obs"][:4])
+    # whole periods lost: the ticks after the gap start a new record
+    (tmp_path / "gap").mkdir()
+    _, _, ticks, _, _ = run(ref, tmp_path / "gap", slow_read=lambda k: 0.12 if k == 15 else 0.0)
+    records = records_from_log(tmp_path / "gap" / "log.jsonl")
+    assert ticks[15]["missed"] == 0 and ticks[16]["missed"] > 0
+    assert [(r.meta["first_tick"], len(r)) for r in records] == [(0, 16), (ticks[16]["tick"], len(ticks) - 16)]
+
+
+def test_records_from_a_cut_log_and_a_damaged_one(ref, tmp_path):
+    run(ref, tmp_path)
+    lines = (tmp_path / "log.jsonl").read_text().splitlines()
+    (tmp_path / "cut.jsonl").write_text("\n".join(lines[:25]) + "\n" + lines[25][:40])  # a crash mid-line
+    assert [len(r) for r in records_from_log(tmp_path / "cut.jsonl")] == [25]
+    (tmp_path / "bad.jsonl").write_text("\n".join([*lines[:5], "{oops", *lines[6:]]))
+    with pytest.raises(EfficientTrackError, match="bad.jsonl: line 6 is not JSON"):
+        records_from_log(tmp_path / "bad.jsonl")
+    (tmp_path / "other.jsonl").write_text('{"step": 1}\n')
+    with pytest.raises(EfficientTrackError, match="line 1 has no tick, t, events, obs, q_ref, q_des"):
+        records_from_log(tmp_path / "other.jsonl")
 
 
 def test_armed_run_starts_and_ends_with_a_zero_and_never_jumps(ref, tmp_path):
@@ -352,7 +390,18 @@ def test_deploy_runs_references_in_turn_and_stops_after_a_stopped_run(tmp_path):
     assert [r.reason for r in results] == ["done", "read_error"] and len(machines) == 2
     summary = json.loads((tmp_path / "out" / "deploy.json").read_text())
     assert [r["name"] for r in summary["runs"]] == ["ref_00", "ref_01"] and summary["shadow"] is True
-    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["deploy.json", "ref_00.jsonl", "ref_01.jsonl"]
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["deploy.json", "records", "ref_00.jsonl", "ref_01.jsonl"]
+    records = load_records(tmp_path / "out" / "records")  # the stopped run's ticks before the failed read too
+    assert [(r.meta["name"], len(r), r.meta["shadow"]) for r in records] == [("ref_00", 29, True), ("ref_01", 5, True)]
+
+
+def test_a_run_too_short_for_a_record_warns(tmp_path):
+    clock = FakeClock()
+    refs = sine_refs([30], seed=5)
+    with pytest.warns(UserWarning, match="no episode records from ref_00.jsonl: no two usable ticks in a row"):
+        deploy(refs, Runtime(None), lambda ref: FaultyMachine(ref.q[0], clock, raise_read={1}), DEFAULT_LIMITS,
+               tmp_path / "out", clock=clock)  # fmt: skip
+    assert not (tmp_path / "out" / "records").exists()
 
 
 def test_load_machine_names_a_missing_adapter_method():

@@ -3,7 +3,8 @@
 :func:`deploy` runs :class:`~efficienttrack.loop.Loop` along each reference in turn, one machine opened per reference,
 each with its own per-tick log ``OUT/<reference>.jsonl``, and keeps ``OUT/deploy.json`` (the settings and one summary
 per finished run) up to date after every run. A run that a watchdog stopped ends the deployment: the references after
-it are not started.
+it are not started. After each run its log is also written as episode records (:func:`records_from_log`,
+``OUT/records/``), the data of the next continual-learning round (``efficienttrack round --data OUT/records``).
 
 The machine is either the simulator (:class:`SimulatedMachine` around a system of :mod:`efficienttrack.systems.spec`,
 the built-in ``xe75`` by default, reset at each reference's start) or a user's adapter (:func:`load_machine`, an import
@@ -12,6 +13,8 @@ path ``module:callable`` returning a :class:`~efficienttrack.loop.Machine`).
 
 from __future__ import annotations
 
+import json
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -22,6 +25,7 @@ from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import write_json
 from efficienttrack.joints import DT
 from efficienttrack.loop import MONOTONIC, Clock, Loop, LoopConfig, LoopResult, LoopRuntime, Machine, Reading, TickLog
+from efficienttrack.records import EpisodeRecord
 from efficienttrack.references import Reference
 from efficienttrack.systems.limits import GuardLimits
 from efficienttrack.systems.protocol import BatchedSystem
@@ -29,8 +33,12 @@ from efficienttrack.systems.spec import SystemSpec, load_callable
 
 DEPLOY_JSON = "deploy.json"
 """The settings and the summaries of a deployment's runs, in its output folder."""
-DEPLOY_OUTPUTS = (DEPLOY_JSON, "*.jsonl")
+DEPLOY_RECORDS = "records"
+"""Folder of the episode records made from the runs' logs, in a deployment's output folder."""
+DEPLOY_OUTPUTS = (DEPLOY_JSON, "*.jsonl", DEPLOY_RECORDS)
 """What ``deploy`` writes in its output folder (what ``--force`` clears)."""
+UNUSABLE_TICK_EVENTS = frozenset({"dropped", "nonfinite", "stale"})
+"""Loop events of a tick whose reading is missing or old: no record row (:func:`records_from_log`)."""
 
 
 class SimulatedClock:
@@ -142,7 +150,8 @@ def deploy(
         runtime: the runtime, started afresh for each reference.
         make_machine: reference → its machine adapter (opened and closed by the loop).
         limits: the machine's limits (joint limits of every reference sent, the rate of the adjustment).
-        out: the output folder (created): ``<reference>.jsonl`` per run and :data:`DEPLOY_JSON`.
+        out: the output folder (created): ``<reference>.jsonl`` per run, :data:`DEPLOY_JSON`, and the runs' episode
+            records in :data:`DEPLOY_RECORDS` (:func:`records_from_log`).
         cfg: the loop's timing and watchdogs.
         clock: the loop's clock.
         shadow: send the raw reference; only log the adjustment.
@@ -163,12 +172,97 @@ def deploy(
         with TickLog(out / f"{ref.name}.jsonl", cfg.fsync_every) as log:
             result = Loop(runtime, make_machine(ref), limits, cfg, clock, log, shadow).run(ref.q, ref.name)
         results.append(result)
+        _save_run_records(log.path, out / DEPLOY_RECORDS, shadow)
         write_json(out / DEPLOY_JSON, {**header, "runs": [r.summary() for r in results]})
         if on_done is not None:
             on_done(result)
         if result.stopped:
             break
     return results
+
+
+def records_from_log(path: str | Path, shadow: bool | None = None) -> list[EpisodeRecord]:
+    """The episode records of one run's tick log (``OUT/<reference>.jsonl``), to train the next round on.
+
+    Row k of a record is tick k of the run: ``q``, ``qd`` of its reading, ``q_ref`` the reference the machine took,
+    ``q_des`` = q*_{k+1}, ``t`` its deadline (s after the start), ``u`` None. Only ticks on the 20 Hz grid with a fresh
+    reading make rows: a tick whose reading was missing, not finite or old (:data:`UNUSABLE_TICK_EVENTS`), or that
+    follows skipped periods, ends a record, and the next usable tick starts another. Records are named after the
+    reference, the second and later ones ``<reference>-2``, ``-3``, …; stretches shorter than 2 ticks are dropped. A
+    log cut short by a crash gives the ticks it has (a last line cut in the middle is left out).
+
+    Args:
+        path: the run's log.
+        shadow: whether the run was in shadow mode (the raw reference sent), kept in each record's meta; None: unknown.
+
+    Returns:
+        The records, in the order of their ticks (none when no two usable ticks follow each other).
+
+    Raises:
+        EfficientTrackError: the file cannot be read, or a line before the last is not a tick log's JSON.
+    """
+    path = Path(path)
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise EfficientTrackError(f"{path}: cannot read the tick log ({exc})") from exc
+    ticks = []
+    for number, line in enumerate(lines, 1):
+        try:
+            entry = json.loads(line)
+        except json.JSONDecodeError as exc:
+            if number == len(lines):  # the line a crash cut short
+                break
+            raise EfficientTrackError(f"{path}: line {number} is not JSON ({exc.msg}): not a deploy tick log?") from exc
+        if "event" in entry:
+            continue
+        missing = [key for key in ("tick", "t", "events", "obs", "q_ref", "q_des") if key not in entry]
+        if missing:
+            raise EfficientTrackError(f"{path}: line {number} has no {', '.join(missing)}: not a deploy tick log?")
+        ticks.append(entry)
+    name = path.stem
+    stretches, current = [], []
+    for entry in ticks:
+        if current and entry["tick"] != current[-1]["tick"] + 1:  # whole periods were skipped
+            stretches.append(current)
+            current = []
+        if UNUSABLE_TICK_EVENTS & set(entry["events"]) or None in entry["obs"]:
+            stretches.append(current)
+            current = []
+            continue
+        current.append(entry)
+    stretches.append(current)
+    records = []
+    for stretch in (s for s in stretches if len(s) >= 2):
+        label = name if not records else f"{name}-{len(records) + 1}"
+        obs = np.array([entry["obs"] for entry in stretch], dtype=np.float64)
+        meta = {"name": label, "reference": name, "source": "deploy", "first_tick": stretch[0]["tick"], "shadow": shadow}
+        record = EpisodeRecord(
+            q=obs[:, :4],
+            qd=obs[:, 4:],
+            q_ref=np.array([entry["q_ref"] for entry in stretch], dtype=np.float64),
+            q_des=np.array([entry["q_des"] for entry in stretch], dtype=np.float64),
+            u=None,
+            t=np.array([entry["t"] for entry in stretch], dtype=np.float64),
+            meta=meta,
+        )
+        records.append(record.validate(f"{path} (ticks {stretch[0]['tick']}–{stretch[-1]['tick']})"))
+    return records
+
+
+def _save_run_records(log: Path, folder: Path, shadow: bool) -> None:
+    """Write a finished run's records (:func:`records_from_log`) into ``folder``; a log that gives none only warns."""
+    try:
+        records = records_from_log(log, shadow)
+    except EfficientTrackError as exc:  # the run is over and its log kept: say why, go on with the next reference
+        warnings.warn(f"no episode records from {log.name}: {exc}", stacklevel=2)
+        return
+    if not records:
+        warnings.warn(f"no episode records from {log.name}: no two usable ticks in a row", stacklevel=2)
+        return
+    folder.mkdir(exist_ok=True)
+    for record in records:
+        record.save(folder / f"{record.meta['name']}.npz")
 
 
 def deployment_parts(

@@ -51,7 +51,7 @@ def deploy_command(
     ctx: typer.Context,
     refs: Annotated[Path, typer.Option("--refs", help="Folder of reference trajectories (.npy/.csv, rad), run in turn.")],
     out: Annotated[
-        Path, typer.Option("--out", help="Output folder: <reference>.jsonl per run (a line per tick), deploy.json.")
+        Path, typer.Option("--out", help="Output folder: <reference>.jsonl per run (a line per tick), deploy.json, records/.")
     ],
     policy: Annotated[
         Path | None,
@@ -93,7 +93,8 @@ def deploy_command(
     """The policy at 20 Hz on absolute deadlines against the simulator or a machine, with watchdogs; a log per tick.
 
     Nothing is sent without --arm, because even shadow mode moves the machine (along the raw reference). Start with
-    --arm --shadow; every run starts and ends with a = 0. Exit code 1 when a watchdog stopped a run.
+    --arm --shadow; every run starts and ends with a = 0. Exit code 1 when a watchdog stopped a run. Each run is also
+    written as episode records in OUT/records/, the data of the next round (efficienttrack round --data OUT/records).
     """
     from efficienttrack.deploy import DEPLOY_OUTPUTS, deploy, deployment_parts
     from efficienttrack.references import load_references
