@@ -465,6 +465,19 @@ def test_deploy_on_the_simulator_in_shadow_mode_then_armed(deploy_inputs, tmp_pa
     assert isinstance(again.exception, EfficientTrackError)  # a finished deployment's logs are not overwritten
 
 
+def test_convert_makes_a_deploy_log_into_the_records_deploy_wrote(deploy_inputs, tmp_path):
+    refs, policy = deploy_inputs
+    assert invoke("deploy", "--refs", refs, "--policy", policy, "--out", tmp_path / "a", "--fast", "--arm").exit_code == 0
+    result = invoke("convert", tmp_path / "a" / "ref_01.jsonl", "--out", tmp_path / "c")
+    assert result.exit_code == 0 and "wrote 1 episode(s)" in result.output, result.output
+    [converted], [written] = load_records(tmp_path / "c"), load_records(tmp_path / "a" / "records" / "ref_01.npz")
+    for name in ("q", "qd", "q_ref", "q_des", "t"):
+        np.testing.assert_array_equal(getattr(converted, name), getattr(written, name))
+    (tmp_path / "short.jsonl").write_text("\n".join((tmp_path / "a" / "ref_01.jsonl").read_text().splitlines()[:1]))
+    result = invoke("convert", tmp_path / "short.jsonl", "--out", tmp_path / "c2")
+    assert "short.jsonl: no episode records in this tick log" in str(result.exception)
+
+
 def test_deploy_a_machine_needs_its_limits_and_real_time(deploy_inputs, tmp_path):
     refs, _ = deploy_inputs
     result = invoke("deploy", "--refs", refs, "--out", tmp_path / "o", "--arm", "--machine", "test_loop:DyingMachine")

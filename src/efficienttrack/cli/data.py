@@ -104,7 +104,10 @@ def metrics_command(
 
 @app.command("convert")
 def convert_command(
-    paths: Annotated[list[Path], typer.Argument(help="Episode files or folders (.npz, our .csv, upstream .npy/.csv).")],
+    paths: Annotated[
+        list[Path],
+        typer.Argument(help="Episode files or folders (.npz, our .csv, upstream .npy/.csv), or deploy tick logs (.jsonl)."),
+    ],
     out: Annotated[Path, typer.Option("--out", help="Destination folder; files are named after the episodes.")],
     fmt: Annotated[str, typer.Option("--format", help="Output format: npz or csv.")] = "npz",
     recursive: RecursiveOpt = False,
@@ -117,13 +120,22 @@ def convert_command(
         ),
     ] = False,
 ) -> None:
-    """Convert episode records between formats (upstream .npy/.csv → .npz, .npz ↔ .csv)."""
+    """Convert episode records between formats (upstream .npy/.csv → .npz, .npz ↔ .csv; a deploy log .jsonl → records)."""
+    from efficienttrack.deploy import records_from_log
+
     check_output_folder(out)
-    files = [file for path in paths for file in record_files(path, recursive)]
+    logs = [path for path in paths if path.suffix == ".jsonl" and path.is_file()]
+    files = [file for path in paths if path not in logs for file in record_files(path, recursive)]
     inside = [file for file in files if file.resolve().parent == out.resolve()]
     if inside:
         raise EfficientTrackError(f"--out {out}: holds the input {inside[0].name}; write the converted episodes elsewhere")
-    records = load_records(files)
+    records = []
+    for log in logs:
+        found = records_from_log(log)
+        if not found:
+            raise EfficientTrackError(f"{log}: no episode records in this tick log (no two usable ticks in a row)")
+        records += found
+    records += load_records(files) if files else []
     prepare_output_folder(out, tuple(f"*{suffix}" for suffix in RECORD_SUFFIXES), force)
     written = save_records(records, out, fmt)
     typer.echo(f"wrote {len(written)} episode(s) to {out}")
