@@ -188,6 +188,13 @@ def test_records_from_a_cut_log_and_a_damaged_one(ref, tmp_path):
     (tmp_path / "other.jsonl").write_text('{"step": 1}\n')
     with pytest.raises(EfficientTrackError, match="line 1 has no tick, t, events, obs, q_ref, q_des"):
         records_from_log(tmp_path / "other.jsonl")
+    (tmp_path / "list.jsonl").write_text("[1, 2]\n")
+    with pytest.raises(EfficientTrackError, match="list.jsonl: line 1 is not a JSON object"):
+        records_from_log(tmp_path / "list.jsonl")
+    short = json.loads(lines[3]) | {"q_ref": [0.1, 0.2]}
+    (tmp_path / "short.jsonl").write_text("\n".join([*lines[:3], json.dumps(short), *lines[4:]]))
+    with pytest.raises(EfficientTrackError, match="short.jsonl: line 4: field 'q_ref' must be 4 numbers"):
+        records_from_log(tmp_path / "short.jsonl")
 
 
 def test_armed_run_starts_and_ends_with_a_zero_and_never_jumps(ref, tmp_path):

@@ -199,7 +199,8 @@ def records_from_log(path: str | Path, shadow: bool | None = None) -> list[Episo
         The records, in the order of their ticks (none when no two usable ticks follow each other).
 
     Raises:
-        EfficientTrackError: the file cannot be read, or a line before the last is not a tick log's JSON.
+        EfficientTrackError: the file cannot be read, a line before the last is not JSON, or a line is not a tick's
+            (fields missing or of the wrong kind), or a record has non-finite values.
     """
     path = Path(path)
     try:
@@ -214,12 +215,9 @@ def records_from_log(path: str | Path, shadow: bool | None = None) -> list[Episo
             if number == len(lines):  # the line a crash cut short
                 break
             raise EfficientTrackError(f"{path}: line {number} is not JSON ({exc.msg}): not a deploy tick log?") from exc
-        if "event" in entry:
+        if isinstance(entry, dict) and "event" in entry:
             continue
-        missing = [key for key in ("tick", "t", "events", "obs", "q_ref", "q_des") if key not in entry]
-        if missing:
-            raise EfficientTrackError(f"{path}: line {number} has no {', '.join(missing)}: not a deploy tick log?")
-        ticks.append(entry)
+        ticks.append(_checked_tick(entry, f"{path}: line {number}"))
     name = path.stem
     stretches, current = [], []
     for entry in ticks:
@@ -233,7 +231,7 @@ def records_from_log(path: str | Path, shadow: bool | None = None) -> list[Episo
         current.append(entry)
     stretches.append(current)
     records = []
-    for stretch in (s for s in stretches if len(s) >= 2):
+    for stretch in (part for part in stretches if len(part) >= 2):
         label = name if not records else f"{name}-{len(records) + 1}"
         obs = np.array([entry["obs"] for entry in stretch], dtype=np.float64)
         meta = {"name": label, "reference": name, "source": "deploy", "first_tick": stretch[0]["tick"], "shadow": shadow}
@@ -248,6 +246,30 @@ def records_from_log(path: str | Path, shadow: bool | None = None) -> list[Episo
         )
         records.append(record.validate(f"{path} (ticks {stretch[0]['tick']}–{stretch[-1]['tick']})"))
     return records
+
+
+TICK_VECTORS = {"obs": 8, "q_ref": 4, "q_des": 4}
+"""The vectors of a tick log's line that make a record row, and their lengths."""
+
+
+def _checked_tick(entry: Any, source: str) -> dict[str, Any]:
+    """A tick log's line with what a record row needs (numbers or nulls), else EfficientTrackError naming ``source``."""
+    if not isinstance(entry, dict):
+        raise EfficientTrackError(f"{source} is not a JSON object: not a deploy tick log?")
+    missing = [key for key in ("tick", "t", "events", *TICK_VECTORS) if key not in entry]
+    if missing:
+        raise EfficientTrackError(f"{source} has no {', '.join(missing)}: not a deploy tick log?")
+    for key, length in TICK_VECTORS.items():
+        value = entry[key]
+        if not (isinstance(value, list) and len(value) == length and all(_number_or_null(v) for v in value)):
+            raise EfficientTrackError(f"{source}: field '{key}' must be {length} numbers (or nulls), got {value!r:.80}")
+    if not (_number_or_null(entry["t"]) and isinstance(entry["tick"], int) and isinstance(entry["events"], list)):
+        raise EfficientTrackError(f"{source}: fields 'tick', 't', 'events' must be an integer, a number and a list")
+    return entry
+
+
+def _number_or_null(value: Any) -> bool:
+    return value is None or (isinstance(value, int | float) and not isinstance(value, bool))
 
 
 def _save_run_records(log: Path, folder: Path, shadow: bool) -> None:
