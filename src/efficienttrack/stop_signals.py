@@ -32,7 +32,11 @@ class Terminated(KeyboardInterrupt):
 
 
 def interrupt_name(exc: KeyboardInterrupt) -> str:
-    """What stopped a run: the signal's name (``"SIGTERM"``, ``"SIGHUP"``) for a :class:`Terminated`, else ``"Ctrl-C"``."""
+    """What stopped a run: the signal's name (``"SIGTERM"``, ``"SIGHUP"``) for a :class:`Terminated`, else ``"Ctrl-C"``.
+
+    Args:
+        exc: the interrupt caught.
+    """
     return signal.Signals(exc.signum).name if isinstance(exc, Terminated) else "Ctrl-C"
 
 
