@@ -18,7 +18,7 @@ LAYERS = (
     ("deployment", {"guard", "runtime", "onnx_runtime", "export", "learned_system", "next_round", "loop", "deploy"}),
     ("baselines", {"baselines"}),
     ("reports", {"plots"}),
-    ("orchestration", {"config", "stages", "rounds", "pipeline", "study", "cli", "__main__"}),
+    ("orchestration", {"config", "stages", "time_budget", "rounds", "pipeline", "study", "cli", "__main__"}),
 )
 """Layers from the bottom up: a module may import its own layer and the ones below."""
 

@@ -55,6 +55,10 @@ class RunConfig:
     warm_budget: float = 0.5
     """Optimizer steps (or epochs) of a later round's trainings, as a share of round 1's: they start from the
     previous round's networks and need fewer."""
+    time_budget: float | None = None
+    """Minutes of wall time for the whole run, all rounds (``--time-budget``): every training's optimizer steps are
+    scaled down by one factor, from step times measured on this machine when training starts
+    (:mod:`efficienttrack.time_budget`); None: the configured steps."""
 
     def __post_init__(self) -> None:
         """Validate the run-level fields (EfficientTrackError naming the field)."""
@@ -63,9 +67,12 @@ class RunConfig:
             raise EfficientTrackError(f"RunConfig.rounds must be an integer ≥ 1 and ≤ {MAX_ROUNDS}, got {self.rounds!r}")
         if self.round_data not in ROUND_DATA:
             raise EfficientTrackError(f"RunConfig.round_data must be one of {', '.join(ROUND_DATA)}, got {self.round_data!r}")
-        budget = self.warm_budget
-        if not isinstance(budget, (int, float)) or isinstance(budget, bool) or not (math.isfinite(budget) and budget > 0):
-            raise EfficientTrackError(f"RunConfig.warm_budget must be a number > 0, got {budget!r}")
+        for name in ("warm_budget", "time_budget"):
+            budget = getattr(self, name)
+            if name == "time_budget" and budget is None:
+                continue
+            if not isinstance(budget, (int, float)) or isinstance(budget, bool) or not (math.isfinite(budget) and budget > 0):
+                raise EfficientTrackError(f"RunConfig.{name} must be a number > 0, got {budget!r}")
 
     def to_dict(self) -> dict[str, Any]:
         """JSON/YAML-serializable form (tuples become lists)."""
@@ -134,7 +141,7 @@ def from_dict(data: Any, source: str = "config") -> RunConfig:
 
     Args:
         data: ``{"collect": {...}, "model": {...}, "policy": {...}, "seed": int, "device": str, "rounds": int,
-            "round_data": str, "warm_budget": float}``; missing fields keep their defaults.
+            "round_data": str, "warm_budget": float, "time_budget": float or None}``; missing fields keep their defaults.
         source: how to name the data in errors (the file).
 
     Returns:
@@ -158,7 +165,7 @@ def from_dict(data: Any, source: str = "config") -> RunConfig:
         if data["device"] not in ("auto", "cpu", "cuda"):
             raise EfficientTrackError(f"{source}: field 'device' must be auto, cpu or cuda, got {data['device']!r}")
         values["device"] = data["device"]
-    for name in ("rounds", "round_data", "warm_budget"):
+    for name in ("rounds", "round_data", "warm_budget", "time_budget"):
         if name in data:
             values[name] = data[name]
     try:
@@ -203,6 +210,7 @@ def with_overrides(
     device: str | None = None,
     rounds: int | None = None,
     round_data: str | None = None,
+    time_budget: float | None = None,
 ) -> RunConfig:
     """``cfg`` with the command-line overrides applied.
 
@@ -212,6 +220,7 @@ def with_overrides(
         device: new device, or None to keep.
         rounds: new number of rounds, or None to keep.
         round_data: what later rounds train on (``all`` or ``new``), or None to keep.
+        time_budget: minutes for the whole run, or None to keep.
 
     Returns:
         The new config.
@@ -226,4 +235,6 @@ def with_overrides(
         changes["rounds"] = rounds
     if round_data is not None:
         changes["round_data"] = round_data
+    if time_budget is not None:
+        changes["time_budget"] = time_budget
     return replace(cfg, **changes)

@@ -10,6 +10,7 @@ Output folder layout (everything written atomically)::
     OUT/logs/{model,policy}/        scalars.csv and TensorBoard events of each training (docs/logged-metrics.md)
     OUT/records/{pd,efficienttrack}/<reference>.npz
     OUT/stages/<stage>.json         written last by each finished stage (its facts: seconds, log folder)
+    OUT/stages/time_budget.json     with ``time_budget``: the step times measured and the factor on every training's steps
     OUT/metrics.json                PD and EfficientTrack metrics, training interactions, provenance
     OUT/plots/*.png                 tracking per test reference, tracking error over time, training curves
     OUT/run.log                     what the console showed, plain text, a header line per invocation
@@ -23,6 +24,9 @@ the model's 20-step MPE and the policy's model-predicted tracking error on them 
 unseen references, under the position controller alone. Each evaluation uses at most
 ``training.HELD_OUT_STEPS`` recorded steps; with the demo's settings they add 0.7 % to the model's and 2.7 % to
 the policy's training time (docs/logged-metrics.md).
+
+With ``time_budget`` (minutes), every training's steps are scaled to fit the run into it after the PD evaluation
+(:mod:`efficienttrack.time_budget`); ``metrics.json``'s config holds the steps trained.
 
 A rerun with the same run.json skips every finished stage; an interrupted stage resumes
 (collection at its first unwritten pass, training from its checkpoint). A rerun with other
@@ -74,6 +78,7 @@ from efficienttrack.rounds import (
 from efficienttrack.runtime import check_references
 from efficienttrack.stages import RunLog, Stages, evaluate_stage, track_and_save, train_stage
 from efficienttrack.systems.spec import SystemSpec
+from efficienttrack.time_budget import fit_to_budget
 from efficienttrack.training import read_scalars
 
 DEMO_REFERENCES = 40
@@ -273,13 +278,17 @@ def run_pipeline(
     stages = Stages(out)
 
     # Algorithm 1: collection (resumes pass by pass)
+    collecting = time.perf_counter()
     collected = collect(env, train_refs, cfg.collect, out / "records" / "train")
+    pass_seconds = (time.perf_counter() - collecting) / cfg.collect.passes
     steps = collected.interaction_steps
     facts = stages.done("collect", ("interaction_steps",)) or stages.finish("collect", {"interaction_steps": steps})
     log.print(f"collected {len(collected.records)} episodes, {facts['interaction_steps']} interaction steps")
 
     # the PD controller alone on the test references: the baseline, and the held-out episodes of both trainings
+    evaluating = time.perf_counter()
     pd_records = evaluate_stage(stages, "pd", out, env, None, test_refs, device)
+    cfg = fit_to_budget(cfg, stages, log, collected.records, device, start, pass_seconds, time.perf_counter() - evaluating)
 
     # closed-loop dynamics model g_θ, then the adjustment policy π_φ trained through it
     common = {"device": device, "seed": cfg.seed, "held_out": pd_records}

@@ -57,6 +57,15 @@ RoundDataOpt = Annotated[
     ),
 ]
 
+TimeBudgetOpt = Annotated[
+    float | None,
+    typer.Option(
+        "--time-budget",
+        help="Minutes for the whole run, all rounds: every training's steps are scaled down to fit, from step times "
+        "measured on this machine (a target, not a guarantee; default: the configured steps).",
+    ),
+]
+
 PlotsOpt = Annotated[
     int | None, typer.Option("--plots", help="Draw tracking plots of the first N test references (default: every one).")
 ]
@@ -69,6 +78,7 @@ def _run_config(
     device: str | None,
     rounds: int | None = None,
     round_data: str | None = None,
+    time_budget: float | None = None,
 ):
     """The run's settings: the preset, amended by the ``--config`` file, then by the command's own options."""
     from efficienttrack.config import load_config, preset, with_overrides
@@ -76,7 +86,7 @@ def _run_config(
     if round_data is not None and round_data not in ROUND_DATA:
         raise EfficientTrackError(f"--round-data '{round_data}': expected one of {', '.join(ROUND_DATA)}")
     base = load_config(config, preset(preset_name)) if config is not None else preset(preset_name)
-    return with_overrides(base, seed=seed, device=device, rounds=rounds, round_data=round_data)
+    return with_overrides(base, seed=seed, device=device, rounds=rounds, round_data=round_data, time_budget=time_budget)
 
 
 def _prepare_run_folder(out: Path, outputs: tuple[str, ...], force: bool) -> None:
@@ -139,6 +149,7 @@ def run_command(
     device: RunDeviceOpt = None,
     rounds: RoundsOpt = None,
     round_data: RoundDataOpt = None,
+    time_budget: TimeBudgetOpt = None,
     threads: ThreadsOpt = 1,
     plots: PlotsOpt = None,
     force: RunForceOpt = False,
@@ -150,7 +161,7 @@ def run_command(
     check_output_folder(out)
     _set_threads(threads)
     spec = _system_spec(system, plant, pd, system_opt, limits)
-    cfg = _run_config(config, preset_name, seed, device, rounds, round_data)
+    cfg = _run_config(config, preset_name, seed, device, rounds, round_data, time_budget)
     train, test = load_references(train_refs), load_references(test_refs)
     _lock(ctx, out)
     _prepare_run_folder(out, RUN_OUTPUTS, force)
@@ -167,6 +178,7 @@ def demo_command(
     device: RunDeviceOpt = None,
     rounds: RoundsOpt = None,
     round_data: RoundDataOpt = None,
+    time_budget: TimeBudgetOpt = None,
     threads: ThreadsOpt = 1,
     plots: PlotsOpt = None,
     force: RunForceOpt = False,
@@ -176,7 +188,7 @@ def demo_command(
 
     check_output_folder(out)
     _set_threads(threads)
-    cfg = _run_config(config, preset_name, seed, device, rounds, round_data)
+    cfg = _run_config(config, preset_name, seed, device, rounds, round_data, time_budget)
     _lock(ctx, out)
     _prepare_run_folder(out, DEMO_OUTPUTS, force)
     demo(out, cfg, console=wide_console(), max_plots=plots)
