@@ -35,39 +35,56 @@ def test_a_budget_too_small_to_train_is_refused():
         budget_scale(CFG, TIMES, seconds_left=5, other_seconds=4)
 
 
-def test_step_seconds_take_the_difference_of_two_short_trainings_after_a_warm_up():
+def test_step_seconds_and_evaluation_seconds_come_from_short_trainings_after_a_warm_up():
     class Result:
         def __init__(self, seconds):
             self.seconds = seconds
 
-    steps_seen = []
+    calls = []
 
     def train(cfg):
-        steps_seen.append(cfg.steps)
-        return Result(3.0 + 0.25 * cfg.steps + (5.0 if len(steps_seen) == 1 else 0.0))  # setup, steps, a slow first call
+        calls.append((cfg.steps, cfg.eval_every))
+        evaluations = cfg.steps // cfg.eval_every
+        return Result(3.0 + 0.25 * cfg.steps + 0.5 * evaluations + (5.0 if len(calls) == 1 else 0.0))  # a slow first call
 
-    per_step, longer = step_seconds(train, ModelConfig(steps=None, epochs=5))
-    assert per_step == pytest.approx(0.25) and steps_seen == list(time_budget.PROBE_STEPS)
-    assert longer.seconds == 3.0 + 0.25 * time_budget.PROBE_STEPS[-1]
+    per_step, per_evaluation, longest = step_seconds(train, ModelConfig(steps=None, epochs=5))
+    assert per_step == pytest.approx(0.25) and per_evaluation == pytest.approx(0.5)
+    warm_up, short, long = time_budget.PROBE_STEPS
+    assert calls == [(warm_up, warm_up), (short, short), (long, long), (short, short // 2)] and longest.seconds == 9.5
 
 
-def test_a_run_with_a_budget_trains_the_scaled_steps_and_keeps_the_factor(tmp_path, monkeypatch):
-    monkeypatch.setattr(time_budget, "measure_step_times", lambda cfg, records, device: StepTimes(0.05, 0.1, 500))
-    cfg = replace(TOY_CFG, time_budget=0.5)  # 30 s; the configured training "takes" 300 × 0.05 + 300 × 0.1 = 45 s
+def test_the_evaluations_count_once_per_training_whatever_its_steps():
+    times = TIMES._replace(model_evaluation=0.5, policy_evaluation=1.0)  # 10 of each per training: 15 s a round
+    scale, training = budget_scale(CFG, times, seconds_left=80, other_seconds=4)
+    assert training == pytest.approx(40 + 3 * 15) and scale == pytest.approx((80 * (1 - RESERVE) - 4 - 45) / 40)
+
+
+def test_a_run_with_a_budget_trains_the_scaled_steps_plans_each_round_and_keeps_the_factors(tmp_path, monkeypatch):
+    monkeypatch.setattr(time_budget, "measure_step_times", lambda cfg, records, held_out, device: StepTimes(0.05, 0.1, 500))
+    # 40 s; round 1's training "takes" 300 × 0.05 + 300 × 0.1 = 45 s, round 2 half of it
+    cfg = replace(TOY_CFG, time_budget=40 / 60, rounds=2)
     result = run_pipeline(TOY, *toy_split(), tmp_path, cfg)
-    facts = json.loads((tmp_path / "stages" / "time_budget.json").read_text())
-    assert 0.05 < facts["scale"] < 1 and facts["unscaled_training_seconds"] == pytest.approx(45)
-    steps = round(TOY_CFG.model.steps * facts["scale"])
+    first = json.loads((tmp_path / "stages" / "time_budget.json").read_text())
+    second = json.loads((tmp_path / "stages" / "time_budget_round_2.json").read_text())
+    assert 0.05 < first["scale"] < 1 and first["unscaled_training_seconds"] == pytest.approx(45 * 1.5)
+    steps = round(TOY_CFG.model.steps * first["scale"])
     assert len(read_scalars(tmp_path / "logs" / "model")["train/loss"][0]) == steps
-    assert result.metrics["config"]["model"]["steps"] == steps
-    assert json.loads((tmp_path / "config.json").read_text())["time_budget"] == 0.5
+    # round 2 is planned with how long round 1's trainings really took against the 45 s × scale the probes predicted
+    trained = result.metrics["rounds"][0]["train_seconds"]
+    assert second["slower_than_probed"] == pytest.approx(trained / (45 * first["scale"]), rel=1e-3)
+    assert 0.05 <= second["scale"] <= 1
+    warm = round(round(TOY_CFG.policy.steps * second["scale"]) * TOY_CFG.warm_budget) if second["scale"] < 1 else 150
+    assert len(read_scalars(tmp_path / "rounds" / "2" / "logs" / "policy")["train/loss"][0]) == warm
+    assert result.metrics["time_budget"]["scales"] == [first["scale"], second["scale"]]
+    assert result.metrics["config"]["time_budget"] == cfg.time_budget and result.metrics["config"]["model"]["steps"] == 300
 
     def measured_again(*args):
         raise AssertionError("a rerun measured the step times again")
 
     monkeypatch.setattr(time_budget, "measure_step_times", measured_again)
     again = run_pipeline(TOY, *toy_split(), tmp_path, cfg)
-    assert "time_budget" in again.skipped and again.metrics["config"]["model"]["steps"] == steps
+    assert {"time_budget", "time_budget_round_2"} <= set(again.skipped)
+    assert again.metrics["time_budget"]["scales"] == result.metrics["time_budget"]["scales"]
 
 
 def test_the_cli_option_sets_the_budget_and_refuses_a_bad_one(tmp_path):

@@ -10,7 +10,7 @@ Output folder layout (everything written atomically)::
     OUT/logs/{model,policy}/        scalars.csv and TensorBoard events of each training (docs/logged-metrics.md)
     OUT/records/{pd,efficienttrack}/<reference>.npz
     OUT/stages/<stage>.json         written last by each finished stage (its facts: seconds, log folder)
-    OUT/stages/time_budget.json     with ``time_budget``: the step times measured and the factor on every training's steps
+    OUT/stages/time_budget*.json    with ``time_budget``: the step times measured, the factor on each round's steps
     OUT/metrics.json                PD and EfficientTrack metrics, training interactions, provenance
     OUT/plots/*.png                 tracking per test reference, tracking error over time, training curves
     OUT/run.log                     what the console showed, plain text, a header line per invocation
@@ -25,8 +25,9 @@ unseen references, under the position controller alone. Each evaluation uses at 
 ``training.HELD_OUT_STEPS`` recorded steps; with the demo's settings they add 0.7 % to the model's and 2.7 % to
 the policy's training time (docs/logged-metrics.md).
 
-With ``time_budget`` (minutes), every training's steps are scaled to fit the run into it after the PD evaluation
-(:mod:`efficienttrack.time_budget`); ``metrics.json``'s config holds the steps trained.
+With ``time_budget`` (minutes), the trainings' steps are scaled to fit the run into it, planned after the PD evaluation
+and again before each later round (:mod:`efficienttrack.time_budget`); ``metrics.json`` gets ``"time_budget"``:
+the minutes, each round's factor and the step times measured (null without a budget).
 
 A rerun with the same run.json skips every finished stage; an interrupted stage resumes
 (collection at its first unwritten pass, training from its checkpoint). A rerun with other
@@ -78,7 +79,7 @@ from efficienttrack.rounds import (
 from efficienttrack.runtime import check_references
 from efficienttrack.stages import RunLog, Stages, evaluate_stage, track_and_save, train_stage
 from efficienttrack.systems.spec import SystemSpec
-from efficienttrack.time_budget import fit_to_budget
+from efficienttrack.time_budget import TimeBudget
 from efficienttrack.training import read_scalars
 
 DEMO_REFERENCES = 40
@@ -288,13 +289,17 @@ def run_pipeline(
     # the PD controller alone on the test references: the baseline, and the held-out episodes of both trainings
     evaluating = time.perf_counter()
     pd_records = evaluate_stage(stages, "pd", out, env, None, test_refs, device)
-    cfg = fit_to_budget(cfg, stages, log, collected.records, device, start, pass_seconds, time.perf_counter() - evaluating)
+    evaluation_seconds = time.perf_counter() - evaluating
+    budget = None if cfg.time_budget is None else TimeBudget(cfg, stages, log, start)
+    train_cfg = cfg
+    if budget is not None:  # fewer training steps, to fit the run into its minutes
+        train_cfg = budget.first_round(collected.records, pd_records, device, pass_seconds, evaluation_seconds)
 
     # closed-loop dynamics model g_θ, then the adjustment policy π_φ trained through it
     common = {"device": device, "seed": cfg.seed, "held_out": pd_records}
-    trainer = partial(dynamics.train_model, cfg.model, collected.records, **common)
+    trainer = partial(dynamics.train_model, train_cfg.model, collected.records, **common)
     g_theta, model_facts = train_stage(stages, "model", out, log, trainer, dynamics.save_model, dynamics.load_model, device)
-    trainer = partial(policy.train_policy, cfg.policy, g_theta, collected.records, **common)
+    trainer = partial(policy.train_policy, train_cfg.policy, g_theta, collected.records, **common)
     pi_phi, policy_facts = train_stage(stages, "policy", out, log, trainer, policy.save_policy, policy.load_policy, device)
 
     # Algorithm 2 on the held-out references
@@ -309,7 +314,8 @@ def run_pipeline(
 
     # continual learning: deploy, record, retrain from the previous weights, evaluate
     for k in range(2, cfg.rounds + 1):
-        state = run_round(k, state, cfg, env, train_refs, test_refs, pd_records, out, log, device)
+        round_cfg = cfg if budget is None else budget.later_round(k, sum(entry["train_seconds"] for entry in summaries))
+        state = run_round(k, state, round_cfg, env, train_refs, test_refs, pd_records, out, log, device)
         summaries.append(state.summary)
 
     # report (the last round's policy)
@@ -327,6 +333,7 @@ def run_pipeline(
         wall_seconds=time.perf_counter() - start,
     )
     metrics["rounds"] = summaries
+    metrics["time_budget"] = None if budget is None else budget.summary()
     curves = {
         name: plots.TrainingCurves(read_scalars(state.folder / state.facts[name]["log"]), *labels)
         for name, labels in (

@@ -1,18 +1,23 @@
 """Fit a run into a wall-clock budget (``--time-budget MINUTES``) by training fewer optimizer steps.
 
 Almost all of a run's time is training, and a training step's cost depends on the machine (it varied by 30 %
-between days on one 2-core machine). So the run measures it: after the collection and the PD evaluation it times
-short trainings of each network on the collected data (:func:`step_seconds`; their setup cancels out), estimates
-what every round's trainings and the rest of the run will take, and scales the optimizer steps of every training,
-all rounds, by one factor ≤ 1 (:func:`budget_scale`). The factor is kept in ``OUT/stages/time_budget.json``, so a
-resumed run trains the same steps. The budget is a target, not a guarantee: work beside the run slows its steps.
+between days on one 2-core machine) and on what else runs on it. So the run measures it: after the collection and
+the PD evaluation it times short trainings of each network on the collected data (:func:`step_seconds`; their setup
+cancels out), estimates what every round's trainings and the rest of the run will take, and scales round 1's
+optimizer steps by a factor ≤ 1 (:func:`budget_scale`). Before each later round it plans again from the time left,
+with the step times corrected by how long the finished trainings really took (:class:`TimeBudget`). The factors are
+kept as stages, so a resumed run trains the same steps. The budget is a target, not a guarantee: work that starts
+beside the run after the last plan slows its steps.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
+import tempfile
 import time
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any, NamedTuple
 
 import torch
@@ -22,65 +27,92 @@ from efficienttrack.config import RunConfig
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.records import EpisodeRecord
 from efficienttrack.stages import RunLog, Stages
-from efficienttrack.training import TrainingSchedule
+from efficienttrack.training import EVALUATIONS, TrainingSchedule
 
 PROBE_STEPS = (1, 4, 24)
 """Optimizer steps of the short trainings of each network: a warm-up (the process's first steps are slow), then two
-timed ones; the step time is the difference of those two over their 20 steps."""
+timed ones with one held-out evaluation each; the step time is the difference of those two over their 20 steps."""
 MIN_SCALE = 0.05
 """Smallest share of the configured steps worth training; a budget that leaves less is refused."""
 RESERVE = 0.03
 """Share of the budget kept for what the estimate leaves out (model errors, saving, plots)."""
 STAGE = "time_budget"
-"""The stage that keeps the factor: ``OUT/stages/time_budget.json``."""
+"""The stage that keeps round 1's factor, ``OUT/stages/time_budget.json``; round k's is ``time_budget_round_<k>``."""
 
 
 class StepTimes(NamedTuple):
-    """Seconds per optimizer step of each training on this machine, and the training windows (for epoch schedules).
+    """What the trainings cost on this machine, and the training windows (for epoch schedules).
 
     Attributes:
-        model: s per step of g_θ's training.
-        policy: s per step of π_φ's training.
+        model: s per optimizer step of g_θ's training.
+        policy: s per optimizer step of π_φ's training.
         windows: training windows of the collected data.
+        model_evaluation: s per held-out evaluation during g_θ's training (:data:`~efficienttrack.training.EVALUATIONS`
+            of them a training, however many steps it has).
+        policy_evaluation: the same for π_φ.
     """
 
     model: float
     policy: float
     windows: int
+    model_evaluation: float = 0.0
+    policy_evaluation: float = 0.0
 
 
-def step_seconds(train: Callable[[TrainingSchedule], Any], cfg: TrainingSchedule) -> tuple[float, Any]:
-    """Seconds per optimizer step of a training: after a warm-up, two short runs of it, their setup cancelling out.
+def step_seconds(train: Callable[[TrainingSchedule], Any], cfg: TrainingSchedule) -> tuple[float, float, Any]:
+    """Seconds per optimizer step and per held-out evaluation of a training, from short runs of it.
+
+    After a warm-up, runs of :data:`PROBE_STEPS` steps with one evaluation each give the step time (their difference:
+    setup and evaluation cancel), and the short run again with two evaluations gives the evaluation's.
 
     Args:
         train: runs the training with a schedule and returns its result (``seconds``, ``windows``, the network first).
-        cfg: the training's config; the probes train :data:`PROBE_STEPS` steps of it.
+        cfg: the training's config.
 
     Returns:
-        The seconds per step (> 0) and the longer probe's result.
+        The seconds per step (> 0), per evaluation (≥ 0), and the longest probe's result.
     """
-    _, short, long = (
-        train(dataclasses.replace(cfg, steps=steps, epochs=None, save_every=steps, eval_every=None)) for steps in PROBE_STEPS
-    )
-    per_step = (long.seconds - short.seconds) / (PROBE_STEPS[2] - PROBE_STEPS[1])
-    return max(per_step, long.seconds / PROBE_STEPS[2] / 10, 1e-6), long
+
+    def probe(steps: int, every: int) -> Any:
+        return train(dataclasses.replace(cfg, steps=steps, epochs=None, save_every=steps, eval_every=every))
+
+    warm_up, short, long = PROBE_STEPS
+    probe(warm_up, warm_up)
+    first, last, twice = probe(short, short), probe(long, long), probe(short, short // 2)
+    per_step = max((last.seconds - first.seconds) / (long - short), last.seconds / long / 10, 1e-6)
+    return per_step, max(twice.seconds - first.seconds, 0.0), last
 
 
-def measure_step_times(cfg: RunConfig, records: Sequence[EpisodeRecord], device: torch.device) -> StepTimes:
-    """Time both trainings of ``cfg`` on ``records`` (:data:`PROBE_STEPS`: 29 steps of each network; nothing is saved).
+def measure_step_times(
+    cfg: RunConfig, records: Sequence[EpisodeRecord], held_out: Sequence[EpisodeRecord], device: torch.device
+) -> StepTimes:
+    """Time both trainings of ``cfg`` on ``records``, with their held-out evaluations and logs (nothing is kept).
 
     Args:
         cfg: the run's config (sizes, batches, horizons).
         records: the collected episodes.
+        held_out: the episodes the trainings evaluate on.
         device: the training device.
 
     Returns:
-        The step times and the window count.
+        The costs and the window count.
     """
-    common = {"device": device, "seed": cfg.seed, "progress": False}
-    model_s, probe = step_seconds(lambda c: dynamics.train_model(c, records, **common), cfg.model)
-    policy_s, _ = step_seconds(lambda c: policy.train_policy(c, probe.model, records, **common), cfg.policy)
-    return StepTimes(model_s, policy_s, probe.windows)
+    with tempfile.TemporaryDirectory() as folder:
+        logs = (Path(folder) / str(i) for i in itertools.count())
+        common = {"device": device, "seed": cfg.seed, "progress": False, "held_out": held_out}
+        model_s, model_eval, probe = step_seconds(
+            lambda c: dynamics.train_model(c, records, log_dir=next(logs), **common), cfg.model
+        )
+        policy_s, policy_eval, _ = step_seconds(
+            lambda c: policy.train_policy(c, probe.model, records, log_dir=next(logs), **common), cfg.policy
+        )
+    return StepTimes(model_s, policy_s, probe.windows, model_eval, policy_eval)
+
+
+def round_seconds(cfg: RunConfig, times: StepTimes) -> tuple[float, float]:
+    """Round 1's training seconds by ``times``: what scales with its steps, and what does not (the evaluations)."""
+    steps = cfg.model.total_steps(times.windows) * times.model + cfg.policy.total_steps(times.windows) * times.policy
+    return steps, EVALUATIONS * (times.model_evaluation + times.policy_evaluation)
 
 
 def budget_scale(cfg: RunConfig, times: StepTimes, seconds_left: float, other_seconds: float) -> tuple[float, float]:
@@ -88,7 +120,7 @@ def budget_scale(cfg: RunConfig, times: StepTimes, seconds_left: float, other_se
 
     Args:
         cfg: the run's config: round 1's steps, ``rounds`` and ``warm_budget`` (a later round's share of them).
-        times: the step times.
+        times: the costs of the trainings.
         seconds_left: the budget's seconds not spent yet.
         other_seconds: what the rest of the run takes besides training (deployments, evaluations).
 
@@ -98,63 +130,116 @@ def budget_scale(cfg: RunConfig, times: StepTimes, seconds_left: float, other_se
     Raises:
         EfficientTrackError: the budget leaves less than :data:`MIN_SCALE` of the configured training.
     """
-    round_1 = cfg.model.total_steps(times.windows) * times.model + cfg.policy.total_steps(times.windows) * times.policy
-    training = round_1 * (1 + (cfg.rounds - 1) * cfg.warm_budget)
-    available = seconds_left * (1 - RESERVE) - other_seconds
-    scale = min(1.0, available / training)
+    steps, fixed = round_seconds(cfg, times)
+    scalable, fixed = steps * (1 + (cfg.rounds - 1) * cfg.warm_budget), fixed * cfg.rounds
+    available = seconds_left * (1 - RESERVE) - other_seconds - fixed
+    scale = min(1.0, available / scalable)
     if scale < MIN_SCALE:
         raise EfficientTrackError(
-            f"--time-budget {cfg.time_budget:g} min: {max(available, 0) / 60:.1f} min would be left for training, less than "
-            f"{MIN_SCALE:.0%} of the {training / 60:.1f} min its steps take on this machine; give more minutes or fewer steps"
+            f"--time-budget {cfg.time_budget:g} min: {max(available, 0) / 60:.1f} min would be left for training steps, "
+            f"less than {MIN_SCALE:.0%} of the {scalable / 60:.1f} min they take on this machine; give more minutes or "
+            "fewer steps"
         )
-    return scale, training
+    return scale, scalable + fixed
 
 
-def fit_to_budget(
-    cfg: RunConfig,
-    stages: Stages,
-    log: RunLog,
-    records: Sequence[EpisodeRecord],
-    device: torch.device,
-    started: float,
-    pass_seconds: float,
-    evaluation_seconds: float,
-) -> RunConfig:
-    """``cfg`` with every training's steps scaled to fit ``cfg.time_budget`` (unchanged without one).
+class TimeBudget:
+    """A run's budget: the factor on round 1's training steps, then on each later round's, re-planned as the run goes.
 
-    The factor is decided once per run folder and kept as the stage :data:`STAGE`; a rerun reads it back.
+    Round 1's factor comes from probe step times (:func:`measure_step_times`). Before each later round the plan is
+    redone from the time left, with the step times corrected by how much longer the finished trainings really took
+    than the probes predicted (evaluations during training, saving, other work on the machine). Each factor is kept
+    as a stage (:data:`STAGE`, ``time_budget_round_<k>``), so a resumed run trains the same steps.
 
     Args:
-        cfg: the run's config.
+        cfg: the run's config, with ``time_budget`` set (minutes).
         stages: the run's finished-stage markers.
         log: where to say what was decided.
-        records: the collected episodes (the probes train on them).
-        device: the training device.
         started: ``time.perf_counter()`` when this invocation of the run began; the budget counts from there.
-        pass_seconds: what one collection pass took here (a later round deploys one pass).
-        evaluation_seconds: what one evaluation on the test references took here.
-
-    Returns:
-        The config to train with.
     """
-    if cfg.time_budget is None:
-        return cfg
-    facts = stages.done(STAGE, ("scale",))
-    if facts is None:
-        times = measure_step_times(cfg, records, device)
-        other = cfg.rounds * evaluation_seconds + (cfg.rounds - 1) * pass_seconds
-        left = cfg.time_budget * 60 - (time.perf_counter() - started)
-        scale, training = budget_scale(cfg, times, left, other)
-        facts = stages.finish(
-            STAGE,
-            {"scale": scale, "model_step_seconds": times.model, "policy_step_seconds": times.policy,
-             "unscaled_training_seconds": training, "seconds_left": left, "other_seconds": other},
-        )  # fmt: skip
-        log.print(
-            f"time budget {cfg.time_budget:g} min: {times.model * 1e3:.0f} ms per model step, {times.policy * 1e3:.0f} ms "
-            f"per policy step; the configured training takes {training / 60:.1f} min, "
-            + ("it fits" if scale >= 1 else f"so every training gets {scale:.0%} of its steps")
-        )
-    if facts["scale"] >= 1:
-        return cfg
-    return dataclasses.replace(cfg, model=cfg.model.scaled(facts["scale"]), policy=cfg.policy.scaled(facts["scale"]))
+
+    def __init__(self, cfg: RunConfig, stages: Stages, log: RunLog, started: float) -> None:
+        if cfg.time_budget is None:
+            raise EfficientTrackError("TimeBudget: the config has no time_budget")
+        self.cfg, self.stages, self.log, self.started = cfg, stages, log, started
+        self.facts: dict[str, Any] = {}
+        self.scales: list[float] = []
+
+    def first_round(
+        self,
+        records: Sequence[EpisodeRecord],
+        held_out: Sequence[EpisodeRecord],
+        device: torch.device,
+        pass_seconds: float,
+        evaluation_seconds: float,
+    ) -> RunConfig:
+        """Round 1's config: its steps scaled so that every round fits (probes the step times on ``records``).
+
+        Args:
+            records: the collected episodes (the probes train on them).
+            held_out: the episodes the trainings evaluate on.
+            device: the training device.
+            pass_seconds: what one collection pass took here (a later round deploys one pass).
+            evaluation_seconds: what one evaluation on the test references took here.
+
+        Returns:
+            The config round 1 trains with.
+        """
+        cfg = self.cfg
+        facts = self.stages.done(STAGE, ("scale", "times", "other_seconds"))
+        if facts is None:
+            times = measure_step_times(cfg, records, held_out, device)
+            other = cfg.rounds * evaluation_seconds + (cfg.rounds - 1) * pass_seconds
+            scale, training = budget_scale(cfg, times, self._seconds_left(), other)
+            facts = self.stages.finish(
+                STAGE,
+                {"scale": scale, "times": times._asdict(), "unscaled_training_seconds": training, "other_seconds": other},
+            )  # fmt: skip
+            self.log.print(
+                f"time budget {cfg.time_budget:g} min: {times.model * 1e3:.0f} ms per model step, {times.policy * 1e3:.0f} "
+                f"ms per policy step; the configured training takes {training / 60:.1f} min, "
+                + ("it fits" if scale >= 1 else f"so round 1 trains {scale:.0%} of its steps")
+            )
+        self.facts = facts
+        self.scales = [facts["scale"]]
+        return self._scaled(facts["scale"])
+
+    def later_round(self, k: int, trained_seconds: float) -> RunConfig:
+        """Round k's config (k ≥ 2), its steps scaled so that rounds k … K fit into the time left.
+
+        Args:
+            k: the round.
+            trained_seconds: what the trainings of rounds 1 … k − 1 really took, s.
+
+        Returns:
+            The config round k trains with (``run_round`` takes ``warm_budget`` of its steps).
+        """
+        cfg, name = self.cfg, f"{STAGE}_round_{k}"
+        facts = self.stages.done(name, ("scale",))
+        if facts is None:
+            steps, fixed = round_seconds(cfg, StepTimes(**self.facts["times"]))  # round 1 unscaled, by the probes
+            predicted = steps * (self.scales[0] + sum(self.scales[1:]) * cfg.warm_budget) + fixed * len(self.scales)
+            slower = trained_seconds / predicted if predicted > 0 else 1.0
+            rest = cfg.rounds - k + 1
+            other = self.facts["other_seconds"] * rest / cfg.rounds + rest * fixed * slower
+            available = self._seconds_left() * (1 - RESERVE) - other
+            scale = min(1.0, max(available / (rest * cfg.warm_budget * steps * slower), MIN_SCALE))
+            facts = self.stages.finish(name, {"scale": scale, "slower_than_probed": slower, "seconds_left": available})
+            share = "its full steps" if scale >= 1 else f"{scale:.0%} of its steps"
+            self.log.print(f"time budget: the trainings so far took {slower:.2f} × the estimate; round {k} trains {share}")
+            if scale <= MIN_SCALE:
+                self.log.print(f"time budget: spent; round {k} trains the fewest steps allowed ({MIN_SCALE:.0%})")
+        self.scales.append(facts["scale"])
+        return self._scaled(facts["scale"])
+
+    def summary(self) -> dict[str, Any]:
+        """``{"minutes", "scales": one factor per round so far, "times": the costs measured (:class:`StepTimes`)}``."""
+        return {"minutes": self.cfg.time_budget, "scales": self.scales, "times": self.facts.get("times")}
+
+    def _seconds_left(self) -> float:
+        return self.cfg.time_budget * 60 - (time.perf_counter() - self.started)
+
+    def _scaled(self, scale: float) -> RunConfig:
+        if scale >= 1:
+            return self.cfg
+        return dataclasses.replace(self.cfg, model=self.cfg.model.scaled(scale), policy=self.cfg.policy.scaled(scale))
