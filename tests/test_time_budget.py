@@ -8,7 +8,7 @@ from typer.testing import CliRunner
 
 from efficienttrack import time_budget
 from efficienttrack.cli import app
-from efficienttrack.config import RunConfig
+from efficienttrack.config import RunConfig, from_dict
 from efficienttrack.dynamics import ModelConfig
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.pipeline import run_pipeline
@@ -90,3 +90,8 @@ def test_a_run_with_a_budget_trains_the_scaled_steps_plans_each_round_and_keeps_
 def test_the_cli_option_sets_the_budget_and_refuses_a_bad_one(tmp_path):
     result = CliRunner().invoke(app, ["demo", "--out", str(tmp_path / "d"), "--time-budget", "0"])
     assert isinstance(result.exception, EfficientTrackError) and "time_budget must be a number > 0" in str(result.exception)
+
+
+def test_a_config_without_a_budget_serializes_as_before_the_field_existed():
+    assert "time_budget" not in TOY_CFG.to_dict()  # folders made before it still match their settings and resume
+    assert from_dict(CFG.to_dict()) == CFG and from_dict(TOY_CFG.to_dict()) == TOY_CFG

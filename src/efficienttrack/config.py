@@ -75,8 +75,15 @@ class RunConfig:
                 raise EfficientTrackError(f"RunConfig.{name} must be a number > 0, got {budget!r}")
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON/YAML-serializable form (tuples become lists)."""
-        return json.loads(json.dumps(asdict(self)))
+        """JSON/YAML-serializable form (tuples become lists); ``time_budget`` only when set.
+
+        Without a budget the form is the one from before the field existed, so that run, study and ablation folders
+        made then still match their settings and resume.
+        """
+        data = json.loads(json.dumps(asdict(self)))
+        if data["time_budget"] is None:
+            del data["time_budget"]
+        return data
 
     def save(self, path: str | Path) -> Path:
         """Write the config atomically, as YAML or JSON.
