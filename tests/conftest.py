@@ -28,3 +28,16 @@ def interrupt_at(monkeypatch):
         monkeypatch.setattr(CurveRecorder, "measure", killed)
 
     return arm
+
+
+@pytest.fixture
+def default_stop_signals():
+    """SIGTERM and SIGHUP at their default action for the test (Ray's ``init`` leaves a SIGTERM handler in the process)."""
+    import signal
+
+    from efficienttrack.stop_signals import STOP_SIGNALS
+
+    previous = {s: signal.signal(s, signal.SIG_DFL) for s in STOP_SIGNALS}
+    yield
+    for s, action in previous.items():
+        signal.signal(s, action)

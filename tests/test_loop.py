@@ -315,7 +315,7 @@ def test_ctrl_c_sends_raw_and_ends_the_log(ref, tmp_path):
 
 
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP])
-def test_a_stop_signal_sends_raw_closes_and_ends_the_log_like_ctrl_c(ref, tmp_path, signum):
+def test_a_stop_signal_sends_raw_closes_and_ends_the_log_like_ctrl_c(ref, tmp_path, signum, default_stop_signals):
     result, machine, ticks, end, _ = run(ref, tmp_path, stop_signal=(8, signum))
     assert result.reason == end["reason"] == "interrupted" and end["error"] == signal.Signals(signum).name
     assert machine.closed == 1 and len(ticks) == 8

@@ -9,7 +9,7 @@ import pytest
 from efficienttrack.stop_signals import Terminated, interrupt_name, stop_signals_as_interrupt
 
 
-def test_the_first_sigterm_raises_a_keyboard_interrupt_and_later_ones_are_ignored():
+def test_the_first_sigterm_raises_a_keyboard_interrupt_and_later_ones_are_ignored(default_stop_signals):
     with stop_signals_as_interrupt():
         assert signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL  # else the kill below ends the test run
         with pytest.raises(KeyboardInterrupt) as caught:
@@ -22,7 +22,7 @@ def test_the_first_sigterm_raises_a_keyboard_interrupt_and_later_ones_are_ignore
     assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
 
 
-def test_a_signal_set_by_the_program_or_nohup_is_left_alone():
+def test_a_signal_set_by_the_program_or_nohup_is_left_alone(default_stop_signals):
     def own(signum, frame):
         pass
 
@@ -35,7 +35,7 @@ def test_a_signal_set_by_the_program_or_nohup_is_left_alone():
         signal.signal(signal.SIGTERM, previous[1])
 
 
-def test_outside_the_main_thread_nothing_changes():
+def test_outside_the_main_thread_nothing_changes(default_stop_signals):
     seen = []
 
     def body():

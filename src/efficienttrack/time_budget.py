@@ -111,7 +111,12 @@ def measure_step_times(
 
 
 def round_seconds(cfg: RunConfig, times: StepTimes) -> tuple[float, float]:
-    """Round 1's training seconds by ``times``: what scales with its steps, and what does not (the evaluations)."""
+    """Round 1's training seconds by ``times``: what scales with its steps, and what does not (the evaluations).
+
+    Args:
+        cfg: the run's config (round 1's steps of both trainings).
+        times: the costs measured.
+    """
     steps = cfg.model.total_steps(times.windows) * times.model + cfg.policy.total_steps(times.windows) * times.policy
     return steps, EVALUATIONS * (times.model_evaluation + times.policy_evaluation)
 
