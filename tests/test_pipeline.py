@@ -57,6 +57,7 @@ RESULT_KEYS = {
     "system",
     "config",
     "rounds",
+    "time_budget",
     "provenance",
 }
 """Top-level keys of metrics.json, the same for run and evaluate."""

@@ -189,6 +189,7 @@ def _metrics(
         "system": system.to_dict(),
         "config": config,
         "rounds": None,
+        "time_budget": None,
         "provenance": provenance(device, wall_seconds),
     }
 
@@ -248,7 +249,8 @@ def run_pipeline(
         "model": {"tr_mpe_deg", "te_mpe_deg"}, "fallbacks": guard fallbacks, "fallback_share": their share of the
         policy's steps, "warning": None, or why the figures are not EfficientTrack's (:func:`fallback_share`),
         "references": test reference names, "policy": the policy checkpoint, "system", "config", "rounds": one entry per round
-        (:func:`efficienttrack.rounds.round_summary`), "provenance"}``.
+        (:func:`efficienttrack.rounds.round_summary`), "time_budget": None, or the budget's minutes, factors and step
+        times (:meth:`~efficienttrack.time_budget.TimeBudget.summary`), "provenance"}``.
 
     Raises:
         EfficientTrackError: bad system spec, no references, one outside the joint limits, a negative ``max_plots``, or
