@@ -230,7 +230,7 @@ class TimeBudget:
             other = self.facts["other_seconds"] * rest / cfg.rounds + rest * fixed * slower
             available = self._seconds_left() * (1 - RESERVE) - other
             scale = min(1.0, max(available / (rest * cfg.warm_budget * steps * slower), MIN_SCALE))
-            facts = self.stages.finish(name, {"scale": scale, "slower_than_probed": slower, "seconds_left": available})
+            facts = self.stages.finish(name, {"scale": scale, "slower_than_probed": slower, "seconds_for_training": available})
             share = "its full steps" if scale >= 1 else f"{scale:.0%} of its steps"
             self.log.print(f"time budget: the trainings so far took {slower:.2f} × the estimate; round {k} trains {share}")
             if scale <= MIN_SCALE:
