@@ -88,8 +88,10 @@ def test_a_run_with_a_budget_trains_the_scaled_steps_plans_each_round_and_keeps_
 
 
 def test_the_cli_option_sets_the_budget_and_refuses_a_bad_one(tmp_path):
-    result = CliRunner().invoke(app, ["demo", "--out", str(tmp_path / "d"), "--time-budget", "0"])
-    assert isinstance(result.exception, EfficientTrackError) and "time_budget must be a number > 0" in str(result.exception)
+    for value in ("0", "nan", "-3"):
+        result = CliRunner().invoke(app, ["demo", "--out", str(tmp_path / "d"), "--time-budget", value])
+        assert isinstance(result.exception, EfficientTrackError), value
+        assert "--time-budget" in str(result.exception) and "a number > 0" in str(result.exception)
 
 
 def test_a_config_without_a_budget_serializes_as_before_the_field_existed():

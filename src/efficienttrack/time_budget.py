@@ -194,6 +194,7 @@ class TimeBudget:
         cfg = self.cfg
         facts = self.stages.done(STAGE, ("scale", "times", "other_seconds"))
         if facts is None:
+            self.log.print(f"time budget {cfg.time_budget:g} min: timing short trainings of both networks on this machine")
             times = measure_step_times(cfg, records, held_out, device)
             other = cfg.rounds * evaluation_seconds + (cfg.rounds - 1) * pass_seconds
             scale, training = budget_scale(cfg, times, self._seconds_left(), other)

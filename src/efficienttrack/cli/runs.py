@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated
 
@@ -85,6 +86,8 @@ def _run_config(
 
     if round_data is not None and round_data not in ROUND_DATA:
         raise EfficientTrackError(f"--round-data '{round_data}': expected one of {', '.join(ROUND_DATA)}")
+    if time_budget is not None and not (math.isfinite(time_budget) and time_budget > 0):
+        raise EfficientTrackError(f"--time-budget {time_budget}: expected minutes, a number > 0")
     base = load_config(config, preset(preset_name)) if config is not None else preset(preset_name)
     return with_overrides(base, seed=seed, device=device, rounds=rounds, round_data=round_data, time_budget=time_budget)
 
