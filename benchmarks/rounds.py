@@ -4,8 +4,11 @@ For each preset (``cpu``: ten collection passes, then rounds; ``fastset``: one p
 resumable run under OUT/<preset>/seed_<s> (the demo's references: 32 training, 8 test cycles). Prints, per round,
 mean ± std over seeds of the test MAE, its ratio to PD, the 1st/2nd-order smoothness, Tr/Te.MPE, the interaction
 steps (I.S.) and the training time, then each run's wall time, and writes the same as OUT/rounds_benchmark.json.
+With ``--time-budget MINUTES`` every run is given its minutes (``RunConfig.time_budget``), and each wall time is
+checked against them: the issue's target is three fastset rounds within 15 minutes on 2 cores.
 
     .venv/bin/python benchmarks/rounds.py --presets cpu fastset --seeds 0 1 2 --out runs/bench_rounds
+    .venv/bin/python benchmarks/rounds.py --presets fastset --time-budget 15 --threads 2 --out runs/bench_budget
 """
 
 from __future__ import annotations
@@ -14,7 +17,6 @@ import argparse
 import shlex
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +25,7 @@ import torch
 from rich.console import Console
 from rich.table import Table
 
-from efficienttrack.config import PRESETS, RunConfig
+from efficienttrack.config import PRESETS, RunConfig, with_overrides
 from efficienttrack.cycles import generate_references
 from efficienttrack.fileio import write_json
 from efficienttrack.pipeline import DEMO_REFERENCES, DEMO_SEED, DEMO_TRAIN, run_pipeline
@@ -72,6 +74,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("runs/bench_rounds"), help="output folder")
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    parser.add_argument("--time-budget", type=float, default=None, help="minutes per run (default: no budget)")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -83,12 +86,15 @@ def main() -> None:
         base: RunConfig = PRESETS[name]
         runs, walls = [], []
         for seed in args.seeds:
-            cfg = replace(base, seed=seed, device=args.device, rounds=args.rounds, collect=replace(base.collect, seed=seed))
+            cfg = with_overrides(base, seed=seed, device=args.device, rounds=args.rounds, time_budget=args.time_budget)
             start = time.perf_counter()
             runs.append(run_pipeline(SystemSpec(), train, test, args.out / name / f"seed_{seed}", cfg, console).metrics)
             walls.append(time.perf_counter() - start)
         rows = summarize(runs)
         report["presets"][name] = {"seeds": args.seeds, "rounds": rows, "wall_seconds": walls}
+        if args.time_budget is not None:
+            within = [w <= 60 * args.time_budget for w in walls]
+            report["presets"][name]["within_time_budget"] = within
         table = Table(title=f"xe75, {len(train)} train / {len(test)} test references, preset {name}, seeds {args.seeds}")
         table.add_column("method")
         for heading, _, _ in COLUMNS:
@@ -98,6 +104,8 @@ def main() -> None:
             table.add_row(row["method"], *cells)
         console.print(table)
         console.print(f"wall time per run (s, resumed stages not counted): {', '.join(f'{w:.0f}' for w in walls)}")
+        if args.time_budget is not None:
+            console.print(f"within the time budget of {args.time_budget:g} min: {sum(within)} of {len(walls)} runs")
     write_json(args.out / "rounds_benchmark.json", report)
     console.print("command: " + report["command"])
 
