@@ -2,7 +2,10 @@
 
 import json
 import math
+import os
 import shutil
+import signal
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -16,6 +19,7 @@ from efficienttrack.cycles import generate_references
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.references import Reference, save_references
 from efficienttrack.study import METHODS, Job, Study, available_methods, make_jobs, make_study, report, run_study
+from efficienttrack.study.executors import process_pool
 from efficienttrack.study.jobs import LOOPS
 from efficienttrack.study.methods import Method, point
 from efficienttrack.study.report import FIELDS, METRICS, log_mae_axis
@@ -224,6 +228,21 @@ def test_process_pool_runs_jobs_in_spawned_workers(refs, tmp_path):
     maes = [json.loads((tmp_path / "jobs" / name / "result.json").read_text())["curve"][0]["metrics"]["mae_deg"]
             for name in result.ran]  # fmt: skip
     assert maes[0] == maes[1]
+
+
+def test_a_stop_signal_to_a_local_study_stops_its_workers_instead_of_waiting_for_them(default_stop_signals):
+    with pytest.raises(KeyboardInterrupt), process_pool(2) as pool:
+        assert signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL  # else the kill below ends the test run
+        futures = [pool.submit(time.sleep, 60) for _ in range(3)]  # two running jobs and one queued
+        while len(pool._processes) < 2:
+            time.sleep(0.05)
+        workers = list(pool._processes.values())
+        started = time.monotonic()
+        os.kill(os.getpid(), signal.SIGTERM)
+        futures[0].result()
+    assert time.monotonic() - started < 20  # not the 60 s of the jobs
+    assert [worker.exitcode for worker in workers] == [-signal.SIGTERM] * 2
+    assert futures[2].cancelled() or futures[2].exception() is not None  # the queued job never ran
 
 
 def test_ray_executor_on_a_local_instance(finished, refs, tmp_path):

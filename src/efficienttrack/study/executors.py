@@ -2,7 +2,8 @@
 
 Every executor calls :func:`execute` once per job, which runs the method in the job's folder and writes
 ``result.json`` last (or ``error.json`` when the method fails): a job's failure is an :class:`Outcome` with its
-error, never the end of the others.
+error, never the end of the others. A local study stopped by Ctrl-C, SIGTERM or SIGHUP stops its worker processes
+too (:func:`process_pool`): a job left running would go on writing its folder unseen, beside the rerun's.
 """
 
 from __future__ import annotations
@@ -11,9 +12,9 @@ import logging
 import multiprocessing
 import time
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from contextlib import redirect_stderr, redirect_stdout
+from contextlib import contextmanager, redirect_stderr, redirect_stdout
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -23,6 +24,7 @@ import torch
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.fileio import write_json
 from efficienttrack.provenance import provenance
+from efficienttrack.stop_signals import stop_signals_as_interrupt
 from efficienttrack.study.jobs import ERROR, RESULT, Job, job_folder
 from efficienttrack.study.methods import METHODS
 
@@ -122,8 +124,39 @@ def execute(job: Job, out: Path, threads: int = 1) -> Outcome:
     return Outcome(job.name, result, None)
 
 
+@contextmanager
+def process_pool(workers: int) -> Iterator[ProcessPoolExecutor]:
+    """A pool of ``workers`` spawned processes (no state shared) whose workers end with the block, however it ends.
+
+    Leaving the block normally, or by an error, waits for the submitted work, as ``with ProcessPoolExecutor()`` does.
+    Ctrl-C, or a SIGTERM or SIGHUP sent to this process alone (``kill``, a supervisor), raises
+    :class:`KeyboardInterrupt` in the block (:func:`~efficienttrack.stop_signals.stop_signals_as_interrupt`) and
+    terminates the workers instead of waiting for them: without it they would run their jobs to the end, orphaned.
+
+    Args:
+        workers: processes at once.
+    """
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+    try:
+        with stop_signals_as_interrupt():
+            yield pool
+    except KeyboardInterrupt:
+        # the pool keeps its processes in a private attribute; shutdown() can cancel queued work but not stop running work
+        processes = list(pool._processes.values())
+        for process in processes:
+            process.terminate()
+        for process in processes:
+            process.join(timeout=10)
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    except BaseException:
+        pool.shutdown(wait=True)
+        raise
+    pool.shutdown(wait=True)
+
+
 def run_local(jobs: Sequence[Job], out: Path, workers: int, threads: int, on_done: Callable[[Outcome], None]) -> list[Outcome]:
-    """Run the jobs here (``workers`` = 1) or in a pool of ``workers`` processes (spawned: no state shared).
+    """Run the jobs here (``workers`` = 1) or in a pool of ``workers`` processes (:func:`process_pool`).
 
     Args:
         jobs: the jobs.
@@ -141,8 +174,7 @@ def run_local(jobs: Sequence[Job], out: Path, workers: int, threads: int, on_don
             outcomes.append(execute(job, out, threads))
             on_done(outcomes[-1])
         return outcomes
-    context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=context) as pool:
+    with process_pool(min(workers, len(jobs))) as pool:
         futures = {pool.submit(execute, job, out, threads): job for job in jobs}
         for future in as_completed(futures):
             try:
