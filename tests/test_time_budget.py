@@ -1,9 +1,12 @@
 """Fitting a run into minutes (efficienttrack.time_budget): the factor's arithmetic, and a run that trains fewer steps."""
 
+import io
 import json
 from dataclasses import replace
+from types import SimpleNamespace
 
 import pytest
+from rich.console import Console
 from typer.testing import CliRunner
 
 from efficienttrack import time_budget
@@ -13,7 +16,8 @@ from efficienttrack.dynamics import ModelConfig
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.pipeline import run_pipeline
 from efficienttrack.policy import PolicyConfig
-from efficienttrack.time_budget import RESERVE, StepTimes, budget_scale, step_seconds
+from efficienttrack.stages import RunLog, Stages
+from efficienttrack.time_budget import RESERVE, StepTimes, TimeBudget, budget_scale, step_seconds
 from efficienttrack.training import read_scalars
 from toy_system import TOY, TOY_CFG, toy_split
 
@@ -59,23 +63,91 @@ def test_the_evaluations_count_once_per_training_whatever_its_steps():
     assert training == pytest.approx(40 + 3 * 15) and scale == pytest.approx((80 * (1 - RESERVE) - 4 - 45) / 40)
 
 
+class Clock:
+    """A stand-in for the module's clock that moves only when told to."""
+
+    def __init__(self):
+        self.now = 0.0
+
+    def perf_counter(self):
+        return self.now
+
+
+def _planned(tmp_path, monkeypatch, minutes):
+    """A budget for CFG with TIMES as the probes' step times on a clock of its own, its round 1 planned."""
+    clock = Clock()
+    monkeypatch.setattr(time_budget, "time", SimpleNamespace(perf_counter=clock.perf_counter))
+    monkeypatch.setattr(time_budget, "measure_step_times", lambda cfg, records, held_out, device: TIMES)
+    log = RunLog(tmp_path, Console(file=io.StringIO()))
+    budget = TimeBudget(replace(CFG, time_budget=minutes), Stages(tmp_path), log, clock.perf_counter())
+    budget.first_round([], [], None, pass_seconds=0.0, evaluation_seconds=0.0)
+    return budget, clock
+
+
+def test_trainings_that_take_what_the_probes_said_are_planned_again_at_the_probes_step_times(tmp_path, monkeypatch):
+    budget, clock = _planned(tmp_path, monkeypatch, minutes=0.5)  # 28.5 s of 30 for 40 s of training
+    first = budget.scales[0]
+    assert first == pytest.approx(30 * (1 - RESERVE) / 40)
+    model_seconds = 100 * 0.1 * first  # as predicted; the clock moves on by that much
+    clock.now += model_seconds
+    assert budget.first_policy(model_seconds).policy.steps == round(50 * budget.policy_scale)
+    plan = json.loads((tmp_path / "stages" / "time_budget_policy.json").read_text())
+    # what is left, less its reserve, over round 1's policy (10 s) and two half rounds (20 s), unscaled
+    assert plan["slower_than_probed"] == pytest.approx(1)
+    assert budget.policy_scale == pytest.approx((30 - model_seconds) * (1 - RESERVE) / 30)
+    policy_seconds = 50 * 0.2 * budget.policy_scale
+    clock.now += policy_seconds
+    budget.later_round(2, model_seconds + policy_seconds)
+    second = json.loads((tmp_path / "stages" / "time_budget_round_2.json").read_text())
+    assert second["slower_than_probed"] == pytest.approx(1)
+    assert budget.scales[1] == pytest.approx((30 - model_seconds - policy_seconds) * (1 - RESERVE) / 20)
+
+
+def test_a_model_training_slower_than_probed_cuts_round_one_policy_and_counts_in_the_next_plan(tmp_path, monkeypatch):
+    budget, clock = _planned(tmp_path, monkeypatch, minutes=0.5)
+    first = budget.scales[0]
+    model_seconds = 2 * 100 * 0.1 * first  # the machine got twice as slow after the probes
+    clock.now += model_seconds
+    cfg = budget.first_policy(model_seconds)
+    facts = json.loads((tmp_path / "stages" / "time_budget_policy.json").read_text())
+    assert facts["slower_than_probed"] == pytest.approx(2)
+    # what is left, less its reserve, over round 1's policy and two half rounds, all at twice the probes' step times
+    assert facts["seconds_for_training"] == pytest.approx((30 - model_seconds) * (1 - RESERVE))
+    assert budget.policy_scale == pytest.approx(facts["seconds_for_training"] / (2 * (50 * 0.2 + 2 * 0.5 * 20)))
+    assert budget.policy_scale < first and cfg.policy.steps == round(50 * budget.policy_scale)
+    policy_seconds = 2 * 50 * 0.2 * budget.policy_scale
+    clock.now += policy_seconds
+    budget.later_round(2, model_seconds + policy_seconds)
+    second = json.loads((tmp_path / "stages" / "time_budget_round_2.json").read_text())
+    assert second["slower_than_probed"] == pytest.approx(2)
+    assert budget.summary()["round_1_policy_scale"] == budget.policy_scale
+
+
 def test_a_run_with_a_budget_trains_the_scaled_steps_plans_each_round_and_keeps_the_factors(tmp_path, monkeypatch):
     monkeypatch.setattr(time_budget, "measure_step_times", lambda cfg, records, held_out, device: StepTimes(0.05, 0.1, 500))
     # 40 s; round 1's training "takes" 300 × 0.05 + 300 × 0.1 = 45 s, round 2 half of it
     cfg = replace(TOY_CFG, time_budget=40 / 60, rounds=2)
     result = run_pipeline(TOY, *toy_split(), tmp_path, cfg)
     first = json.loads((tmp_path / "stages" / "time_budget.json").read_text())
+    policy_plan = json.loads((tmp_path / "stages" / "time_budget_policy.json").read_text())
     second = json.loads((tmp_path / "stages" / "time_budget_round_2.json").read_text())
     assert 0.05 < first["scale"] < 1 and first["unscaled_training_seconds"] == pytest.approx(45 * 1.5)
     steps = round(TOY_CFG.model.steps * first["scale"])
     assert len(read_scalars(tmp_path / "logs" / "model")["train/loss"][0]) == steps
-    # round 2 is planned with how long round 1's trainings really took against the 45 s × scale the probes predicted
+    # round 1's policy is planned with how long its model's training really took against the 15 s × scale predicted
+    model_seconds = json.loads((tmp_path / "stages" / "model.json").read_text())["seconds"]
+    assert policy_plan["slower_than_probed"] == pytest.approx(model_seconds / (15 * first["scale"]), rel=1e-3)
+    policy_steps = round(TOY_CFG.policy.steps * policy_plan["scale"]) if policy_plan["scale"] < 1 else 300
+    assert len(read_scalars(tmp_path / "logs" / "policy")["train/loss"][0]) == policy_steps
+    # round 2 is planned with how long round 1's trainings really took against what the probes predicted for them
     trained = result.metrics["rounds"][0]["train_seconds"]
-    assert second["slower_than_probed"] == pytest.approx(trained / (45 * first["scale"]), rel=1e-3)
+    predicted = 15 * first["scale"] + 30 * policy_plan["scale"]
+    assert second["slower_than_probed"] == pytest.approx(trained / predicted, rel=1e-3)
     assert 0.05 <= second["scale"] <= 1
     warm = round(round(TOY_CFG.policy.steps * second["scale"]) * TOY_CFG.warm_budget) if second["scale"] < 1 else 150
     assert len(read_scalars(tmp_path / "rounds" / "2" / "logs" / "policy")["train/loss"][0]) == warm
     assert result.metrics["time_budget"]["scales"] == [first["scale"], second["scale"]]
+    assert result.metrics["time_budget"]["round_1_policy_scale"] == policy_plan["scale"]
     assert result.metrics["config"]["time_budget"] == cfg.time_budget and result.metrics["config"]["model"]["steps"] == 300
 
     def measured_again(*args):
@@ -83,7 +155,7 @@ def test_a_run_with_a_budget_trains_the_scaled_steps_plans_each_round_and_keeps_
 
     monkeypatch.setattr(time_budget, "measure_step_times", measured_again)
     again = run_pipeline(TOY, *toy_split(), tmp_path, cfg)
-    assert {"time_budget", "time_budget_round_2"} <= set(again.skipped)
+    assert {"time_budget", "time_budget_policy", "time_budget_round_2"} <= set(again.skipped)
     assert again.metrics["time_budget"]["scales"] == result.metrics["time_budget"]["scales"]
 
 

@@ -26,8 +26,8 @@ unseen references, under the position controller alone. Each evaluation uses at 
 the policy's training time (docs/logged-metrics.md).
 
 With ``time_budget`` (minutes), the trainings' steps are scaled to fit the run into it, planned after the PD evaluation
-and again before each later round (:mod:`efficienttrack.time_budget`); ``metrics.json`` gets ``"time_budget"``:
-the minutes, each round's factor and the step times measured (null without a budget).
+and again before round 1's policy training and before each later round (:mod:`efficienttrack.time_budget`);
+``metrics.json`` gets ``"time_budget"``: the minutes, the factors and the step times measured (null without a budget).
 
 A rerun with the same run.json skips every finished stage; an interrupted stage resumes
 (collection at its first unwritten pass, training from its checkpoint). A rerun with other
@@ -301,6 +301,8 @@ def run_pipeline(
     common = {"device": device, "seed": cfg.seed, "held_out": pd_records}
     trainer = partial(dynamics.train_model, train_cfg.model, collected.records, **common)
     g_theta, model_facts = train_stage(stages, "model", out, log, trainer, dynamics.save_model, dynamics.load_model, device)
+    if budget is not None:  # the policy's steps planned again, from how long the model's training really took
+        train_cfg = budget.first_policy(model_facts["seconds"])
     trainer = partial(policy.train_policy, train_cfg.policy, g_theta, collected.records, **common)
     pi_phi, policy_facts = train_stage(stages, "policy", out, log, trainer, policy.save_policy, policy.load_policy, device)
 

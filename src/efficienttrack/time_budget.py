@@ -4,10 +4,11 @@ Almost all of a run's time is training, and a training step's cost depends on th
 between days on one 2-core machine) and on what else runs on it. So the run measures it: after the collection and
 the PD evaluation it times short trainings of each network on the collected data (:func:`step_seconds`; their setup
 cancels out), estimates what every round's trainings and the rest of the run will take, and scales round 1's
-optimizer steps by a factor ≤ 1 (:func:`budget_scale`). Before each later round it plans again from the time left,
-with the step times corrected by how long the finished trainings really took (:class:`TimeBudget`). The factors are
-kept as stages, so a resumed run trains the same steps. The budget is a target, not a guarantee: work that starts
-beside the run after the last plan slows its steps.
+optimizer steps by a factor ≤ 1 (:func:`budget_scale`). Before round 1's policy training and before each later
+round it plans again from the time left, with the step times corrected by how long the finished trainings really took
+(:class:`TimeBudget`): a machine can run a short probe a third faster than the minutes of training after it. The
+factors are kept as stages, so a resumed run trains the same steps. The budget is a target, not a guarantee: work that
+starts beside the run after the last plan slows its steps.
 """
 
 from __future__ import annotations
@@ -38,7 +39,8 @@ RESERVE = 0.05
 """Share of the budget kept for what the estimate leaves out (model errors, saving, the report's plots): with 3 %, a
 15-minute run beside two training jobs took 15.3 minutes."""
 STAGE = "time_budget"
-"""The stage that keeps round 1's factor, ``OUT/stages/time_budget.json``; round k's is ``time_budget_round_<k>``."""
+"""The stage that keeps round 1's factor, ``OUT/stages/time_budget.json``; round 1's policy's is
+``time_budget_policy``, round k's ``time_budget_round_<k>``."""
 
 
 class StepTimes(NamedTuple):
@@ -110,15 +112,45 @@ def measure_step_times(
     return StepTimes(model_s, policy_s, probe.windows, model_eval, policy_eval)
 
 
-def round_seconds(cfg: RunConfig, times: StepTimes) -> tuple[float, float]:
-    """Round 1's training seconds by ``times``: what scales with its steps, and what does not (the evaluations).
+class RoundCost(NamedTuple):
+    """Round 1's training seconds by the measured costs, unscaled: what scales with the steps, and what does not.
+
+    Attributes:
+        model: g_θ's optimizer steps.
+        policy: π_φ's optimizer steps.
+        model_evaluations: g_θ's held-out evaluations (a fixed number per training).
+        policy_evaluations: π_φ's.
+    """
+
+    model: float
+    policy: float
+    model_evaluations: float
+    policy_evaluations: float
+
+    @property
+    def steps(self) -> float:
+        """Both trainings' optimizer steps, s."""
+        return self.model + self.policy
+
+    @property
+    def evaluations(self) -> float:
+        """Both trainings' evaluations, s."""
+        return self.model_evaluations + self.policy_evaluations
+
+
+def round_seconds(cfg: RunConfig, times: StepTimes) -> RoundCost:
+    """Round 1's training seconds by ``times``.
 
     Args:
         cfg: the run's config (round 1's steps of both trainings).
         times: the costs measured.
     """
-    steps = cfg.model.total_steps(times.windows) * times.model + cfg.policy.total_steps(times.windows) * times.policy
-    return steps, EVALUATIONS * (times.model_evaluation + times.policy_evaluation)
+    return RoundCost(
+        cfg.model.total_steps(times.windows) * times.model,
+        cfg.policy.total_steps(times.windows) * times.policy,
+        EVALUATIONS * times.model_evaluation,
+        EVALUATIONS * times.policy_evaluation,
+    )
 
 
 def budget_scale(cfg: RunConfig, times: StepTimes, seconds_left: float, other_seconds: float) -> tuple[float, float]:
@@ -136,8 +168,8 @@ def budget_scale(cfg: RunConfig, times: StepTimes, seconds_left: float, other_se
     Raises:
         EfficientTrackError: the budget leaves less than :data:`MIN_SCALE` of the configured training.
     """
-    steps, fixed = round_seconds(cfg, times)
-    scalable, fixed = steps * (1 + (cfg.rounds - 1) * cfg.warm_budget), fixed * cfg.rounds
+    cost = round_seconds(cfg, times)
+    scalable, fixed = cost.steps * (1 + (cfg.rounds - 1) * cfg.warm_budget), cost.evaluations * cfg.rounds
     available = seconds_left * (1 - RESERVE) - other_seconds - fixed
     scale = min(1.0, available / scalable)
     if scale < MIN_SCALE:
@@ -150,12 +182,13 @@ def budget_scale(cfg: RunConfig, times: StepTimes, seconds_left: float, other_se
 
 
 class TimeBudget:
-    """A run's budget: the factor on round 1's training steps, then on each later round's, re-planned as the run goes.
+    """A run's budget: the factor on round 1's training steps, then on each later training's, re-planned as the run goes.
 
-    Round 1's factor comes from probe step times (:func:`measure_step_times`). Before each later round the plan is
-    redone from the time left, with the step times corrected by how much longer the finished trainings really took
-    than the probes predicted (evaluations during training, saving, other work on the machine). Each factor is kept
-    as a stage (:data:`STAGE`, ``time_budget_round_<k>``), so a resumed run trains the same steps.
+    Round 1's factor comes from probe step times (:func:`measure_step_times`). Before round 1's policy training and
+    before each later round the plan is redone from the time left, with the step times corrected by how much longer the
+    finished trainings really took than the probes predicted (saving, a machine slower than during the probes, other
+    work on it). Each factor is kept as a stage (:data:`STAGE`, ``time_budget_policy``, ``time_budget_round_<k>``), so a
+    resumed run trains the same steps.
 
     Args:
         cfg: the run's config, with ``time_budget`` set (minutes).
@@ -170,6 +203,7 @@ class TimeBudget:
         self.cfg, self.stages, self.log, self.started = cfg, stages, log, started
         self.facts: dict[str, Any] = {}
         self.scales: list[float] = []
+        self.policy_scale: float | None = None
 
     def first_round(
         self,
@@ -211,6 +245,35 @@ class TimeBudget:
         self.scales = [facts["scale"]]
         return self._scaled(facts["scale"])
 
+    def first_policy(self, model_seconds: float) -> RunConfig:
+        """Round 1's config for π_φ's training: its steps scaled again, from how long g_θ's training really took.
+
+        The probes time a few seconds of training; the round-1 trainings that follow take minutes, and a machine's
+        speed can change in between. g_θ's training says how much, before the larger half of round 1 begins.
+
+        Args:
+            model_seconds: what round 1's g_θ training took, s.
+
+        Returns:
+            The config whose ``policy`` round 1 trains (its ``model`` is round 1's, already trained).
+        """
+        cfg, name = self.cfg, f"{STAGE}_policy"
+        facts = self.stages.done(name, ("scale",))
+        if facts is None:
+            cost = round_seconds(cfg, StepTimes(**self.facts["times"]))
+            predicted = cost.model * self.scales[0] + cost.model_evaluations
+            slower = model_seconds / predicted if predicted > 0 else 1.0
+            later = cfg.rounds - 1
+            other = self.facts["other_seconds"] + slower * (cost.policy_evaluations + later * cost.evaluations)
+            available = self._seconds_left() * (1 - RESERVE) - other
+            steps = slower * (cost.policy + later * cfg.warm_budget * cost.steps)
+            scale = min(1.0, max(available / steps, MIN_SCALE))
+            facts = self.stages.finish(name, {"scale": scale, "slower_than_probed": slower, "seconds_for_training": available})
+            share = "trains its full steps" if scale >= 1 else f"trains {scale:.0%} of its steps"
+            self.log.print(f"time budget: the model's training took {slower:.2f} × the estimate; round 1's policy {share}")
+        self.policy_scale = facts["scale"]
+        return self._scaled(facts["scale"])
+
     def later_round(self, k: int, trained_seconds: float) -> RunConfig:
         """Round k's config (k ≥ 2), its steps scaled so that rounds k … K fit into the time left.
 
@@ -224,13 +287,19 @@ class TimeBudget:
         cfg, name = self.cfg, f"{STAGE}_round_{k}"
         facts = self.stages.done(name, ("scale",))
         if facts is None:
-            steps, fixed = round_seconds(cfg, StepTimes(**self.facts["times"]))  # round 1 unscaled, by the probes
-            predicted = steps * (self.scales[0] + sum(self.scales[1:]) * cfg.warm_budget) + fixed * len(self.scales)
+            cost = round_seconds(cfg, StepTimes(**self.facts["times"]))  # round 1 unscaled, by the probes
+            first_policy = self.scales[0] if self.policy_scale is None else self.policy_scale
+            predicted = (
+                cost.model * self.scales[0]
+                + cost.policy * first_policy
+                + cost.steps * sum(self.scales[1:]) * cfg.warm_budget
+                + cost.evaluations * len(self.scales)
+            )
             slower = trained_seconds / predicted if predicted > 0 else 1.0
             rest = cfg.rounds - k + 1
-            other = self.facts["other_seconds"] * rest / cfg.rounds + rest * fixed * slower
+            other = self.facts["other_seconds"] * rest / cfg.rounds + rest * cost.evaluations * slower
             available = self._seconds_left() * (1 - RESERVE) - other
-            scale = min(1.0, max(available / (rest * cfg.warm_budget * steps * slower), MIN_SCALE))
+            scale = min(1.0, max(available / (rest * cfg.warm_budget * cost.steps * slower), MIN_SCALE))
             facts = self.stages.finish(name, {"scale": scale, "slower_than_probed": slower, "seconds_for_training": available})
             share = "its full steps" if scale >= 1 else f"{scale:.0%} of its steps"
             self.log.print(f"time budget: the trainings so far took {slower:.2f} × the estimate; round {k} trains {share}")
@@ -240,8 +309,18 @@ class TimeBudget:
         return self._scaled(facts["scale"])
 
     def summary(self) -> dict[str, Any]:
-        """``{"minutes", "scales": one factor per round so far, "times": the costs measured (:class:`StepTimes`)}``."""
-        return {"minutes": self.cfg.time_budget, "scales": self.scales, "times": self.facts.get("times")}
+        """What was planned, for ``metrics.json``.
+
+        Returns:
+            ``{"minutes", "scales": one factor per round so far (round 1's: its model's), "round_1_policy_scale",
+            "times": the costs measured (:class:`StepTimes`)}``.
+        """
+        return {
+            "minutes": self.cfg.time_budget,
+            "scales": self.scales,
+            "round_1_policy_scale": self.policy_scale,
+            "times": self.facts.get("times"),
+        }
 
     def _seconds_left(self) -> float:
         return self.cfg.time_budget * 60 - (time.perf_counter() - self.started)
