@@ -249,7 +249,7 @@ class TimeBudget:
         """Round 1's config for π_φ's training: its steps scaled again, from how long g_θ's training really took.
 
         The probes time a few seconds of training; the round-1 trainings that follow take minutes, and a machine's
-        speed can change in between. g_θ's training says how much, before the larger half of round 1 begins.
+        speed can change in between. g_θ's training says how much, before the other half of round 1 begins.
 
         Args:
             model_seconds: what round 1's g_θ training took, s.
