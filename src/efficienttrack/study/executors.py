@@ -146,7 +146,10 @@ def process_pool(workers: int) -> Iterator[ProcessPoolExecutor]:
         for process in processes:
             process.terminate()
         for process in processes:
-            process.join(timeout=10)
+            process.join(timeout=5)
+            if process.is_alive():  # one still starting up can miss the SIGTERM
+                process.kill()
+                process.join(timeout=5)
         pool.shutdown(wait=False, cancel_futures=True)
         raise
     except BaseException:
