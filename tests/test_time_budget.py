@@ -17,7 +17,7 @@ from efficienttrack.errors import EfficientTrackError
 from efficienttrack.pipeline import run_pipeline
 from efficienttrack.policy import PolicyConfig
 from efficienttrack.stages import RunLog, Stages
-from efficienttrack.time_budget import RESERVE, StepTimes, TimeBudget, budget_scale, step_seconds
+from efficienttrack.time_budget import LAST_PLAN_MARGIN, RESERVE, StepTimes, TimeBudget, budget_scale, step_seconds
 from efficienttrack.training import read_scalars
 from toy_system import TOY, TOY_CFG, toy_split
 
@@ -73,13 +73,13 @@ class Clock:
         return self.now
 
 
-def _planned(tmp_path, monkeypatch, minutes):
+def _planned(tmp_path, monkeypatch, minutes, rounds=3):
     """A budget for CFG with TIMES as the probes' step times on a clock of its own, its round 1 planned."""
     clock = Clock()
     monkeypatch.setattr(time_budget, "time", SimpleNamespace(perf_counter=clock.perf_counter))
     monkeypatch.setattr(time_budget, "measure_step_times", lambda cfg, records, held_out, device: TIMES)
     log = RunLog(tmp_path, Console(file=io.StringIO()))
-    budget = TimeBudget(replace(CFG, time_budget=minutes), Stages(tmp_path), log, clock.perf_counter())
+    budget = TimeBudget(replace(CFG, rounds=rounds, time_budget=minutes), Stages(tmp_path), log, clock.perf_counter())
     budget.first_round([], [], None, pass_seconds=0.0, evaluation_seconds=0.0)
     return budget, clock
 
@@ -101,6 +101,20 @@ def test_trainings_that_take_what_the_probes_said_are_planned_again_at_the_probe
     second = json.loads((tmp_path / "stages" / "time_budget_round_2.json").read_text())
     assert second["slower_than_probed"] == pytest.approx(1)
     assert budget.scales[1] == pytest.approx((30 - model_seconds - policy_seconds) * (1 - RESERVE) / 20)
+    second_seconds = 0.5 * 20 * budget.scales[1]
+    clock.now += second_seconds
+    budget.later_round(3, model_seconds + policy_seconds + second_seconds)
+    # the last round, 10 s unscaled, keeps its margin free: nothing plans after it
+    left = 30 - model_seconds - policy_seconds - second_seconds
+    assert budget.scales[2] == pytest.approx(left * (1 - RESERVE) / (10 * (1 + LAST_PLAN_MARGIN)))
+
+
+def test_a_one_round_run_keeps_the_margin_in_its_policy_plan_the_last_one(tmp_path, monkeypatch):
+    budget, clock = _planned(tmp_path, monkeypatch, minutes=0.25, rounds=1)  # 14.25 s for 20 s of training
+    model_seconds = 100 * 0.1 * budget.scales[0]
+    clock.now += model_seconds
+    budget.first_policy(model_seconds)
+    assert budget.policy_scale == pytest.approx((15 - model_seconds) * (1 - RESERVE) / (10 * (1 + LAST_PLAN_MARGIN)))
 
 
 def test_a_model_training_slower_than_probed_cuts_round_one_policy_and_counts_in_the_next_plan(tmp_path, monkeypatch):
