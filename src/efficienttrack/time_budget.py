@@ -270,8 +270,8 @@ class TimeBudget:
             slower = model_seconds / predicted if predicted > 0 else 1.0
             later = cfg.rounds - 1
             other = self.facts["other_seconds"] + slower * (cost.policy_evaluations + later * cost.evaluations)
-            steps = slower * (cost.policy + later * cfg.warm_budget * cost.steps)
-            facts = self._replan(name, slower, other, steps, last=later == 0)
+            training = slower * (cost.policy + later * cfg.warm_budget * cost.steps)
+            facts = self._replan(name, slower, other, training, last=later == 0)
             share = "trains its full steps" if facts["scale"] >= 1 else f"trains {facts['scale']:.0%} of its steps"
             self.log.print(f"time budget: the model's training took {slower:.2f} × the estimate; round 1's policy {share}")
         self.policy_scale = facts["scale"]
@@ -323,14 +323,14 @@ class TimeBudget:
             "times": self.facts.get("times"),
         }
 
-    def _replan(self, name: str, slower: float, other: float, steps: float, last: bool) -> dict[str, Any]:
-        """Finish stage ``name`` with the factor that fits ``steps`` s of training and ``other`` s into the time left.
+    def _replan(self, name: str, slower: float, other: float, training: float, last: bool) -> dict[str, Any]:
+        """Finish stage ``name`` with the factor that fits ``training`` s and ``other`` s into the time left.
 
-        ``steps`` are the optimizer steps still to train, unscaled, at the corrected step times; the last plan keeps
-        :data:`LAST_PLAN_MARGIN` of them free besides the reserve.
+        ``training`` is what the optimizer steps still to train take unscaled, at the corrected step times; the last
+        plan keeps :data:`LAST_PLAN_MARGIN` of it free besides the reserve.
         """
         available = self._seconds_left() * (1 - RESERVE) - other
-        needed = steps * (1 + LAST_PLAN_MARGIN) if last else steps
+        needed = training * (1 + LAST_PLAN_MARGIN) if last else training
         scale = min(1.0, max(available / needed, MIN_SCALE))
         return self.stages.finish(name, {"scale": scale, "slower_than_probed": slower, "seconds_for_training": available})
 
