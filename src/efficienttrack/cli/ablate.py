@@ -32,7 +32,7 @@ def ablate_command(
     test_refs: TestRefsOpt = None,
     system: SystemOpt = None,
     plant: PlantOpt = None,
-    pd: PdOpt = "xe75",
+    pd: PdOpt = None,
     system_opt: SystemOpts = None,
     limits: LimitsOpt = None,
     values: Annotated[

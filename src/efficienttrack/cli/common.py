@@ -29,15 +29,20 @@ SystemOpt = Annotated[
     str | None,
     typer.Option(
         "--system",
-        help="Closed-loop system: built-in name (xe75; learned with --system-opt model=CKPT) or module.path:callable.",
+        help="Closed-loop system: built-in name (xe75; paper, the paper's simulator; learned with --system-opt "
+        "model=CKPT) or module.path:callable.",
     ),
 ]
 
 PlantOpt = Annotated[
-    str | None, typer.Option("--plant", help="Plant (PWM level) wrapped with the PD controller: xe75 or module.path:callable.")
+    str | None,
+    typer.Option("--plant", help="Plant (PWM level) wrapped with the PD controller: xe75, paper or module.path:callable."),
 ]
 
-PdOpt = Annotated[str, typer.Option("--pd", help="PD gains for --plant: preset name (xe75) or a JSON file.")]
+PdOpt = Annotated[
+    str | None,
+    typer.Option("--pd", help="PD gains for --plant: preset name (xe75, paper) or a JSON file (default: a built-in plant's)."),
+]
 
 SystemOpts = Annotated[list[str] | None, typer.Option("--system-opt", help="key=value option of the system (repeatable).")]
 
@@ -86,7 +91,7 @@ def parse_options(pairs: list[str] | None, flag: str = "--system-opt") -> dict[s
     return options
 
 
-def _system_spec(system: str | None, plant: str | None, pd: str, options: list[str] | None, limits: Path | None = None):
+def _system_spec(system: str | None, plant: str | None, pd: str | None, options: list[str] | None, limits: Path | None = None):
     """The system the ``--system``/``--plant``/``--pd``/``--system-opt``/``--limits`` options name, not yet opened."""
     from efficienttrack.systems.spec import SystemSpec
 

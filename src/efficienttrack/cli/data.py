@@ -182,7 +182,7 @@ def collect_command(
     out: Annotated[Path, typer.Option("--out", help="Output folder (pass_<k>/ records; an interrupted run resumes).")],
     system: SystemOpt = None,
     plant: PlantOpt = None,
-    pd: PdOpt = "xe75",
+    pd: PdOpt = None,
     system_opt: SystemOpts = None,
     passes: Annotated[int, typer.Option("--passes", help="Passes over the references.")] = COLLECT.passes,
     noise_ratio: Annotated[str, typer.Option("--noise-ratio", help="Noisy:clean episodes.")] = COLLECT.noise_ratio_text,

@@ -67,7 +67,7 @@ def deploy_command(
     ] = False,
     system: SystemOpt = None,
     plant: PlantOpt = None,
-    pd: PdOpt = "xe75",
+    pd: PdOpt = None,
     system_opt: SystemOpts = None,
     limits: LimitsOpt = None,
     machine: Annotated[

@@ -106,7 +106,7 @@ def evaluate_command(
     out: Annotated[Path, typer.Option("--out", help="Output folder: records/, metrics.json, plots/, run.log.")],
     system: SystemOpt = None,
     plant: PlantOpt = None,
-    pd: PdOpt = "xe75",
+    pd: PdOpt = None,
     system_opt: SystemOpts = None,
     limits: LimitsOpt = None,
     policy: Annotated[
@@ -143,7 +143,7 @@ def run_command(
     out: Annotated[Path, typer.Option("--out", help="Output folder; rerunning resumes where it stopped.")],
     system: SystemOpt = None,
     plant: PlantOpt = None,
-    pd: PdOpt = "xe75",
+    pd: PdOpt = None,
     system_opt: SystemOpts = None,
     limits: LimitsOpt = None,
     preset_name: PresetOpt = "cpu",

@@ -81,7 +81,7 @@ def sim_fidelity_command(
     logs: LogsOpt,
     system: SystemOpt = None,
     plant: PlantOpt = None,
-    pd: PdOpt = "xe75",
+    pd: PdOpt = None,
     system_opt: SystemOpts = None,
     json_output: Annotated[bool, typer.Option("--json", help="Print one JSON line.")] = False,
     plot: Annotated[Path | None, typer.Option("--plot", help="Folder for sim-vs-real trace plots.")] = None,

@@ -60,7 +60,7 @@ def study_command(
     test_refs: TestRefsOpt = None,
     system: SystemOpt = None,
     plant: PlantOpt = None,
-    pd: PdOpt = "xe75",
+    pd: PdOpt = None,
     system_opt: SystemOpts = None,
     limits: LimitsOpt = None,
     methods: Annotated[

@@ -90,7 +90,7 @@ def check_loop(loop: object) -> str:
 def make_spec(
     system: str | SystemSpec | None = None,
     plant: str | None = None,
-    pd: str = "xe75",
+    pd: str | None = None,
     system_opts: Mapping[str, Any] | None = None,
     limits: str | None = None,
 ) -> SystemSpec:

@@ -118,7 +118,7 @@ class TrackingEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         refs: RefsArg = None,
         *,
         plant: str | None = None,
-        pd: str = "xe75",
+        pd: str | None = None,
         system_opts: Mapping[str, Any] | None = None,
         limits: str | None = None,
         history: int = HISTORY,

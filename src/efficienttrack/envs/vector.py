@@ -66,7 +66,7 @@ class TrackingVectorEnv(VectorEnv):
         refs: RefsArg = None,
         *,
         plant: str | None = None,
-        pd: str = "xe75",
+        pd: str | None = None,
         system_opts: Mapping[str, Any] | None = None,
         limits: str | None = None,
         history: int = HISTORY,

@@ -117,7 +117,12 @@ class PDGains:
 
 
 XE75_PD = PDGains(kp=(5000.0, 1000.0, 1000.0, 500.0), kd=(15006.0, 6016.0, 4284.0, 7000.0), sign=(-1.0, -1.0, -1.0, 1.0))
-PD_PRESETS: dict[str, PDGains] = {"xe75": XE75_PD}
+"""The real XE75's PD law, fitted on its logs (data README)."""
+PAPER_PD = PDGains(kp=(2090.0, 1320.0, 220.0, 1320.0), kd=(393.6, 143.36, 10.08, 480.0), sign=(-1.0, -1.0, -1.0, 1.0), c=0.0)
+"""The PD law of the paper's simulator (research repository, ``simulation/pid_controller.py``): kp = 0.55·(3800, 2400,
+400, 2400) and kd = 0.008·Ku·Tu / 50 with Ku = (4000, 1400, 100, 3000), Tu = 500·(1.23, 1.28, 1.26, 2), no constant
+push. The original does not clip the PWM; its valves are saturated long before ±1000, so the clip changes nothing."""
+PD_PRESETS: dict[str, PDGains] = {"xe75": XE75_PD, "paper": PAPER_PD}
 
 
 class ClosedLoop:

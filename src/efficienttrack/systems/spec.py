@@ -1,14 +1,14 @@
 """Systems by name: built-in names and ``module.path:callable`` specs, and the one place a plant is closed with a PD law.
 
-A **spec** is a built-in name (``xe75``: the calibrated hydraulic simulator under the real PD law;
-``learned``: a trained closed-loop model, :mod:`efficienttrack.learned_system`) or an import path
-``"module.path:callable"``. The callable is called with the keyword options (``--system-opt key=value``)
-and must return the system. Modules are looked up in the current working directory first, so a
-``mymachines.py`` next to where the command runs is found without installing it.
+A **spec** is a built-in name (``xe75``: the calibrated hydraulic simulator under the real PD law; ``paper``: the
+paper's own simulator under its PD law, :mod:`efficienttrack.systems.paper`; ``learned``: a trained closed-loop
+model, :mod:`efficienttrack.learned_system`) or an import path ``"module.path:callable"``. The callable is called
+with the keyword options (``--system-opt key=value``) and must return the system. Modules are looked up in the
+current working directory first, so a ``mymachines.py`` next to where the command runs is found without installing it.
 
-:class:`SystemSpec` is what the CLI and the pipeline carry around: a reference-level system
-(``--system``), or a PWM-level plant (``--plant``) closed with PD gains (``--pd``); with neither,
-the built-in ``xe75``. A limits file (``--limits``) amends the limits the runtime guard enforces
+:class:`SystemSpec` is what the CLI and the pipeline carry around: a reference-level system (``--system``), or a
+PWM-level plant (``--plant``) closed with PD gains (``--pd``, by default a built-in plant's own); with neither, the
+built-in ``xe75``. A limits file (``--limits``) amends the limits the runtime guard enforces
 (:mod:`efficienttrack.systems.limits`).
 """
 
@@ -24,17 +24,21 @@ from typing import Any
 
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.systems.limits import GuardLimits
-from efficienttrack.systems.pd import ClosedLoop, PDGains
+from efficienttrack.systems.pd import PD_PRESETS, ClosedLoop, PDGains
 from efficienttrack.systems.protocol import BatchedSystem
 
 DEFAULT_SYSTEM = "xe75"
 """The system used when neither ``--system`` nor ``--plant`` is given."""
 BUILTIN_SYSTEMS: dict[str, str] = {
     "xe75": "efficienttrack.systems.hydraulic:xe75_closed_loop",
+    "paper": "efficienttrack.systems.paper:paper_closed_loop",
     "learned": "efficienttrack.learned_system:learned_system",
 }
 """Built-in reference-level systems: name → import path."""
-BUILTIN_PLANTS: dict[str, str] = {"xe75": "efficienttrack.systems.hydraulic:xe75_plant"}
+BUILTIN_PLANTS: dict[str, str] = {
+    "xe75": "efficienttrack.systems.hydraulic:xe75_plant",
+    "paper": "efficienttrack.systems.paper:paper_plant",
+}
 """Built-in PWM-level plants: name → import path."""
 
 
@@ -98,7 +102,7 @@ def load_system(spec: str, **options: Any) -> BatchedSystem:
     """Load a reference-level ClosedLoopSystem.
 
     Args:
-        spec: a built-in name (``xe75``, ``learned``) or ``"module.path:callable"``.
+        spec: a built-in name (``xe75``, ``paper``, ``learned``) or ``"module.path:callable"``.
         **options: keyword options passed to the callable (``--system-opt key=value`` on the CLI).
 
     Returns:
@@ -111,7 +115,7 @@ def load_plant(spec: str, **options: Any) -> BatchedSystem:
     """Load a PWM-level Plant (same spec rules as :func:`load_system`).
 
     Args:
-        spec: a built-in name (``xe75``) or ``"module.path:callable"``.
+        spec: a built-in name (``xe75``, ``paper``) or ``"module.path:callable"``.
         **options: keyword options passed to the callable (``--system-opt key=value`` on the CLI).
 
     Returns:
@@ -142,8 +146,8 @@ class SystemSpec:
     """Built-in name or ``module:callable`` of a ClosedLoopSystem (``--system``)."""
     plant: str | None = None
     """Built-in name or ``module:callable`` of a Plant wrapped with the PD controller (``--plant``)."""
-    pd: str = "xe75"
-    """PD gains for ``plant``: a preset name or a JSON file (``--pd``)."""
+    pd: str | None = None
+    """PD gains for ``plant``: a preset name or a JSON file (``--pd``); None: :attr:`pd_name`."""
     options: tuple[tuple[str, Any], ...] = ()
     """Keyword options of the callable (``--system-opt key=value``)."""
     limits: str | None = None
@@ -159,12 +163,19 @@ class SystemSpec:
         """The reference-level system built when no plant is given: ``system``, or :data:`DEFAULT_SYSTEM`."""
         return self.system if self.system is not None else DEFAULT_SYSTEM
 
+    @property
+    def pd_name(self) -> str:
+        """The PD gains a plant is closed with: ``pd``, else a built-in plant's own preset (``paper``), else ``xe75``."""
+        if self.pd is not None:
+            return self.pd
+        return self.plant if self.plant in PD_PRESETS and self.plant in BUILTIN_PLANTS else "xe75"
+
     def to_dict(self) -> dict[str, Any]:
         """JSON form (for run.json and metrics.json); ``limits`` only when a file is given (older run.json match)."""
         return {
             "system": None if self.plant else self.system_name,
             "plant": self.plant,
-            "pd": self.pd if self.plant else None,
+            "pd": self.pd_name if self.plant else None,
             "options": dict(self.options),
             **({"limits": self.limits} if self.limits is not None else {}),
         }
@@ -181,7 +192,8 @@ class SystemSpec:
             system = load_system(self.system_name, **options)
         else:
             plant = load_plant(self.plant, **options)
-            system = close_loop(plant, PDGains.load(self.pd), name=f"plant '{self.plant}' under PD '{self.pd}'")
+            pd = self.pd_name
+            system = close_loop(plant, PDGains.load(pd), name=f"plant '{self.plant}' under PD '{pd}'")
         if self.limits is not None:
             system.limits = GuardLimits.load(self.limits, base=system.limits)
         return system

@@ -1,0 +1,232 @@
+"""The paper's own excavator simulator (Zou et al., 2025, Table I), re-implemented from its published facts.
+
+The research repository's simulator maps each joint's PWM straight to a joint velocity, with no delay, no
+inertia and no coupling between joints, and integrates it with one explicit Euler step per control period:
+
+- **Boom, arm, bucket**: the speed is ``|v(|u|/100) · P(q)|``, with the logistic valve curve
+  ``v(x) = b / (1 + exp(a − c·x)) + d`` and a quintic ``P`` of the joint's own angle, one pair per joint and
+  direction. A positive PWM moves the joint towards smaller angles (as on the XE75), and a joint at its end
+  stop does not move further in the commanded direction. The valve curves are saturated from about 80 PWM on.
+- **Swing**: the PWM is rounded to an integer. A positive PWM up to 51 and a negative one down to −66 do not
+  move it (the dead zone); from 77 and from −90 on it turns at ±1 rad/s. In between, the speed is linear in
+  the angle and in ``|u|/100``.
+- **Integration**: ``q += dt·q̇``; boom, arm and bucket are clipped into ``[q_min, q_max]``, the swing wraps at ±π.
+  The observation is ``(q, q̇)`` with ``q̇`` the velocity of the step just taken.
+
+Under :data:`PAPER_PD` (the repository's PD law) on the paper's 8 test references, this gives Table I's PD row
+(docs/paper-simulator.md). The repository stores the swing's in-between law as a pickled scikit-learn model,
+which we do not load; its coefficients were recovered from the repository's recorded simulator logs, which it
+reproduces to their printed precision.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from efficienttrack.angles import wrap
+from efficienttrack.errors import EfficientTrackError
+from efficienttrack.joints import DT, N_JOINTS, SWING
+from efficienttrack.systems.limits import GuardLimits
+from efficienttrack.systems.pd import PAPER_PD, ClosedLoop
+
+Q_MIN = (-0.4, -1.0, -1.0, -math.pi)
+"""(4,) rad, the simulator's lower joint limits (the swing is unlimited and wraps)."""
+Q_MAX = (0.8, 1.1, 3.0, math.pi)
+"""(4,) rad, the simulator's upper joint limits."""
+PWM_PER_UNIT = 100.0
+"""The valve curves and the swing law take ``|u| / 100``."""
+
+VALVE = np.array(
+    [
+        [
+            [11.858506809692232, 0.512567730315598, 21.86915957497452, -0.0007917425932205652],
+            [8.931731925229315, 0.36658149083455016, 15.700213825626527, -0.002794938954199982],
+        ],
+        [
+            [14.023240203780164, 0.8183660786758581, 25.106667075640413, 0.0016937385965325377],
+            [13.301471156931091, 0.6985445420696443, 21.749372501996476, 0.002202294140167611],
+        ],
+        [
+            [14.952651261917973, 1.2749258196268678, 28.417406629267962, -0.0010930530561161407],
+            [13.581409898795217, 1.0442331432592302, 25.098200285462813, -0.0013277636870057657],
+        ],
+    ]
+)
+"""(3, 2, 4): the logistic valve curve ``(a, b, c, d)`` of boom, arm and bucket, for a positive and a negative PWM."""
+JOINT_POLY = np.array(
+    [
+        [
+            [0.22455292, 0.1251744, -0.56642958, 0.62115276, -0.43994377, 0.79004756],
+            [0.37712406, 0.79595915, -1.23805643, 0.88716494, -0.62352762, 1.07171297],
+        ],
+        [
+            [0.14598575, 0.67122928, 0.04021848, 0.33858849, 0.09810778, 0.91324457],
+            [-0.36816399, 0.499325, -0.04911397, 0.43650892, 0.00799341, 1.07954839],
+        ],
+        [
+            [0.1282508, 0.10203362, -0.36151386, 0.50794024, 0.09358899, 0.98092446],
+            [-0.08686432, 0.31000578, -0.21916701, 0.40319928, -0.00116702, 0.99735403],
+        ],
+    ]
+)
+"""(3, 2, 6): the quintic ``P(q)`` of boom, arm and bucket (highest power first), for a positive and a negative PWM."""
+
+SWING_DEAD_ZONE = (51.0, 66.0)
+"""Rounded swing PWM that does not move it: up to 51 in the positive direction, down to −66 in the negative."""
+SWING_SATURATION = (77.0, 90.0)
+"""Rounded swing PWM from which it turns at :data:`SWING_TOP_SPEED`: 77 positive, −90 negative."""
+SWING_TOP_SPEED = 1.0
+"""rad/s, the swing's speed at and beyond the saturation."""
+SWING_LAW = np.array(
+    [
+        [-1.8031877212, 3.4912919977, -0.00084364439102],
+        [2.2624153429, -3.3852482496, 0.0020402306792],
+    ]
+)
+"""(2, 3): swing velocity between dead zone and saturation, ``w0 + w1·|u|/100 + w2·q`` rad/s, positive and negative PWM."""
+
+
+def valve_speed(x: np.ndarray, q: np.ndarray, direction: int) -> np.ndarray:
+    """Speed of boom, arm and bucket, ``|v(x)·P(q)|``, for one PWM direction.
+
+    Args:
+        x: (N, 3) ``|u| / 100`` of boom, arm, bucket.
+        q: (N, 3) rad, their angles.
+        direction: 0 for a positive PWM, 1 for a negative one.
+
+    Returns:
+        (N, 3) rad/s, ≥ 0.
+    """
+    a, b, c, d = np.moveaxis(VALVE[:, direction], -1, 0)
+    poly = np.zeros_like(q)
+    for coefficient in np.moveaxis(JOINT_POLY[:, direction], -1, 0):  # Horner, highest power first
+        poly = poly * q + coefficient
+    return np.abs((b / (1.0 + np.exp(a - c * x)) + d) * poly)
+
+
+def swing_velocity(u: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """The swing's velocity for its PWM: dead zone, the linear law in between, saturation.
+
+    Args:
+        u: (N,) PWM of the swing (rounded here to an integer, half to even, as the original).
+        q: (N,) rad, the swing angle.
+
+    Returns:
+        (N,) rad/s.
+    """
+    p = np.round(u)
+    x = np.abs(p) / PWM_PER_UNIT
+    (w_pos, w_neg) = SWING_LAW
+    inner_pos = w_pos[0] + w_pos[1] * x + w_pos[2] * q
+    inner_neg = w_neg[0] + w_neg[1] * x + w_neg[2] * q
+    positive = np.where(p <= SWING_DEAD_ZONE[0], 0.0, np.where(p >= SWING_SATURATION[0], SWING_TOP_SPEED, inner_pos))
+    negative = np.where(-p <= SWING_DEAD_ZONE[1], 0.0, np.where(-p >= SWING_SATURATION[1], -SWING_TOP_SPEED, inner_neg))
+    return np.where(p > 0, positive, np.where(p < 0, negative, 0.0))
+
+
+def joint_velocity(q: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """The simulator's joint velocity for PWM ``u`` at positions ``q``.
+
+    Args:
+        q: (N, 4) rad.
+        u: (N, 4) PWM.
+
+    Returns:
+        (N, 4) rad/s.
+    """
+    q_min, q_max = np.asarray(Q_MIN[:SWING]), np.asarray(Q_MAX[:SWING])
+    arm_q, arm_u = q[:, :SWING], u[:, :SWING]
+    x = np.abs(arm_u) / PWM_PER_UNIT
+    lowering = np.where(arm_q <= q_min, 0.0, -valve_speed(x, arm_q, 0))
+    raising = np.where(arm_q >= q_max, 0.0, valve_speed(x, arm_q, 1))
+    arm = np.where(arm_u > 0, lowering, np.where(arm_u < 0, raising, 0.0))
+    return np.concatenate([arm, swing_velocity(u[:, SWING], q[:, SWING])[:, None]], axis=1)
+
+
+class PaperExcavator:
+    """The paper's simulator as a batched Plant (see the module docstring for the model).
+
+    ====== ============ ===================== ==========================================
+    name   shape        unit                  meaning
+    ====== ============ ===================== ==========================================
+    q0     (4,)/(N, 4)  rad                   ``reset``: positions, at rest
+    u      (4,)/(N, 4)  PWM                   ``step``: valve commands (saturated in effect from about ±80)
+    obs    (8,)/(N, 8)  [q rad, q̇ rad/s]      q within [:data:`Q_MIN`, :data:`Q_MAX`] (swing in (−π, π])
+    ====== ============ ===================== ==========================================
+
+    ``dt`` is 0.05 s. Output rank follows the ``q0`` given to ``reset``. ``reset`` takes ``q0`` as given (the original
+    does not clip it); the first step clips it.
+    """
+
+    batched = True
+    dt = DT
+
+    def __init__(self) -> None:
+        self.q: np.ndarray | None = None
+        self.qd: np.ndarray | None = None
+        self._single = False
+
+    @property
+    def limits(self) -> GuardLimits:
+        """What the runtime guard may send: the simulator's joint limits and the XE75's adjustment bounds."""
+        return GuardLimits(q_min=Q_MIN, q_max=Q_MAX)
+
+    def reset(self, q0: np.ndarray) -> np.ndarray:
+        """Machines at rest at ``q0`` (4,)/(N, 4) rad; return obs (8,)/(N, 8)."""
+        q0 = np.asarray(q0, dtype=np.float64)
+        if q0.shape[-1:] != (N_JOINTS,) or q0.ndim not in (1, 2):
+            raise EfficientTrackError(f"paper simulator: reset expects q0 of shape (4,) or (N, 4), got {q0.shape}")
+        self._single = q0.ndim == 1
+        self.q = q0.reshape(-1, N_JOINTS).copy()
+        self.qd = np.zeros_like(self.q)
+        return self._obs()
+
+    def reset_machines(self, index: np.ndarray, q0: np.ndarray) -> np.ndarray:
+        """Reset some of the N machines at rest at ``q0``; the others keep their state (a vector env's autoreset).
+
+        Args:
+            index: (K,) int, which machines (of a batched reset).
+            q0: (K, 4) rad, their start positions.
+
+        Returns:
+            (K, 8) [rad, rad/s], their observations.
+        """
+        if self.q is None or self.qd is None or self._single:
+            raise EfficientTrackError("paper simulator: reset_machines needs a batched reset (N, 4) first")
+        index = np.asarray(index, dtype=np.int64)
+        q0 = np.asarray(q0, dtype=np.float64)
+        if q0.shape != (len(index), N_JOINTS):
+            raise EfficientTrackError(f"paper simulator: reset_machines expects q0 of shape ({len(index)}, 4), got {q0.shape}")
+        self.q, self.qd = self.q.copy(), self.qd.copy()
+        self.q[index], self.qd[index] = q0, 0.0
+        return np.concatenate([self.q[index], self.qd[index]], axis=1)
+
+    def step(self, u: np.ndarray) -> np.ndarray:
+        """Apply PWM ``u`` (4,)/(N, 4) for one period; return obs (8,)/(N, 8)."""
+        if self.q is None:
+            raise EfficientTrackError("paper simulator: step called before reset")
+        u = np.asarray(u, dtype=np.float64).reshape(-1, N_JOINTS)
+        if u.shape != self.q.shape:
+            raise EfficientTrackError(f"paper simulator: step expects PWM of shape {self.q.shape}, got {u.shape}")
+        self.qd = joint_velocity(self.q, u)
+        q = self.q + self.dt * self.qd
+        q[:, :SWING] = np.clip(q[:, :SWING], Q_MIN[:SWING], Q_MAX[:SWING])
+        q[:, SWING] = wrap(q[:, SWING])
+        self.q = q
+        return self._obs()
+
+    def _obs(self) -> np.ndarray:
+        obs = np.concatenate([self.q, self.qd], axis=1)
+        return obs[0] if self._single else obs
+
+
+def paper_plant() -> PaperExcavator:
+    """The paper's simulator at PWM level (``load_plant("paper")``, ``--plant paper``)."""
+    return PaperExcavator()
+
+
+def paper_closed_loop() -> ClosedLoop:
+    """The paper's simulator under the paper's PD law (``load_system("paper")``, ``--system paper``)."""
+    return ClosedLoop(PaperExcavator(), PAPER_PD)
