@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from efficienttrack.collect import CollectConfig, collect, episode_noise
+from efficienttrack.episodes import Guard
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.references import save_references
+from efficienttrack.references import Reference, save_references
 from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.systems.spec import load_system
 from toy_system import make, sine_refs
@@ -33,6 +34,27 @@ def test_noise_clipped_sigma_bounded_and_clean_passes_exact(refs):
             assert sigma == 0.0
             assert np.all(d == 0.0)
     assert sum(r.meta["noisy"] for r in result.records) == 9  # 3:1 over 12 episodes
+
+
+def test_a_noise_level_beyond_the_adjustment_bound_is_refused_before_anything_moves():
+    system = load_system("xe75")
+    with pytest.raises(EfficientTrackError, match=r"sigma_max: 1 rad exceeds .* 0\.15 rad \(boom"):
+        collect(system, sine_refs([20]), CollectConfig(sigma_max=1.0), progress=False)
+
+
+def test_noisy_references_stay_within_the_joint_limits_and_the_clamps_are_counted():
+    system = load_system("xe75")
+    system.limits = system.limits.replace(max_adjust=(1.0, 1.0, 1.0, 1.0), max_adjust_rate=(0.5, 0.5, 0.5, 0.5))
+    limits = system.limits
+    near_stop = np.tile(np.array(limits.q_max) - 0.02, (40, 1))  # 2 cm of angle below every upper stop
+    near_stop[:, 3] = 0.0
+    cfg = CollectConfig(sigma_max=1.0, noise_ratio=(1, 0), passes=1, seed=2)
+    record = collect(system, [Reference("near_stop", near_stop)], cfg, progress=False).records[0]
+    assert not limits.outside(record.q_ref).any()
+    clamped = record.meta["guard"][Guard.CLAMPED.name.lower()]
+    assert len(clamped) > 10
+    d = record.q_ref - record.q_des
+    assert np.all(d[:, :3] <= 0.02 + 1e-12) and d[:, :3].max() == pytest.approx(0.02)  # clamped at the stops
 
 
 def test_noise_distribution_is_clipped_gaussian():

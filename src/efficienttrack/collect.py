@@ -2,7 +2,10 @@
 
 For every reference q*_{0:L−1}, the machine is reset to q*_0 and at each step t the reference
 ``q^r_{t+1} = q*_{t+1} + d_t`` is sent, with ``d_t = clip(n_t, −σ, σ)``, ``n_t ~ N(0, σ²)`` per joint,
-and ``σ ~ U(0, σ_max)`` drawn once per episode. A pass runs every reference once. Each episode is either
+and ``σ ~ U(0, σ_max)`` drawn once per episode. The noise is an adjustment of the reference like the policy's, so it
+passes the same limits: ``σ_max`` may not exceed the machine's adjustment bound (refused before anything moves), and
+a noisy reference beyond the joint limits is clamped into them (the step's guard bit ``CLAMPED``, counted in the
+record's ``meta["guard"]``). A pass runs every reference once. Each episode is either
 noisy or clean (d = 0), and the noisy:clean mix follows ``noise_ratio`` (the paper's best is 9:2) over
 the episodes, so that any number of passes keeps it: a single pass over 40 references gives 33 noisy and
 7 clean episodes (the paper's fastset). Interaction steps (I.S.) are the steps the machine was driven.
@@ -26,13 +29,16 @@ from typing import NamedTuple
 
 import numpy as np
 
+from efficienttrack.angles import wrap
 from efficienttrack.configfile import check_seed
-from efficienttrack.episodes import Sent, batches, rollout
+from efficienttrack.episodes import Guard, Sent, batches, rollout
 from efficienttrack.errors import EfficientTrackError
+from efficienttrack.joints import JOINT_NAMES
 from efficienttrack.progress import ProgressDisplay
 from efficienttrack.provenance import claim_folder
 from efficienttrack.records import EpisodeRecord, load_named_records, load_records, save_records
 from efficienttrack.references import Reference
+from efficienttrack.systems.limits import GuardLimits
 from efficienttrack.systems.protocol import BatchedSystem
 
 MAX_PASSES = 1000
@@ -138,7 +144,7 @@ class CollectResult(NamedTuple):
     """Outcome of :func:`collect`.
 
     Attributes:
-        records: every episode, pass by pass (meta: name, sigma, pass, noisy).
+        records: every episode, pass by pass (meta: name, sigma, pass, noisy, guard).
         interaction_steps: total steps the machine was driven (I.S.), including resumed passes.
         resumed_passes: passes read back from disk instead of run.
     """
@@ -149,14 +155,16 @@ class CollectResult(NamedTuple):
 
 
 class NoiseDriver:
-    """Collection references ``q*_{t+1} + d_t`` for N episodes with fixed per-episode noise.
+    """Collection references ``q*_{t+1} + d_t`` for N episodes with fixed per-episode noise, clamped into the limits.
 
     Args:
         noise: (T_max, N, 4) rad, the clipped noise d_t of every step (zeros for clean episodes).
+        limits: the machine's joint limits; a noisy reference beyond them is clamped into them.
     """
 
-    def __init__(self, noise: np.ndarray) -> None:
+    def __init__(self, noise: np.ndarray, limits: GuardLimits) -> None:
         self.noise = noise
+        self.limits = limits
         self._t = 0
 
     def start(self, obs0: np.ndarray) -> None:
@@ -175,11 +183,16 @@ class NoiseDriver:
             q_des_future: (N, h, 4) rad, ``q*_{t+1} …``; only ``[:, 0]`` is used.
 
         Returns:
-            The sent reference (N, 4) rad, the noise d_t as adjustment, no fallbacks.
+            The sent reference (N, 4) rad, ``q_ref − q*_{t+1}`` as adjustment, no fallbacks, ``CLAMPED`` where the
+            reference was clamped into the joint limits.
         """
-        d = self.noise[self._t]
+        q_des = q_des_future[:, 0]
+        wanted = q_des + self.noise[self._t]
         self._t += 1
-        return Sent(q_ref=q_des_future[:, 0] + d, adjustment=d, fallback=np.zeros(len(d), dtype=bool))
+        q_ref = self.limits.clamp(wanted)
+        clamped = np.any(q_ref != wanted, axis=1)
+        guard = np.where(clamped, Guard.CLAMPED.value, 0).astype(np.uint16)
+        return Sent(q_ref=q_ref, adjustment=wrap(q_ref - q_des), fallback=np.zeros(len(q_ref), dtype=bool), guard=guard)
 
 
 def episode_noise(cfg: CollectConfig, pass_index: int, ref_index: int, steps: int) -> tuple[float, np.ndarray]:
@@ -220,7 +233,8 @@ def run_pass(
         on_done: called with the records of every group of episodes as soon as it has run (to flush them).
 
     Returns:
-        One record per reference; meta = {name, sigma, pass, noisy}; ``q_ref`` = sent, ``q_des`` = desired.
+        One record per reference; meta = {name, sigma, pass, noisy, guard} (guard: {"clamped": steps} where a noisy
+        reference was clamped into the joint limits, else empty); ``q_ref`` = sent, ``q_des`` = desired.
     """
     noisy = cfg.noisy_episodes(pass_index, len(references))
     finished = finished or {}
@@ -234,13 +248,35 @@ def run_pass(
         for j, i in enumerate(indices):  # per-episode generators keep batching and resuming reproducible
             if noisy[i]:
                 sigmas[j], noise[: len(arrays[j]) - 1, j] = episode_noise(cfg, pass_index, i, len(arrays[j]) - 1)
-        records = rollout(system, arrays, NoiseDriver(noise), 1, progress, f"pass {pass_index + 1}")
+        records = rollout(system, arrays, NoiseDriver(noise, system.limits), 1, progress, f"pass {pass_index + 1}")
         for record, i, sigma in zip(records, indices, sigmas, strict=True):
+            guard = record.meta.get("guard", {})  # the steps clamped into the joint limits
             record.meta = {"name": references[i].name, "sigma": float(sigma), "pass": pass_index, "noisy": bool(noisy[i])}
+            record.meta["guard"] = guard
             new[references[i].name] = record
         if on_done is not None:
             on_done(records)
     return [finished.get(ref.name) or new[ref.name] for ref in references]
+
+
+def check_noise_level(sigma_max: float, limits: GuardLimits) -> None:
+    """Refuse a noise level the machine's adjustment bound cannot hold, naming the joint and the bound.
+
+    The noise moves the reference away from the desired path as the policy's adjustment does; the machine's limits
+    say how far that may go (``max_adjust``), so a larger ``σ_max`` would ask for noise the guard forbids.
+
+    Args:
+        sigma_max: rad, the upper bound of the per-episode noise level.
+        limits: the machine's limits.
+    """
+    bound = np.asarray(limits.max_adjust, dtype=np.float64)
+    if sigma_max > bound.min():
+        joint = int(np.argmin(bound))
+        raise EfficientTrackError(
+            f"collect.sigma_max: {sigma_max:g} rad exceeds the machine's adjustment bound of {bound[joint]:g} rad "
+            f"({JOINT_NAMES[joint]}; max_adjust {', '.join(f'{b:g}' for b in bound)} rad): the noise is an adjustment of "
+            "the reference, and the guard allows no more; lower --sigma-max or widen max_adjust with --limits"
+        )
 
 
 def _pass_dir(out: Path, k: int) -> Path:
@@ -277,6 +313,7 @@ def collect(
     """
     if not references:
         raise EfficientTrackError("collect: no references given")
+    check_noise_level(cfg.sigma_max, system.limits)
     for ref in references:
         system.limits.check_reference(ref.q, ref.name)
     if cfg.noise_ratio[0] > 0 and not any(cfg.noisy_episodes(k, len(references)).any() for k in range(cfg.passes)):
