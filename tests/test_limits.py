@@ -2,15 +2,18 @@
 
 import dataclasses
 
+import gymnasium
 import pytest
 import torch
 
 from efficienttrack import nets
 from efficienttrack.collect import MAX_PASSES, CollectConfig
 from efficienttrack.config import MAX_ROUNDS, PRESETS, RunConfig, load_config
+from efficienttrack.cycles import generate_references
 from efficienttrack.dynamics import MODEL_PRESETS, ClosedLoopModel, ModelConfig, model_error, train_model
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.nets import MAX_HIDDEN, MAX_HORIZON, MAX_LAYERS, check_training_memory, training_bytes
+from efficienttrack.joints import MAX_HORIZON
+from efficienttrack.nets import MAX_HIDDEN, MAX_LAYERS, check_training_memory, training_bytes
 from efficienttrack.policy import POLICY_PRESETS, PolicyConfig
 from efficienttrack.training import MAX_BATCH_SIZE, MAX_EPOCHS, MAX_STEPS
 from test_cli import invoke, refused
@@ -132,3 +135,17 @@ def test_training_checks_the_memory_before_any_work(monkeypatch):
     monkeypatch.setattr(nets, "device_memory", lambda device: 1024)
     with pytest.raises(EfficientTrackError, match="more than the 0.0 GiB of cpu"):
         train_model(MODEL_PRESETS["tiny"], lag_records(n=1, T=40), "cpu", progress=False)
+
+
+def test_huge_sizes_are_refused_before_any_allocation(tmp_path):
+    from efficienttrack.envs import CLOSED_LOOP_ID
+
+    refused(
+        invoke("refs", "generate", "--n", 10**9, "--out", tmp_path / "refs"), "n: need 1 to 10,000 references, got 1000000000"
+    )
+    assert not (tmp_path / "refs").exists()
+    refs = generate_references(1, seed=0)
+    with pytest.raises(EfficientTrackError, match=f"history and future must be 1 to {MAX_HORIZON} steps"):
+        gymnasium.make(CLOSED_LOOP_ID, refs=refs, history=10**7)
+    with pytest.raises(EfficientTrackError, match="seed: a seed must be an integer"):
+        generate_references(1, seed=-1)

@@ -69,7 +69,7 @@ def test_generated_smoothness_bounds():
 
 
 def test_generator_config_validation():
-    with pytest.raises(EfficientTrackError, match="n: need at least 1"):
+    with pytest.raises(EfficientTrackError, match="n: need 1 to 10,000 references, got 0"):
         generate_references(0, 0)
     with pytest.raises(EfficientTrackError, match="cycle preset 'nope'"):
         generate_references(3, 0, "nope")

@@ -26,6 +26,7 @@ from typing import NamedTuple
 import numpy as np
 
 from efficienttrack.angles import wrap
+from efficienttrack.configfile import check_seed
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.joints import DT
 from efficienttrack.references import Reference
@@ -214,6 +215,11 @@ def _synthesize(q0: np.ndarray, joints: np.ndarray, strokes: np.ndarray, steps: 
     return np.concatenate([q0[:, None, :], q0[:, None, :] + np.cumsum(dq, axis=1)], axis=1)
 
 
+MAX_REFERENCES = 10_000
+"""Most references one call draws (about 160 MB at 25 s each): checked before any work, so that a typo in ``--n``
+cannot fill the memory or the disk."""
+
+
 def generate_references(n: int, seed: int, config: CycleConfig | str = "xe75") -> list[Reference]:
     """Draw ``n`` operator-like loading cycles, reproducible by seed.
 
@@ -232,11 +238,12 @@ def generate_references(n: int, seed: int, config: CycleConfig | str = "xe75") -
         each q (T, 4) rad at 20 Hz.
 
     Raises:
-        EfficientTrackError: n < 1, an unknown preset name, or a config whose cycles almost never
-            fit its duration range.
+        EfficientTrackError: n outside 1 … :data:`MAX_REFERENCES`, a bad seed, an unknown preset name, or a config
+            whose cycles almost never fit its duration range.
     """
-    if n < 1:
-        raise EfficientTrackError(f"n: need at least 1 reference, got {n}")
+    if not 1 <= n <= MAX_REFERENCES:
+        raise EfficientTrackError(f"n: need 1 to {MAX_REFERENCES:,} references, got {n}")
+    check_seed(seed, "seed")
     if isinstance(config, str) and config not in CYCLE_PRESETS:
         raise EfficientTrackError(f"cycle preset '{config}': unknown (known: {', '.join(CYCLE_PRESETS)})")
     cfg = CYCLE_PRESETS[config] if isinstance(config, str) else config

@@ -39,10 +39,10 @@ from efficienttrack.angles import wrap
 from efficienttrack.checkpoints import load_checkpoint, save_checkpoint, warm_start
 from efficienttrack.dataset import Sequences
 from efficienttrack.errors import EfficientTrackError
+from efficienttrack.joints import MAX_HORIZON
 from efficienttrack.metrics import position_error
 from efficienttrack.nets import (
     MAX_HIDDEN,
-    MAX_HORIZON,
     MAX_LAYERS,
     MLP,
     Standardizer,

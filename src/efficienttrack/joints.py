@@ -25,3 +25,5 @@ MAX_ABS_ANGLE = 2 * math.pi
 MAX_ABS_VELOCITY = 20.0
 """Joint speeds beyond ±20 rad/s (about 3 turns a second) are no excavator's and refused wherever records are read;
 the XE75's logs stay below 3 rad/s."""
+MAX_HORIZON = 400
+"""Longest horizon, history or future a config or an environment may ask for: 20 s at 20 Hz (the paper: 20 steps)."""

@@ -21,8 +21,6 @@ MAX_HIDDEN = 8192
 """Most units per hidden layer a config may ask for (the paper: 512)."""
 MAX_LAYERS = 64
 """Most hidden blocks a config may ask for (the paper: 6)."""
-MAX_HORIZON = 400
-"""Longest horizon, history or future a config may ask for: 20 s at 20 Hz (the paper: 20 steps)."""
 
 
 class MLP(nn.Module):

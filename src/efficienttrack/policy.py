@@ -37,9 +37,9 @@ from efficienttrack.checkpoints import load_checkpoint, save_checkpoint, warm_st
 from efficienttrack.dataset import Sequences
 from efficienttrack.dynamics import NORM_SAMPLES, ClosedLoopModel
 from efficienttrack.errors import EfficientTrackError
+from efficienttrack.joints import MAX_HORIZON
 from efficienttrack.nets import (
     MAX_HIDDEN,
-    MAX_HORIZON,
     MAX_LAYERS,
     MLP,
     Standardizer,

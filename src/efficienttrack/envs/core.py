@@ -40,7 +40,7 @@ import numpy as np
 from efficienttrack.angles import wrap
 from efficienttrack.cycles import generate_references
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.joints import N_JOINTS, OBS_DIM
+from efficienttrack.joints import MAX_HORIZON, N_JOINTS, OBS_DIM
 from efficienttrack.references import Reference, load_references
 from efficienttrack.systems.limits import GuardLimits
 from efficienttrack.systems.protocol import BatchedSystem
@@ -312,8 +312,8 @@ class Episodes:
     """
 
     def __init__(self, system: BatchedSystem, loop: str, refs: Sequence[Reference], history: int, future: int) -> None:
-        if history < 1 or future < 1:
-            raise EfficientTrackError(f"history and future must be ≥ 1, got {history} and {future}")
+        if not (1 <= history <= MAX_HORIZON and 1 <= future <= MAX_HORIZON):
+            raise EfficientTrackError(f"history and future must be 1 to {MAX_HORIZON} steps, got {history} and {future}")
         self.system = system
         self.actions = ActionMap(loop, system)
         self.refs = list(refs)
