@@ -68,7 +68,7 @@ def main() -> None:
             onnx_policy = load_onnx_policy(folder, threads=1)
         obs, q_ref, q_des = rng.normal(size=(1, h, 8)), rng.normal(size=(1, h, 4)), rng.normal(0, 0.01, size=(1, F, 4))
         graph = timed(lambda: onnx_policy(obs, q_ref, q_des), args.calls)  # noqa: B023 (called within the iteration)
-        runtime = OnnxRuntime(onnx_policy)
+        runtime = OnnxRuntime(onnx_policy, limits=None)
         runtime.start(np.zeros((1, 8)))
         step = timed(lambda: runtime.step(np.zeros((1, 8)), q_des), args.calls)  # noqa: B023
         print(f"{size:5s} ({cfg.layers}×{cfg.hidden}, h={h}, F={F}), {args.calls} calls each (wall ≫ CPU: core shared)")

@@ -306,14 +306,16 @@ def test_a_step_that_never_returns_ends_the_episode_with_an_error():
     system = Hanging()
     refs = [np.zeros((10, 4))]
     with pytest.raises(EfficientTrackError, match=r"system 'hang': step 2 did not return within 0\.2 s"):
-        rollout(BatchedSystem(system, name="system 'hang'"), refs, Runtime(None), step_timeout=0.2)
+        rollout(BatchedSystem(system, name="system 'hang'"), refs, Runtime(None, limits=None), step_timeout=0.2)
     system.release.set()
     with pytest.raises(ValueError, match="valve driver lost"):
-        rollout(BatchedSystem(Failing()), refs, Runtime(None), step_timeout=1.0)
+        rollout(BatchedSystem(Failing()), refs, Runtime(None, limits=None), step_timeout=1.0)
     with pytest.raises(EfficientTrackError, match="step_timeout"):
-        rollout(BatchedSystem(LagSystem()), refs, Runtime(None), step_timeout=0)
+        rollout(BatchedSystem(LagSystem()), refs, Runtime(None, limits=None), step_timeout=0)
     sine = [ref.q for ref in sine_refs([30])]
-    direct, watched = (rollout(BatchedSystem(LagSystem()), sine, Runtime(None), step_timeout=t)[0] for t in (None, 5.0))
+    direct, watched = (
+        rollout(BatchedSystem(LagSystem()), sine, Runtime(None, limits=None), step_timeout=t)[0] for t in (None, 5.0)
+    )
     np.testing.assert_array_equal(direct.q, watched.q)
 
 

@@ -122,7 +122,7 @@ def ref():
 def run(ref, tmp_path, shadow=False, cfg=None, policy=True, **faults):
     clock = FakeClock()
     machine = FaultyMachine(ref.q[0], clock, **faults)
-    runtime = Runtime(LinearPolicy(horizon=3) if policy else None)
+    runtime = Runtime(LinearPolicy(horizon=3) if policy else None, limits=None)
     with TickLog(tmp_path / "log.jsonl", fsync_every=7) as log:
         result = Loop(runtime, machine, DEFAULT_LIMITS, cfg, clock, log, shadow=shadow).run(ref.q, ref.name)
     lines = [json.loads(line) for line in (tmp_path / "log.jsonl").read_text().splitlines()]
@@ -218,7 +218,7 @@ def test_the_policy_sees_the_references_really_sent(ref, tmp_path):
 
     clock = FakeClock()
     machine = FaultyMachine(ref.q[0], clock)
-    Loop(Runtime(Spy(horizon=3)), machine, DEFAULT_LIMITS, clock=clock, shadow=True).run(ref.q, ref.name)
+    Loop(Runtime(Spy(horizon=3), limits=None), machine, DEFAULT_LIMITS, clock=clock, shadow=True).run(ref.q, ref.name)
     np.testing.assert_allclose(np.array(seen[1:]), ref.q[1:-1], atol=1e-6)
 
 
@@ -303,7 +303,7 @@ def test_a_raising_runtime_sends_raw_and_stops(ref, tmp_path):
 
     clock = FakeClock()
     machine = FaultyMachine(ref.q[0], clock)
-    result = Loop(Failing(LinearPolicy(horizon=3)), machine, DEFAULT_LIMITS, clock=clock).run(ref.q, ref.name)
+    result = Loop(Failing(LinearPolicy(horizon=3), limits=None), machine, DEFAULT_LIMITS, clock=clock).run(ref.q, ref.name)
     assert result.reason == "runtime_error" and result.error == "RuntimeError: boom" and result.ticks == 7
     np.testing.assert_array_equal(adjustment(machine, ref, 7)[6], 0.0)
 
@@ -347,7 +347,7 @@ def test_a_machine_away_from_the_start_sends_nothing(ref):
     clock = FakeClock()
     machine = FaultyMachine(ref.q[0] + np.array([0, 0.3, 0, 0]), clock)
     with pytest.raises(EfficientTrackError, match="0.300 rad from the reference's first position"):
-        Loop(Runtime(None), machine, DEFAULT_LIMITS, clock=clock).run(ref.q, ref.name)
+        Loop(Runtime(None, limits=None), machine, DEFAULT_LIMITS, clock=clock).run(ref.q, ref.name)
     assert machine.sent == [] and machine.closed == 1
 
 
@@ -373,7 +373,7 @@ def test_loop_config_refuses_settings_that_cannot_work():
 
 
 def test_runtime_sent_instead_replaces_the_last_reference():
-    runtime = Runtime(LinearPolicy(horizon=2))
+    runtime = Runtime(LinearPolicy(horizon=2), limits=None)
     runtime.start(np.zeros((1, 8)))
     with pytest.raises(EfficientTrackError, match="before a step"):
         runtime.sent_instead(np.zeros((1, 4)))
@@ -393,7 +393,9 @@ def test_deploy_runs_references_in_turn_and_stops_after_a_stopped_run(tmp_path):
         machines.append(FaultyMachine(ref.q[0], clock, raise_read={5} if len(machines) == 1 else ()))
         return machines[-1]
 
-    results = deploy(refs, Runtime(None), make_machine, DEFAULT_LIMITS, tmp_path / "out", clock=clock, shadow=True)
+    results = deploy(
+        refs, Runtime(None, limits=None), make_machine, DEFAULT_LIMITS, tmp_path / "out", clock=clock, shadow=True
+    )
     assert [r.reason for r in results] == ["done", "read_error"] and len(machines) == 2
     summary = json.loads((tmp_path / "out" / "deploy.json").read_text())
     assert [r["name"] for r in summary["runs"]] == ["ref_00", "ref_01"] and summary["shadow"] is True
@@ -406,7 +408,7 @@ def test_a_run_too_short_for_a_record_warns(tmp_path):
     clock = FakeClock()
     refs = sine_refs([30], seed=5)
     with pytest.warns(UserWarning, match="no episode records from ref_00.jsonl: no two usable ticks in a row"):
-        deploy(refs, Runtime(None), lambda ref: FaultyMachine(ref.q[0], clock, raise_read={1}), DEFAULT_LIMITS,
+        deploy(refs, Runtime(None, limits=None), lambda ref: FaultyMachine(ref.q[0], clock, raise_read={1}), DEFAULT_LIMITS,
                tmp_path / "out", clock=clock)  # fmt: skip
     assert not (tmp_path / "out" / "records").exists()
 

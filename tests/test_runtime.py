@@ -6,6 +6,7 @@ from efficienttrack.dataset import Sequences
 from efficienttrack.errors import EfficientTrackError
 from efficienttrack.policy import PolicyConfig
 from efficienttrack.runtime import Runtime, track
+from efficienttrack.systems.limits import DEFAULT_LIMITS
 from efficienttrack.systems.protocol import BatchedSystem
 from toy_system import make, sine_refs
 
@@ -76,7 +77,7 @@ def test_guard_falls_back_to_raw_reference_and_counts(refs):
 
 
 def test_runtime_step_reports_fallback_and_lifecycle():
-    runtime = Runtime(BrokenPolicy())
+    runtime = Runtime(BrokenPolicy(), limits=None)
     with pytest.raises(EfficientTrackError, match="before start"):
         runtime.step(np.zeros((2, 8)), np.zeros((2, 2, 4)))
     with runtime:
@@ -92,7 +93,7 @@ def test_runtime_step_reports_fallback_and_lifecycle():
 
 
 def test_runtime_refuses_non_finite_inputs_before_sending():
-    runtime = Runtime(BrokenPolicy(), device="auto")
+    runtime = Runtime(BrokenPolicy(), device="auto", limits=None)
     runtime.start(np.zeros((1, 8)))
     with pytest.raises(EfficientTrackError, match="non-finite"):
         runtime.step(np.zeros((1, 8)), np.full((1, 2, 4), np.nan))
@@ -100,9 +101,9 @@ def test_runtime_refuses_non_finite_inputs_before_sending():
 
 
 def test_runtime_keeps_the_policy_lengths_and_refuses_too_few_desired_positions():
-    runtime = Runtime(LinearPolicy(horizon=3))
+    runtime = Runtime(LinearPolicy(horizon=3), limits=None)
     assert (runtime.history_length, runtime.future_length) == (3, 3)
-    assert (Runtime(None).history_length, Runtime(None).future_length) == (1, 1)
+    assert (Runtime(None, limits=None).history_length, Runtime(None, limits=None).future_length) == (1, 1)
     runtime.start(np.zeros((1, 8)))
     with pytest.raises(EfficientTrackError, match="needs 3 future desired positions, got 2"):
         runtime.step(np.zeros((1, 8)), np.zeros((1, 2, 4)))
@@ -130,3 +131,9 @@ def test_batched_and_unbatched_tracking_agree(refs):
     for a, b in zip(batched, single, strict=True):
         np.testing.assert_allclose(a.q, b.q, atol=1e-6)
         np.testing.assert_allclose(a.q_ref, b.q_ref, atol=1e-6)
+
+
+def test_a_runtime_needs_limits_or_says_it_goes_without():
+    with pytest.raises(TypeError, match="limits"):
+        Runtime(LinearPolicy(horizon=3))  # a forgotten argument never means "anything within ±2π"
+    assert Runtime(None, limits=None).limits == DEFAULT_LIMITS

@@ -56,8 +56,8 @@ class GuardedRuntime:
         lengths: (h, F), the history length and the number of future desired positions the policy sees ((1, 1)
             without a policy).
         policy_max_adjust: (4,) rad, the bound the policy file states, or None; it only tightens ``limits.max_adjust``.
-        limits: the machine's limits (a system's ``limits``, or :meth:`GuardLimits.load`); :data:`DEFAULT_LIMITS`
-            when None.
+        limits: the machine's limits (a system's ``limits``, or :meth:`GuardLimits.load`), always given: None is the
+            explicit choice of :data:`DEFAULT_LIMITS` (±2π, no joint limits), never a forgotten argument.
         dt: control period, s (for the observation jump check).
     """
 
@@ -66,7 +66,7 @@ class GuardedRuntime:
         act: PolicyCall | None,
         lengths: Sequence[int],
         policy_max_adjust: Sequence[float] | None,
-        limits: GuardLimits | None = None,
+        limits: GuardLimits | None,
         dt: float = DT,
     ) -> None:
         self._policy_call = act

@@ -201,12 +201,13 @@ class OnnxRuntime(GuardedRuntime):
 
     Args:
         policy: the exported policy (:class:`OnnxPolicy`).
-        limits: the machine's limits (a system's ``limits``, or :meth:`GuardLimits.load`); the default limits when
-            None. The contract's ``max_adjust`` only tightens ``limits.max_adjust``.
+        limits: the machine's limits (a system's ``limits``, or :meth:`GuardLimits.load`), a required keyword;
+            ``limits=None`` is the explicit choice of the default limits. The contract's ``max_adjust`` only tightens
+            ``limits.max_adjust``.
         dt: control period, s (for the observation jump check); the contract's when None.
     """
 
-    def __init__(self, policy: OnnxPolicy, limits: GuardLimits | None = None, dt: float | None = None) -> None:
+    def __init__(self, policy: OnnxPolicy, *, limits: GuardLimits | None, dt: float | None = None) -> None:
         contract = policy.contract
         lengths = (contract.history_length, contract.future_length)
         super().__init__(policy, lengths, contract.max_adjust, limits, contract.dt if dt is None else dt)

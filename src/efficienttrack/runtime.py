@@ -55,8 +55,10 @@ class Runtime(GuardedRuntime):
         policy: an ``AdjustmentPolicy`` (``efficienttrack.policy``), or None for the PD controller
             alone (a = 0; history and future length 1).
         device: torch device the policy runs on (its own device when None).
-        limits: the machine's limits (a system's ``limits``, or :meth:`GuardLimits.load`); :data:`DEFAULT_LIMITS`
-            when None. The policy's ``cfg.max_adjust`` only tightens ``limits.max_adjust``.
+        limits: the machine's limits (a system's ``limits``, or :meth:`GuardLimits.load`), a required keyword: a
+            runtime without them would send anything within ±2π. ``limits=None`` is the explicit choice of
+            :data:`DEFAULT_LIMITS` (a simulator, a test). The policy's ``cfg.max_adjust`` only tightens
+            ``limits.max_adjust``.
         dt: control period, s (for the observation jump check).
     """
 
@@ -64,7 +66,8 @@ class Runtime(GuardedRuntime):
         self,
         policy: torch.nn.Module | None,
         device: torch.device | str | None = None,
-        limits: GuardLimits | None = None,
+        *,
+        limits: GuardLimits | None,
         dt: float = DT,
     ) -> None:
         cfg = policy.cfg if policy is not None else None
