@@ -9,8 +9,9 @@ from typer.testing import CliRunner
 from efficienttrack.angles import wrap
 from efficienttrack.cli import app
 from efficienttrack.errors import EfficientTrackError
+from efficienttrack.fileio import output_lock
 from efficienttrack.joints import DT
-from efficienttrack.records import load_records
+from efficienttrack.records import load_records, save_records
 from efficienttrack.rosbag import joint_map, read_rosbag
 
 TYPES = get_typestore(Stores.ROS2_HUMBLE)
@@ -118,6 +119,20 @@ def test_import_rosbag_command(bag, tmp_path):
     again = CliRunner().invoke(app, ["import-rosbag", str(bag), "--reference", "/nope", "--out", str(tmp_path / "o")])
     assert isinstance(again.exception, EfficientTrackError) and "no topic /nope" in str(again.exception)
     assert not (tmp_path / "o").exists()  # nothing is written before every bag is read
+
+
+def test_import_rosbag_and_convert_refuse_a_folder_being_written(bag, tmp_path):
+    out = tmp_path / "records"
+    runner = CliRunner()
+    with output_lock(out):
+        imported = runner.invoke(app, ["import-rosbag", str(bag), "--reference", "/cmd", "--out", str(out), "--force"])
+        save_records([read_rosbag(bag, "/cmd")], tmp_path / "npz")
+        converted = runner.invoke(app, ["convert", str(tmp_path / "npz"), "--out", str(out), "--force"])
+        for result in (imported, converted):
+            assert isinstance(result.exception, EfficientTrackError) and "another efficienttrack process" in str(
+                result.exception
+            )
+        assert list(out.iterdir()) == []
 
 
 def test_joint_map_defaults_and_user_names():

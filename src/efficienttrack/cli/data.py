@@ -104,6 +104,7 @@ def metrics_command(
 
 @app.command("convert")
 def convert_command(
+    ctx: typer.Context,
     paths: Annotated[
         list[Path],
         typer.Argument(help="Episode files or folders (.npz, our .csv, upstream .npy/.csv), or deploy tick logs (.jsonl)."),
@@ -136,6 +137,7 @@ def convert_command(
             raise EfficientTrackError(f"{log}: no episode records in this tick log (no two usable ticks in a row)")
         records += found
     records += load_records(files) if files else []
+    _lock(ctx, out)  # after the inputs were read: a refused conversion leaves no folder behind
     prepare_output_folder(out, tuple(f"*{suffix}" for suffix in RECORD_SUFFIXES), force)
     written = save_records(records, out, fmt)
     typer.echo(f"wrote {len(written)} episode(s) to {out}")
@@ -143,6 +145,7 @@ def convert_command(
 
 @app.command("import-rosbag")
 def import_rosbag_command(
+    ctx: typer.Context,
     bags: Annotated[list[Path], typer.Argument(help="rosbag2 folders (metadata.yaml + .db3/.mcap), one episode each.")],
     out: Annotated[Path, typer.Option("--out", help="Destination folder; episodes are named after the bag folders.")],
     reference: Annotated[
@@ -170,6 +173,7 @@ def import_rosbag_command(
     check_output_folder(out)
     options = {"desired": desired, "joint_states": joint_states, "joints": joint, "clock": clock, "max_gap": max_gap}
     records = [read_rosbag(bag, reference, **options) for bag in bags]
+    _lock(ctx, out)  # after the bags were read: a refused import leaves no folder behind
     prepare_output_folder(out, tuple(f"*{suffix}" for suffix in RECORD_SUFFIXES), force)
     written = save_records(records, out, fmt)
     typer.echo(f"wrote {len(written)} episode(s), {sum(map(len, records))} steps at 20 Hz, to {out}")
