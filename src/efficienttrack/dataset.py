@@ -26,8 +26,8 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from efficienttrack.envs.core import PWM_SCALE
 from efficienttrack.errors import EfficientTrackError
+from efficienttrack.joints import PWM_SCALE
 from efficienttrack.records import EpisodeRecord
 from efficienttrack.windows import window_starts
 

@@ -25,5 +25,7 @@ MAX_ABS_ANGLE = 2 * math.pi
 MAX_ABS_VELOCITY = 20.0
 """Joint speeds beyond ±20 rad/s (about 3 turns a second) are no excavator's and refused wherever records are read;
 the XE75's logs stay below 3 rad/s."""
+PWM_SCALE = 1000.0
+"""The valve commands' range, ±1000 PWM; the open loop's actions and the plant model's inputs are PWM / 1000."""
 MAX_HORIZON = 400
 """Longest horizon, history or future a config or an environment may ask for: 20 s at 20 Hz (the paper: 20 steps)."""

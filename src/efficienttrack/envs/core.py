@@ -40,7 +40,7 @@ import numpy as np
 from efficienttrack.angles import wrap
 from efficienttrack.cycles import generate_references
 from efficienttrack.errors import EfficientTrackError
-from efficienttrack.joints import MAX_HORIZON, N_JOINTS, OBS_DIM
+from efficienttrack.joints import MAX_HORIZON, N_JOINTS, OBS_DIM, PWM_SCALE
 from efficienttrack.references import Reference, load_references
 from efficienttrack.systems.limits import GuardLimits
 from efficienttrack.systems.protocol import BatchedSystem
@@ -53,8 +53,6 @@ HISTORY = 21
 """h, the observations and references (or actions) the agent sees, as in the paper."""
 FUTURE = 20
 """F, the desired positions ahead the agent sees, as in the paper."""
-PWM_SCALE = 1000.0
-"""Open loop: PWM per unit of action."""
 REWARD_WEIGHT = 5.0
 """Weight of each reward term."""
 REWARD_OFFSET = 0.1
