@@ -24,7 +24,7 @@ import torch  # noqa: E402
 from stable_baselines3.common.callbacks import BaseCallback  # noqa: E402
 
 from efficienttrack.baselines import SB3VecEnv, method_settings  # noqa: E402
-from efficienttrack.cycles import generate_references  # noqa: E402
+from efficienttrack.data.cycles import generate_references  # noqa: E402
 from efficienttrack.envs import TrackingVectorEnv, evaluate  # noqa: E402
 
 TARGET = 100_000

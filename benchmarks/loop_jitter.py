@@ -1,6 +1,6 @@
-"""Loop jitter at 20 Hz: the fixed-rate loop (``efficienttrack.loop``) in real time against the built-in XE75 simulator.
+"""Loop jitter at 20 Hz: the fixed-rate loop (``efficienttrack.deploy.loop``) in real time against the built-in XE75 simulator.
 
-Runs :class:`~efficienttrack.loop.Loop` on ``time.monotonic`` along generated loading cycles, one after another, for
+Runs :class:`~efficienttrack.deploy.loop.Loop` on ``time.monotonic`` along generated loading cycles, one after another, for
 ``--minutes`` (default 10), in shadow mode, with the policy of ``--policy`` or an untrained one of ``--size``
 (the compute per tick is the same). Prints how late the ticks started after their absolute deadlines
 (p50/p99/max), the runtime's step time, the overruns and the missed ticks, and the command that produced them.
@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from efficienttrack.cycles import generate_references
-from efficienttrack.deploy import SimulatedMachine, deploy
-from efficienttrack.loop import MONOTONIC
-from efficienttrack.policy import POLICY_PRESETS, AdjustmentPolicy, load_policy
-from efficienttrack.runtime import Runtime
+from efficienttrack.data.cycles import generate_references
+from efficienttrack.deploy.deployment import SimulatedMachine, deploy
+from efficienttrack.deploy.loop import MONOTONIC
+from efficienttrack.deploy.runtime import Runtime
+from efficienttrack.learn.policy import POLICY_PRESETS, AdjustmentPolicy, load_policy
 from efficienttrack.systems.spec import load_system
 
 

@@ -1,6 +1,6 @@
 """Single-step latency of the exported policy in ONNX Runtime on one CPU core (the torch-free runtime's cost per 50 ms).
 
-For each size, a policy of that preset is exported (``efficienttrack.export``) and timed two ways, batch 1, one
+For each size, a policy of that preset is exported (``efficienttrack.deploy.export``) and timed two ways, batch 1, one
 intra-op thread: the graph alone as the guard calls it (numpy float64 histories → float32 → ONNX Runtime → numpy),
 and the whole guarded step (``OnnxRuntime.step``: input checks, histories, graph, rate limit, clamp). Compare with
 ``benchmarks/policy_latency.py`` (the same policy in torch). Target: p99 ≤ 1 ms.
@@ -21,9 +21,9 @@ import numpy as np
 import onnxruntime
 import torch
 
-from efficienttrack.export import export_policy
-from efficienttrack.onnx_runtime import OnnxRuntime, load_onnx_policy
-from efficienttrack.policy import POLICY_PRESETS, AdjustmentPolicy
+from efficienttrack.deploy.export import export_policy
+from efficienttrack.deploy.onnx_runtime import OnnxRuntime, load_onnx_policy
+from efficienttrack.learn.policy import POLICY_PRESETS, AdjustmentPolicy
 
 
 def timed(call: Callable[[], object], calls: int, warmup: int = 200) -> tuple[np.ndarray, np.ndarray]:

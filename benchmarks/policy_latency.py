@@ -16,7 +16,7 @@ import time
 import numpy as np
 import torch
 
-from efficienttrack.policy import POLICY_PRESETS, AdjustmentPolicy
+from efficienttrack.learn.policy import POLICY_PRESETS, AdjustmentPolicy
 
 
 def latencies(policy: AdjustmentPolicy, calls: int, warmup: int = 200) -> tuple[np.ndarray, np.ndarray]:

@@ -16,9 +16,9 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
-from efficienttrack.joints import JOINT_NAMES
-from efficienttrack.metrics import HELD_SPEED_DEG_S, moving_held_split
-from efficienttrack.records import load_records
+from efficienttrack.core.joints import JOINT_NAMES
+from efficienttrack.data.metrics import HELD_SPEED_DEG_S, moving_held_split
+from efficienttrack.data.records import load_records
 
 
 def run_episodes(out: Path) -> dict[str, Path]:

@@ -25,11 +25,11 @@ import torch
 from rich.console import Console
 from rich.table import Table
 
-from efficienttrack.config import PRESETS, RunConfig, with_overrides
-from efficienttrack.cycles import generate_references
-from efficienttrack.fileio import write_json
-from efficienttrack.pipeline import DEMO_REFERENCES, DEMO_SEED, DEMO_TRAIN, run_pipeline
+from efficienttrack.core.fileio import write_json
+from efficienttrack.data.cycles import generate_references
 from efficienttrack.systems.spec import SystemSpec
+from efficienttrack.workflow.config import PRESETS, RunConfig, with_overrides
+from efficienttrack.workflow.pipeline import DEMO_REFERENCES, DEMO_SEED, DEMO_TRAIN, run_pipeline
 
 COLUMNS = (
     ("MAE °", "{:.3f}", lambda r, pd: r["efficienttrack"]["mae_deg"]),

@@ -24,7 +24,7 @@ import torch  # noqa: E402
 
 from efficienttrack.baselines.tdmpc import TOLD, Learner, PrioritizedBuffer, plan, tdmpc_settings  # noqa: E402
 from efficienttrack.baselines.tdmpc.train import evaluation_agent, planner_config  # noqa: E402
-from efficienttrack.cycles import generate_references  # noqa: E402
+from efficienttrack.data.cycles import generate_references  # noqa: E402
 from efficienttrack.envs import TrackingEnv, evaluate  # noqa: E402
 
 TARGETS = (1_000, 100_000, 197_890)

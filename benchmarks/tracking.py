@@ -21,10 +21,10 @@ import torch
 from rich.console import Console
 from rich.table import Table
 
-from efficienttrack.config import PRESETS, RunConfig
-from efficienttrack.cycles import generate_references
-from efficienttrack.pipeline import DEMO_REFERENCES, DEMO_SEED, DEMO_TRAIN, run_pipeline
+from efficienttrack.data.cycles import generate_references
 from efficienttrack.systems.spec import SystemSpec
+from efficienttrack.workflow.config import PRESETS, RunConfig
+from efficienttrack.workflow.pipeline import DEMO_REFERENCES, DEMO_SEED, DEMO_TRAIN, run_pipeline
 
 ROWS = (
     ("MAE (°)", "mae_deg"),

@@ -1,7 +1,7 @@
 """Multi-step training throughput of the closed-loop dynamics model: window-steps per second.
 
 One optimizer step rolls ``batch_size`` windows ``h`` steps, so its work is batch × h window-steps.
-The figure is measured through the real trainer (:func:`efficienttrack.dynamics.train_model`) on
+The figure is measured through the real trainer (:func:`efficienttrack.learn.dynamics.train_model`) on
 synthetic records: the time of a run of ``n + k`` steps minus that of a run of ``n`` steps, so the
 set-up (windows, scaling) drops out.
 
@@ -18,9 +18,9 @@ import sys
 import numpy as np
 import torch
 
-from efficienttrack.dynamics import MODEL_PRESETS, train_model
-from efficienttrack.records import EpisodeRecord
-from efficienttrack.training import MAX_STEPS
+from efficienttrack.data.records import EpisodeRecord
+from efficienttrack.learn.dynamics import MODEL_PRESETS, train_model
+from efficienttrack.learn.training import MAX_STEPS
 
 
 def synthetic_records(episodes: int = 20, steps: int = 500, seed: int = 0) -> list[EpisodeRecord]:

@@ -3,13 +3,13 @@ r"""An example ROS 2 node around EfficientTrack's fixed-rate loop: joint states 
 Not part of the package and not imported by it: it needs rclpy, which comes with a ROS 2 installation, not from
 PyPI (docs/ros2.md says how to get it). The tests only compile it.
 
-The node is a :class:`efficienttrack.loop.Machine` adapter (:class:`RosMachine`) over rclpy: it subscribes to
+The node is a :class:`efficienttrack.deploy.loop.Machine` adapter (:class:`RosMachine`) over rclpy: it subscribes to
 ``sensor_msgs/msg/JointState`` on ``joint_states`` and publishes each reference the loop sends as
 ``std_msgs/msg/Float64MultiArray`` (boom, arm, bucket, swing, rad) on ``~/reference``, the message ros2_control's
 position controllers take (remap it to yours). It also publishes the desired position of every tick on
 ``~/desired``, so that a bag of the run imports with ``efficienttrack import-rosbag``. Everything else is the
-package's: :func:`efficienttrack.deploy.deploy` runs :class:`~efficienttrack.loop.Loop` along each reference, with
-its watchdogs, shadow mode, a = 0 at every start and end, and a JSONL log per reference.
+package's: :func:`efficienttrack.deploy.deployment.deploy` runs :class:`~efficienttrack.deploy.loop.Loop` along
+each reference, with its watchdogs, shadow mode, a = 0 at every start and end, and a JSONL log per reference.
 
 Shadow mode first (the adjustment is computed and logged, the raw reference is sent)::
 
@@ -36,11 +36,11 @@ from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from efficienttrack.deploy import deploy
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.joints import JOINT_NAMES
-from efficienttrack.loop import MONOTONIC, LoopConfig, Reading
-from efficienttrack.references import load_references
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.joints import JOINT_NAMES
+from efficienttrack.data.references import load_references
+from efficienttrack.deploy.deployment import deploy
+from efficienttrack.deploy.loop import MONOTONIC, LoopConfig, Reading
 from efficienttrack.systems.limits import GuardLimits
 
 FIRST_READING_TIMEOUT = 2.0
@@ -141,11 +141,11 @@ class PublishDesired:
 def load_runtime(policy: Path, limits: GuardLimits):
     """An export folder in the torch-free ONNX runtime, or a ``policy.pt`` in the torch runtime."""
     if policy.is_dir():
-        from efficienttrack.onnx_runtime import OnnxRuntime, load_onnx_policy
+        from efficienttrack.deploy.onnx_runtime import OnnxRuntime, load_onnx_policy
 
         return OnnxRuntime(load_onnx_policy(policy), limits=limits)
-    from efficienttrack.policy import load_policy
-    from efficienttrack.runtime import Runtime
+    from efficienttrack.deploy.runtime import Runtime
+    from efficienttrack.learn.policy import load_policy
 
     return Runtime(load_policy(policy, "cpu"), limits=limits)
 

@@ -35,7 +35,7 @@ def default_stop_signals():
     """SIGTERM and SIGHUP at their default action for the test (Ray's ``init`` leaves a SIGTERM handler in the process)."""
     import signal
 
-    from efficienttrack.stop_signals import STOP_SIGNALS
+    from efficienttrack.core.stop_signals import STOP_SIGNALS
 
     previous = {s: signal.signal(s, signal.SIG_DFL) for s in STOP_SIGNALS}
     yield

@@ -8,10 +8,9 @@ import pytest
 from typer.testing import CliRunner
 
 from efficienttrack.cli import app
-from efficienttrack.config import PRESETS
-from efficienttrack.cycles import generate_references
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.references import Reference, save_references
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.data.cycles import generate_references
+from efficienttrack.data.references import Reference, save_references
 from efficienttrack.study import (
     ABLATIONS,
     ablation_jobs,
@@ -24,6 +23,7 @@ from efficienttrack.study import (
 )
 from efficienttrack.study.ablation_report import FIELDS
 from efficienttrack.systems.spec import SystemSpec
+from efficienttrack.workflow.config import PRESETS
 
 TINY = PRESETS["tiny"]
 FAST = replace(TINY, device="cpu", model=replace(TINY.model, steps=30), policy=replace(TINY.policy, steps=30))

@@ -29,19 +29,20 @@ import pytest
 import torch
 import typer
 
-from efficienttrack import checkpoints, cli
-from efficienttrack.checkpoints import load_tensors
-from efficienttrack.collect import CollectConfig, collect
-from efficienttrack.dynamics import MODEL_PRESETS, save_model, train_model
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import atomic_write
-from efficienttrack.policy import POLICY_PRESETS, save_policy, train_policy
-from efficienttrack.records import save_records
-from efficienttrack.references import Reference, save_references
+from efficienttrack import cli
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import atomic_write
+from efficienttrack.data.records import save_records
+from efficienttrack.data.references import Reference, save_references
+from efficienttrack.learn import checkpoints
+from efficienttrack.learn.checkpoints import load_tensors
+from efficienttrack.learn.dynamics import MODEL_PRESETS, save_model, train_model
+from efficienttrack.learn.policy import POLICY_PRESETS, save_policy, train_policy
 from efficienttrack.systems.hydraulic import preset_path
 from efficienttrack.systems.limits import GuardLimits
 from efficienttrack.systems.pd import PD_PRESETS
 from efficienttrack.systems.protocol import BatchedSystem
+from efficienttrack.workflow.collect import CollectConfig, collect
 from test_records import make_record
 from test_rosbag import references, states, write_bag
 from toy_system import LagSystem, sine_refs

@@ -13,13 +13,13 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 from efficienttrack.baselines import PPOSettings, SACSettings, SB3VecEnv, default_eval_points, method_settings, train_baseline
 from efficienttrack.baselines.resume import STATE_FILE
 from efficienttrack.baselines.sb3_state import restore_state, save_state
-from efficienttrack.checkpoints import load_tensors
-from efficienttrack.cycles import generate_references
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.progress import ProgressDisplay
+from efficienttrack.data.cycles import generate_references
+from efficienttrack.data.metrics import METRIC_KEYS
+from efficienttrack.data.references import Reference
 from efficienttrack.envs import TrackingEnv, TrackingVectorEnv
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.metrics import METRIC_KEYS
-from efficienttrack.progress import ProgressDisplay
-from efficienttrack.references import Reference
+from efficienttrack.learn.checkpoints import load_tensors
 from efficienttrack.systems.spec import SystemSpec
 
 TINY_PPO = PPOSettings(n_envs=2, n_steps=16, batch_size=16, n_epochs=1, net_arch=(8,), device="cpu")

@@ -6,8 +6,8 @@ import pytest
 from typer.testing import CliRunner
 
 from efficienttrack.cli import app
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.records import EpisodeRecord, save_csv
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.data.records import EpisodeRecord, save_csv
 from efficienttrack.systems import load_plant, load_system
 from efficienttrack.systems.fit import (
     FitConfig,

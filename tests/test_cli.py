@@ -8,14 +8,15 @@ import stat
 import pytest
 from typer.testing import CliRunner
 
-from efficienttrack import __version__, pipeline
+from efficienttrack import __version__
 from efficienttrack.cli import app
-from efficienttrack.config import PRESETS, load_config, with_overrides
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import atomic_write, current_umask
-from efficienttrack.metrics import METRIC_KEYS, compute_metrics
-from efficienttrack.records import load_records, save_records
-from efficienttrack.references import save_references
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import atomic_write, current_umask
+from efficienttrack.data.metrics import METRIC_KEYS, compute_metrics
+from efficienttrack.data.records import load_records, save_records
+from efficienttrack.data.references import save_references
+from efficienttrack.workflow import pipeline
+from efficienttrack.workflow.config import PRESETS, load_config, with_overrides
 from test_dynamics import lag_records
 from test_records import make_record
 from toy_system import sine_refs

@@ -5,12 +5,12 @@ from dataclasses import asdict
 import numpy as np
 import pytest
 
-from efficienttrack.collect import CollectConfig, collect, episode_noise
-from efficienttrack.episodes import Guard
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.references import Reference, save_references
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.data.references import Reference, save_references
+from efficienttrack.deploy.episodes import Guard
 from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.systems.spec import load_system
+from efficienttrack.workflow.collect import CollectConfig, collect, episode_noise
 from toy_system import make, sine_refs
 
 

@@ -2,10 +2,10 @@ import numpy as np
 import pytest
 import torch
 
-from efficienttrack.dataset import Sequences
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.records import EpisodeRecord
-from efficienttrack.windows import initial_history, push, push_observation, push_reference
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.data.dataset import Sequences
+from efficienttrack.data.records import EpisodeRecord
+from efficienttrack.data.windows import initial_history, push, push_observation, push_reference
 
 
 def hand_record(T: int, base: float) -> EpisodeRecord:

@@ -85,9 +85,9 @@ def _undocumented(target: Target) -> list[str]:
 def test_walk_finds_functions_and_methods() -> None:
     names = {t.qualname for t in _targets()}
     assert len(names) > 50
-    assert "efficienttrack.fileio.write_json" in names  # function
+    assert "efficienttrack.core.fileio.write_json" in names  # function
     assert "efficienttrack.systems.hydraulic.HydraulicParams.replace" in names  # method
-    assert "efficienttrack.records.EpisodeRecord.load" in names  # classmethod
+    assert "efficienttrack.data.records.EpisodeRecord.load" in names  # classmethod
     assert "efficienttrack.systems.protocol.BatchedSystem.__init__" in names  # hand-written constructor
     assert "efficienttrack.systems.hydraulic.HydraulicParams.__init__" not in names  # dataclass-generated
     assert "efficienttrack.cli.common.parse_options" in names

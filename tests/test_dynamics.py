@@ -6,12 +6,20 @@ import numpy as np
 import pytest
 import torch
 
-from efficienttrack import dynamics
-from efficienttrack.dynamics import MODEL_PRESETS, ClosedLoopModel, ModelConfig, load_model, model_error, rollout, save_model
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.records import EpisodeRecord
-from efficienttrack.training import read_scalars
-from efficienttrack.windows import push
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.data.records import EpisodeRecord
+from efficienttrack.data.windows import push
+from efficienttrack.learn import dynamics
+from efficienttrack.learn.dynamics import (
+    MODEL_PRESETS,
+    ClosedLoopModel,
+    ModelConfig,
+    load_model,
+    model_error,
+    rollout,
+    save_model,
+)
+from efficienttrack.learn.training import read_scalars
 
 LAG_GAIN = np.array([0.3, 0.5, 0.4, 0.6])
 """Per-joint fraction of the reference error closed per step in the synthetic system."""
@@ -178,7 +186,7 @@ def test_cli_train_model_and_model_error(tmp_path):
     from typer.testing import CliRunner
 
     from efficienttrack.cli import app
-    from efficienttrack.records import save_records
+    from efficienttrack.data.records import save_records
 
     save_records(lag_records(n=2, T=40), tmp_path / "data")
     save_records(lag_records(n=1, T=40, seed=1), tmp_path / "held_out")

@@ -14,14 +14,14 @@ from gymnasium.vector import AutoresetMode, SyncVectorEnv
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
 import efficienttrack
-from efficienttrack.angles import wrap
-from efficienttrack.cycles import generate_references
+from efficienttrack.core.angles import wrap
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.data.cycles import generate_references
+from efficienttrack.data.metrics import compute_metrics
+from efficienttrack.data.references import Reference, save_references
+from efficienttrack.deploy.runtime import track
 from efficienttrack.envs import CLOSED_LOOP_ID, OPEN_LOOP_ID, TrackingEnv, TrackingVectorEnv, evaluate, observation_size
 from efficienttrack.envs.core import reward
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.metrics import compute_metrics
-from efficienttrack.references import Reference, save_references
-from efficienttrack.runtime import track
 from efficienttrack.systems.spec import SystemSpec
 
 H = 21

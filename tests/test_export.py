@@ -12,17 +12,17 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from efficienttrack import export as export_module
 from efficienttrack.cli import app
-from efficienttrack.dataset import Sequences
-from efficienttrack.episodes import Guard
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.export import export_policy
-from efficienttrack.joints import DT, JOINT_NAMES
-from efficienttrack.onnx_runtime import CONTRACT_FILE, ONNX_FILE, OnnxRuntime, load_onnx_policy
-from efficienttrack.policy import AdjustmentPolicy, PolicyConfig, save_policy
-from efficienttrack.records import save_records
-from efficienttrack.runtime import Runtime, track
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.joints import DT, JOINT_NAMES
+from efficienttrack.data.dataset import Sequences
+from efficienttrack.data.records import save_records
+from efficienttrack.deploy import export as export_module
+from efficienttrack.deploy.episodes import Guard
+from efficienttrack.deploy.export import export_policy
+from efficienttrack.deploy.onnx_runtime import CONTRACT_FILE, ONNX_FILE, OnnxRuntime, load_onnx_policy
+from efficienttrack.deploy.runtime import Runtime, track
+from efficienttrack.learn.policy import AdjustmentPolicy, PolicyConfig, save_policy
 from efficienttrack.systems.limits import GuardLimits
 from efficienttrack.systems.protocol import BatchedSystem
 from toy_system import make, sine_refs
@@ -122,8 +122,8 @@ sys.meta_path.insert(0, NoTorch())
 
 REPLAY = """
 import numpy as np
-from efficienttrack.onnx_runtime import OnnxRuntime, load_onnx_policy
-from efficienttrack.records import load_records
+from efficienttrack.deploy.onnx_runtime import OnnxRuntime, load_onnx_policy
+from efficienttrack.data.records import load_records
 from efficienttrack.systems.limits import GuardLimits
 
 export, logs, limits, out = sys.argv[1:5]

@@ -8,13 +8,14 @@ import pytest
 import torch
 from rich.console import Console
 
-from efficienttrack import checkpoints, pipeline, training
-from efficienttrack.dynamics import MODEL_PRESETS, ClosedLoopModel, load_model, save_model, train_model
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import finite_json, write_json
-from efficienttrack.records import EpisodeRecord, load_record
-from efficienttrack.stages import RunLog
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import finite_json, write_json
+from efficienttrack.data.records import EpisodeRecord, load_record
+from efficienttrack.learn import checkpoints, training
+from efficienttrack.learn.dynamics import MODEL_PRESETS, ClosedLoopModel, load_model, save_model, train_model
 from efficienttrack.systems.spec import SystemSpec
+from efficienttrack.workflow import pipeline
+from efficienttrack.workflow.stages import RunLog
 from test_dynamics import lag_records
 from test_records import make_record
 

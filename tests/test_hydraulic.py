@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from efficienttrack.errors import EfficientTrackError
+from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.systems import check_system, load_plant, load_system
 from efficienttrack.systems.hydraulic import (
     HydraulicExcavator,

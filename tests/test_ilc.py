@@ -7,11 +7,11 @@ import pytest
 
 from efficienttrack.baselines.curve import CURVE_FILE
 from efficienttrack.baselines.ilc import ILC_PRESETS, ILCSettings, ilc_settings, ilc_update, train_ilc, trial_steps
-from efficienttrack.cycles import generate_references
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.data.cycles import generate_references
+from efficienttrack.data.metrics import compute_metrics
+from efficienttrack.data.references import Reference
 from efficienttrack.envs import evaluate
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.metrics import compute_metrics
-from efficienttrack.references import Reference
 from efficienttrack.systems.spec import SystemSpec
 from toy_system import sine_refs
 

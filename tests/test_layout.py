@@ -8,17 +8,16 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "src" / "efficienttrack"
 
 LAYERS = (
-    ("base", {"errors", "fileio", "npyfile", "angles", "joints", "configfile", "progress", "provenance", "stop_signals"}),
-    ("data", {"kinematics", "references", "cycles", "records", "rosbag", "metrics", "windows"}),
+    ("core", {"core"}),
+    ("data", {"data"}),
     ("systems", {"systems"}),
-    ("episode loop", {"episodes"}),
-    ("collection", {"collect"}),
+    ("learning", {"learn"}),
+    ("deployment", {"deploy"}),
+    ("workflow", {"workflow"}),
     ("environments", {"envs"}),
-    ("learning", {"dataset", "nets", "checkpoints", "training", "dynamics", "policy"}),
-    ("deployment", {"guard", "runtime", "onnx_runtime", "export", "learned_system", "next_round", "loop", "deploy"}),
     ("baselines", {"baselines"}),
-    ("reports", {"plots"}),
-    ("orchestration", {"config", "stages", "time_budget", "rounds", "pipeline", "study", "cli", "__main__"}),
+    ("study", {"study"}),
+    ("command line", {"cli", "__main__"}),
 )
 """Layers from the bottom up: a module may import its own layer and the ones below."""
 
@@ -64,12 +63,20 @@ def test_no_module_imports_upward(module):
 
 
 def test_systems_import_nothing_from_learning():
-    learning = {name for _, names in LAYERS[6:] for name in names}
+    learning = {name for _, names in LAYERS[3:] for name in names}
     for module in package_modules():
         if module.startswith("efficienttrack.systems"):
             assert not {m.split(".")[1] for m in imported(module)} & learning, module
 
 
 def test_layer_check_catches_an_upward_import():
-    assert layer_of("efficienttrack.systems.pd") < layer_of("efficienttrack.dynamics")
-    assert layer_of("efficienttrack.collect") < layer_of("efficienttrack.runtime")
+    assert layer_of("efficienttrack.systems.pd") < layer_of("efficienttrack.learn.dynamics")
+    assert layer_of("efficienttrack.deploy.runtime") < layer_of("efficienttrack.workflow.collect")
+
+
+def test_the_top_level_holds_only_packages_and_no_folder_more_than_15_modules():
+    top = sorted(p.name for p in PACKAGE.glob("*.py"))
+    assert top == ["__init__.py", "__main__.py"], top
+    for folder in [p for p in PACKAGE.rglob("*") if p.is_dir() and p.name != "__pycache__"]:
+        modules = [p for p in folder.glob("*.py") if p.name != "__init__.py"]
+        assert len(modules) <= 15, f"{folder.relative_to(PACKAGE)} holds {len(modules)} modules"

@@ -7,10 +7,10 @@ import torch
 from typer.testing import CliRunner
 
 from efficienttrack.cli import app
-from efficienttrack.dynamics import MODEL_PRESETS, ClosedLoopModel, rollout, save_model
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.learned_system import LearnedSystem
-from efficienttrack.records import save_records
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.data.records import save_records
+from efficienttrack.learn.dynamics import MODEL_PRESETS, ClosedLoopModel, rollout, save_model
+from efficienttrack.learn.learned_system import LearnedSystem
 from efficienttrack.systems import check_system, load_system
 from efficienttrack.systems.fit import fidelity
 from test_dynamics import lag_records, train_tiny_model
@@ -74,8 +74,8 @@ def test_learned_system_restarts_some_machines_while_the_others_run_on():
 
 
 def test_the_vector_env_runs_episodes_side_by_side_on_a_learned_system(tmp_path):
+    from efficienttrack.data.references import Reference
     from efficienttrack.envs import TrackingVectorEnv
-    from efficienttrack.references import Reference
 
     save_model(random_model(), tmp_path / "model.pt")
     refs = [Reference(f"r{k}", np.linspace(0, 0.1 * (k + 1), 6 + 3 * k)[:, None].repeat(4, 1)) for k in range(2)]

@@ -6,16 +6,16 @@ import gymnasium
 import pytest
 import torch
 
-from efficienttrack import nets
-from efficienttrack.collect import MAX_PASSES, CollectConfig
-from efficienttrack.config import MAX_ROUNDS, PRESETS, RunConfig, load_config
-from efficienttrack.cycles import generate_references
-from efficienttrack.dynamics import MODEL_PRESETS, ClosedLoopModel, ModelConfig, model_error, train_model
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.joints import MAX_HORIZON
-from efficienttrack.nets import MAX_HIDDEN, MAX_LAYERS, check_training_memory, training_bytes
-from efficienttrack.policy import POLICY_PRESETS, PolicyConfig
-from efficienttrack.training import MAX_BATCH_SIZE, MAX_EPOCHS, MAX_STEPS
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.joints import MAX_HORIZON
+from efficienttrack.data.cycles import generate_references
+from efficienttrack.learn import nets
+from efficienttrack.learn.dynamics import MODEL_PRESETS, ClosedLoopModel, ModelConfig, model_error, train_model
+from efficienttrack.learn.nets import MAX_HIDDEN, MAX_LAYERS, check_training_memory, training_bytes
+from efficienttrack.learn.policy import POLICY_PRESETS, PolicyConfig
+from efficienttrack.learn.training import MAX_BATCH_SIZE, MAX_EPOCHS, MAX_STEPS
+from efficienttrack.workflow.collect import MAX_PASSES, CollectConfig
+from efficienttrack.workflow.config import MAX_ROUNDS, PRESETS, RunConfig, load_config
 from test_cli import invoke, refused
 from test_dynamics import lag_records
 
@@ -106,7 +106,7 @@ def test_epochs_making_too_many_steps_are_refused_when_the_windows_are_known():
 
 
 def test_cli_steps_beyond_the_bound_is_a_one_line_error(tmp_path):
-    from efficienttrack.records import save_records
+    from efficienttrack.data.records import save_records
 
     save_records(lag_records(n=1, T=40), tmp_path / "data")
     result = invoke("train-model", "--data", tmp_path / "data", "--out", tmp_path / "m.pt", "--steps", 10**12)

@@ -1,4 +1,4 @@
-"""The fixed-rate loop (efficienttrack.loop) against the toy simulator and fault-injecting adapters, on a fake clock."""
+"""The fixed-rate loop (efficienttrack.deploy.loop) against the toy simulator and fault-injecting adapters, on a fake clock."""
 
 import json
 import math
@@ -14,13 +14,13 @@ import torch
 from typer.testing import CliRunner
 
 from efficienttrack.cli import app
-from efficienttrack.deploy import SimulatedClock, SimulatedMachine, deploy, load_machine, records_from_log
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.loop import Loop, LoopConfig, Reading, TickLog
-from efficienttrack.policy import POLICY_PRESETS, AdjustmentPolicy, save_policy
-from efficienttrack.records import load_records
-from efficienttrack.references import Reference, load_references, save_references
-from efficienttrack.runtime import Runtime, track
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.data.records import load_records
+from efficienttrack.data.references import Reference, load_references, save_references
+from efficienttrack.deploy.deployment import SimulatedClock, SimulatedMachine, deploy, load_machine, records_from_log
+from efficienttrack.deploy.loop import Loop, LoopConfig, Reading, TickLog
+from efficienttrack.deploy.runtime import Runtime, track
+from efficienttrack.learn.policy import POLICY_PRESETS, AdjustmentPolicy, save_policy
 from efficienttrack.systems.limits import DEFAULT_LIMITS
 from efficienttrack.systems.protocol import BatchedSystem
 from test_runtime import LinearPolicy
@@ -353,7 +353,7 @@ def test_a_machine_away_from_the_start_sends_nothing(ref):
 
 def test_log_is_flushed_per_line_fsynced_every_n_and_never_overwritten(tmp_path, monkeypatch):
     synced = []
-    monkeypatch.setattr("efficienttrack.loop.os.fsync", lambda fd: synced.append(fd))
+    monkeypatch.setattr("efficienttrack.deploy.loop.os.fsync", lambda fd: synced.append(fd))
     path = tmp_path / "x.jsonl"
     with TickLog(path, fsync_every=3) as log:
         for i in range(7):
@@ -511,8 +511,8 @@ def test_deploy_exits_1_when_a_watchdog_stops_a_run(tmp_path):
 
 DEPLOY_WITHOUT_TORCH = """
 import json
-from efficienttrack.deploy import deploy, deployment_parts
-from efficienttrack.references import load_references
+from efficienttrack.deploy.deployment import deploy, deployment_parts
+from efficienttrack.data.references import load_references
 from efficienttrack.systems.spec import SystemSpec
 
 export, refs, out = sys.argv[1:4]
@@ -524,8 +524,8 @@ assert "torch" not in sys.modules, "deploying an export imported torch"
 
 
 def test_deploy_runs_an_export_folder_in_onnx_runtime(deploy_inputs, tmp_path):
-    from efficienttrack.export import export_policy
-    from efficienttrack.policy import load_policy
+    from efficienttrack.deploy.export import export_policy
+    from efficienttrack.learn.policy import load_policy
     from test_export import BLOCK_TORCH
 
     refs, policy = deploy_inputs
@@ -554,8 +554,8 @@ def test_deploy_refuses_a_damaged_export_folder(deploy_inputs, tmp_path):
     (tmp_path / "export").mkdir()
     result = invoke("deploy", "--refs", refs, "--policy", tmp_path / "export", "--out", tmp_path / "o", "--fast", "--arm")
     assert isinstance(result.exception, EfficientTrackError) and "policy.json: no such file" in str(result.exception)
-    from efficienttrack.export import export_policy
-    from efficienttrack.policy import load_policy
+    from efficienttrack.deploy.export import export_policy
+    from efficienttrack.learn.policy import load_policy
 
     export = export_policy(load_policy(deploy_inputs[1]), tmp_path / "slow")
     contract = json.loads((export / "policy.json").read_text())

@@ -8,9 +8,9 @@ from rich.console import Console
 from typer.testing import CliRunner
 
 from efficienttrack.cli import app
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.kinematics import tip_position
-from efficienttrack.metrics import (
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.data.kinematics import tip_position
+from efficienttrack.data.metrics import (
     METRIC_KEYS,
     compute_metrics,
     episode_metrics,
@@ -24,7 +24,7 @@ from efficienttrack.metrics import (
     tip_distance,
     tracking_error,
 )
-from efficienttrack.records import EpisodeRecord, load_records
+from efficienttrack.data.records import EpisodeRecord, load_records
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 DEG = np.pi / 180

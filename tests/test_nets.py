@@ -3,10 +3,10 @@ import dataclasses
 import pytest
 import torch
 
-from efficienttrack.dynamics import ClosedLoopModel, ModelConfig
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.nets import feature_width, relative_features
-from efficienttrack.policy import AdjustmentPolicy, PolicyConfig, desired_length, policy_rollout, seen_lengths
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.learn.dynamics import ClosedLoopModel, ModelConfig
+from efficienttrack.learn.nets import feature_width, relative_features
+from efficienttrack.learn.policy import AdjustmentPolicy, PolicyConfig, desired_length, policy_rollout, seen_lengths
 
 
 @pytest.mark.parametrize(("h", "K"), [(1, 1), (2, 1), (3, 5), (5, 1), (20, 20)])

@@ -8,15 +8,15 @@ import torch
 from typer.testing import CliRunner
 
 from efficienttrack.cli import app
-from efficienttrack.collect import CollectConfig, collect
-from efficienttrack.dynamics import MODEL_PRESETS, load_model, model_error, save_model, train_model
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.metrics import compute_metrics
-from efficienttrack.next_round import ROUND_JSON, continued_config, next_round
-from efficienttrack.policy import POLICY_PRESETS, load_policy, save_policy, train_policy
-from efficienttrack.records import save_records
-from efficienttrack.runtime import track
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.data.metrics import compute_metrics
+from efficienttrack.data.records import save_records
+from efficienttrack.deploy.runtime import track
+from efficienttrack.learn.dynamics import MODEL_PRESETS, load_model, model_error, save_model, train_model
+from efficienttrack.learn.policy import POLICY_PRESETS, load_policy, save_policy, train_policy
 from efficienttrack.systems.protocol import BatchedSystem
+from efficienttrack.workflow.collect import CollectConfig, collect
+from efficienttrack.workflow.next_round import ROUND_JSON, continued_config, next_round
 from test_dynamics import lag_records
 from toy_system import make, sine_refs
 

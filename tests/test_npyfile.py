@@ -7,9 +7,9 @@ import numpy as np
 import numpy.lib.format as npy_format
 import pytest
 
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import check_file_name
-from efficienttrack.npyfile import MAX_EXPANDED_BYTES, read_npy, read_npz, read_pickled_npy
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import check_file_name
+from efficienttrack.core.npyfile import MAX_EXPANDED_BYTES, read_npy, read_npz, read_pickled_npy
 
 RECONSTRUCT = np.ndarray.__reduce__(np.empty(0))[0]
 

@@ -12,19 +12,19 @@ from efficienttrack.baselines.curve import CURVE_FILE
 from efficienttrack.baselines.openloop import OPEN_PRESETS, imitate, pass_counts, train_efficienttrack_open
 from efficienttrack.baselines.resume import STATE_FILE
 from efficienttrack.baselines.supertrack import SUPERTRACK_PRESETS, train_supertrack
-from efficienttrack.checkpoints import load_tensors
-from efficienttrack.collect import CollectConfig, run_pass
-from efficienttrack.cycles import generate_references
-from efficienttrack.dataset import Sequences
-from efficienttrack.dynamics import MODEL_PRESETS, PlantModel, model_error, train_model
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.data.cycles import generate_references
+from efficienttrack.data.dataset import Sequences
+from efficienttrack.data.metrics import compute_metrics
+from efficienttrack.data.references import Reference
 from efficienttrack.envs import evaluate
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.metrics import compute_metrics
-from efficienttrack.policy import POLICY_PRESETS, PWMPolicy, train_policy
-from efficienttrack.references import Reference
+from efficienttrack.learn.checkpoints import load_tensors
+from efficienttrack.learn.dynamics import MODEL_PRESETS, PlantModel, model_error, train_model
+from efficienttrack.learn.policy import POLICY_PRESETS, PWMPolicy, train_policy
 from efficienttrack.systems.pd import PDGains
 from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.systems.spec import SystemSpec, close_loop
+from efficienttrack.workflow.collect import CollectConfig, run_pass
 
 torch.set_num_threads(1)
 

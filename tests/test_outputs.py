@@ -13,10 +13,10 @@ from typer.testing import CliRunner
 
 from efficienttrack import cli
 from efficienttrack.cli import app
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import check_output_file, check_output_folder, lock_path, output_lock
-from efficienttrack.records import save_records
-from efficienttrack.references import save_references
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import check_output_file, check_output_folder, lock_path, output_lock
+from efficienttrack.data.records import save_records
+from efficienttrack.data.references import save_references
 from test_dynamics import lag_records
 from toy_system import LagSystem, sine_refs
 
@@ -151,7 +151,7 @@ def test_a_checkpoint_is_locked_through_a_file_beside_it_that_goes_with_the_lock
 
 HOLD = """
 import sys
-from efficienttrack.fileio import output_lock
+from efficienttrack.core.fileio import output_lock
 with output_lock(sys.argv[1], folder=sys.argv[2] == "folder"):
     print("locked", flush=True)
     sys.stdin.read()

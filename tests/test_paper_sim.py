@@ -8,11 +8,11 @@ import gymnasium
 import numpy as np
 import pytest
 
-from efficienttrack.cycles import generate_references
+from efficienttrack.data.cycles import generate_references
+from efficienttrack.data.metrics import compute_metrics
+from efficienttrack.data.references import Reference, load_references
+from efficienttrack.deploy.runtime import track
 from efficienttrack.envs import CLOSED_LOOP_ID, OPEN_LOOP_ID
-from efficienttrack.metrics import compute_metrics
-from efficienttrack.references import Reference, load_references
-from efficienttrack.runtime import track
 from efficienttrack.systems.paper import Q_MAX, Q_MIN, PaperExcavator, swing_velocity
 from efficienttrack.systems.pd import PAPER_PD
 from efficienttrack.systems.spec import SystemSpec

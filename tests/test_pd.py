@@ -4,9 +4,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from efficienttrack.angles import wrap
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.records import load_records
+from efficienttrack.core.angles import wrap
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.data.records import load_records
 from efficienttrack.systems.pd import XE75_PD, ClosedLoop, PDGains
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"

@@ -7,14 +7,15 @@ import numpy as np
 import pytest
 import torch
 
-from efficienttrack import __version__, cli, dynamics, policy
-from efficienttrack.config import PRESETS, RunConfig, from_dict, load_config
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.metrics import METRIC_KEYS
-from efficienttrack.pipeline import evaluate, run_pipeline
-from efficienttrack.provenance import PROVENANCE_KEYS
-from efficienttrack.references import save_references
-from efficienttrack.training import read_scalars
+from efficienttrack import __version__, cli
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.provenance import PROVENANCE_KEYS
+from efficienttrack.data.metrics import METRIC_KEYS
+from efficienttrack.data.references import save_references
+from efficienttrack.learn import dynamics, policy
+from efficienttrack.learn.training import read_scalars
+from efficienttrack.workflow.config import PRESETS, RunConfig, from_dict, load_config
+from efficienttrack.workflow.pipeline import evaluate, run_pipeline
 from toy_system import TOY, TOY_CFG, toy_split
 
 

@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from efficienttrack import plots
-from efficienttrack.metrics import adjustment, per_joint_mae, tracking_error
-from efficienttrack.records import EpisodeRecord
+from efficienttrack.data.metrics import adjustment, per_joint_mae, tracking_error
+from efficienttrack.data.records import EpisodeRecord
+from efficienttrack.workflow import plots
 
 
 def episode(steps, offset_deg, adjust_deg=0.0, seed=0):

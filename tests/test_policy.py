@@ -5,8 +5,9 @@ import numpy as np
 import pytest
 import torch
 
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.policy import (
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.data.windows import initial_history, push_observation, push_reference
+from efficienttrack.learn.policy import (
     POLICY_PRESETS,
     AdjustmentPolicy,
     PolicyConfig,
@@ -17,7 +18,6 @@ from efficienttrack.policy import (
     seen_lengths,
     train_policy,
 )
-from efficienttrack.windows import initial_history, push_observation, push_reference
 from test_dynamics import LAG_GAIN, lag_records, train_tiny_model
 
 
@@ -87,7 +87,7 @@ def test_rollout_without_policy_follows_desired_positions(model):
     obs_hist, qref_hist = torch.randn(B, 4, 8) * 0.1, torch.randn(B, 4, 4) * 0.1
     with torch.no_grad():
         rolled = policy_rollout(model, None, obs_hist, qref_hist, q_star, steps=6)
-        from efficienttrack.dynamics import rollout
+        from efficienttrack.learn.dynamics import rollout
 
         expected = rollout(model, obs_hist, qref_hist, q_star)
     assert torch.equal(rolled.q_ref, q_star) and torch.equal(rolled.a, torch.zeros(B, 6, 4))
@@ -102,7 +102,7 @@ def test_save_load_round_trip_and_refuse_other_kind(trained, model, tmp_path):
     x = (torch.randn(5, 4, 8), torch.randn(5, 4, 4), torch.randn(5, 4, 4))
     with torch.no_grad():
         assert torch.equal(trained.policy(*x), loaded(*x))
-    from efficienttrack.dynamics import save_model
+    from efficienttrack.learn.dynamics import save_model
 
     save_model(model, tmp_path / "model.pt")
     with pytest.raises(EfficientTrackError, match="expected a 'adjustment_policy' config"):
@@ -128,8 +128,8 @@ def test_cli_train_policy(model, tmp_path):
     from typer.testing import CliRunner
 
     from efficienttrack.cli import app
-    from efficienttrack.dynamics import save_model
-    from efficienttrack.records import save_records
+    from efficienttrack.data.records import save_records
+    from efficienttrack.learn.dynamics import save_model
 
     save_records(lag_records(n=2, T=30), tmp_path / "data")
     save_model(model, tmp_path / "model.pt")
@@ -140,9 +140,9 @@ def test_cli_train_policy(model, tmp_path):
     assert "model-predicted tracking error" in result.output
     assert load_policy(out).cfg.steps == 5
     # what it was trained from (records, seed 0, the model trained through, no warm start) is kept beside the weights
-    from efficienttrack.dynamics import load_model
-    from efficienttrack.records import load_records
-    from efficienttrack.training import fingerprint
+    from efficienttrack.data.records import load_records
+    from efficienttrack.learn.dynamics import load_model
+    from efficienttrack.learn.training import fingerprint
 
     expected = fingerprint(load_records(tmp_path / "data"), 0, load_model(tmp_path / "model.pt"), None)
     assert json.loads(out.with_suffix(".json").read_text())["training_fingerprint"] == expected

@@ -1,6 +1,6 @@
 import io
 
-from efficienttrack.progress import ProgressDisplay, format_fields
+from efficienttrack.core.progress import ProgressDisplay, format_fields
 
 
 class Clock:

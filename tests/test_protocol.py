@@ -4,7 +4,7 @@ import types
 import numpy as np
 import pytest
 
-from efficienttrack.errors import EfficientTrackError
+from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.systems import BatchedSystem, ClosedLoop, check_system, load_plant, load_system
 
 

@@ -5,9 +5,10 @@ import subprocess
 import pytest
 import torch
 
-from efficienttrack import __version__, provenance
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.provenance import PROVENANCE_KEYS, claim_folder, describe_device, git_commit
+from efficienttrack import __version__
+from efficienttrack.core import provenance
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.provenance import PROVENANCE_KEYS, claim_folder, describe_device, git_commit
 
 
 def test_provenance_has_every_key():

@@ -12,8 +12,8 @@ import pytest
 from typer.testing import CliRunner
 
 from efficienttrack.cli import app
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.records import (
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.data.records import (
     EpisodeRecord,
     RecordWarning,
     load_csv,

@@ -5,15 +5,15 @@ import pytest
 from typer.testing import CliRunner
 
 from efficienttrack.cli import app
-from efficienttrack.cycles import CYCLE_PRESETS, CycleConfig, generate_references, reference_stats
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.joints import DT
-from efficienttrack.plots import plot_references
-from efficienttrack.references import (
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.joints import DT
+from efficienttrack.data.cycles import CYCLE_PRESETS, CycleConfig, generate_references, reference_stats
+from efficienttrack.data.references import (
     Reference,
     load_references,
     save_references,
 )
+from efficienttrack.workflow.plots import plot_references
 
 REAL_REFS = Path(__file__).resolve().parents[2] / "shared" / "data" / "references" / "train"
 

@@ -3,10 +3,10 @@
 import pytest
 import torch
 
-from efficienttrack import checkpoints, training
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.provenance import claim_folder
-from efficienttrack.stages import Stages
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.provenance import claim_folder
+from efficienttrack.learn import checkpoints, training
+from efficienttrack.workflow.stages import Stages
 
 IDENTITY = {"config": {"passes": 2}, "references": ["a", "b"]}
 

@@ -1,4 +1,4 @@
-"""rosbag2 logs → episode records (efficienttrack.rosbag): bags written here with the rosbags writer, no ROS needed."""
+"""rosbag2 logs → episode records (efficienttrack.data.rosbag): bags written here with the rosbags writer, no ROS needed."""
 
 import numpy as np
 import pytest
@@ -6,13 +6,13 @@ from rosbags.rosbag2 import Writer
 from rosbags.typesys import Stores, get_typestore
 from typer.testing import CliRunner
 
-from efficienttrack.angles import wrap
 from efficienttrack.cli import app
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import output_lock
-from efficienttrack.joints import DT
-from efficienttrack.records import load_records, save_records
-from efficienttrack.rosbag import joint_map, read_rosbag
+from efficienttrack.core.angles import wrap
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import output_lock
+from efficienttrack.core.joints import DT
+from efficienttrack.data.records import load_records, save_records
+from efficienttrack.data.rosbag import joint_map, read_rosbag
 
 TYPES = get_typestore(Stores.ROS2_HUMBLE)
 JointState = TYPES.types["sensor_msgs/msg/JointState"]

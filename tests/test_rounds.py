@@ -7,11 +7,11 @@ import pytest
 from typer.testing import CliRunner
 
 from efficienttrack.cli import app
-from efficienttrack.config import RunConfig, from_dict, preset
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.pipeline import evaluate, run_pipeline
-from efficienttrack.rounds import rounds_rows, write_rounds
-from efficienttrack.training import read_scalars
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.learn.training import read_scalars
+from efficienttrack.workflow.config import RunConfig, from_dict, preset
+from efficienttrack.workflow.pipeline import evaluate, run_pipeline
+from efficienttrack.workflow.rounds import rounds_rows, write_rounds
 from toy_system import TOY, TOY_CFG, toy_split
 
 

@@ -2,10 +2,10 @@ import numpy as np
 import pytest
 import torch
 
-from efficienttrack.dataset import Sequences
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.policy import PolicyConfig
-from efficienttrack.runtime import Runtime, track
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.data.dataset import Sequences
+from efficienttrack.deploy.runtime import Runtime, track
+from efficienttrack.learn.policy import PolicyConfig
 from efficienttrack.systems.limits import DEFAULT_LIMITS
 from efficienttrack.systems.protocol import BatchedSystem
 from toy_system import make, sine_refs

@@ -1,4 +1,4 @@
-"""Stop signals as Ctrl-C (efficienttrack.stop_signals): taken only when at their default, once, and given back."""
+"""Stop signals as Ctrl-C (efficienttrack.core.stop_signals): taken only when at their default, once, and given back."""
 
 import os
 import signal
@@ -6,7 +6,7 @@ import threading
 
 import pytest
 
-from efficienttrack.stop_signals import Terminated, interrupt_name, stop_signals_as_interrupt
+from efficienttrack.core.stop_signals import Terminated, interrupt_name, stop_signals_as_interrupt
 
 
 def test_the_first_sigterm_raises_a_keyboard_interrupt_and_later_ones_are_ignored(default_stop_signals):

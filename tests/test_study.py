@@ -13,17 +13,17 @@ import pytest
 from typer.testing import CliRunner
 
 from efficienttrack.cli import app
-from efficienttrack.collect import pass_counts
-from efficienttrack.config import PRESETS
-from efficienttrack.cycles import generate_references
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.references import Reference, save_references
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.data.cycles import generate_references
+from efficienttrack.data.references import Reference, save_references
 from efficienttrack.study import METHODS, Job, Study, available_methods, make_jobs, make_study, report, run_study
 from efficienttrack.study.executors import process_pool
 from efficienttrack.study.jobs import LOOPS
 from efficienttrack.study.methods import Method, point
 from efficienttrack.study.report import FIELDS, METRICS, log_mae_axis
 from efficienttrack.systems.spec import SystemSpec
+from efficienttrack.workflow.collect import pass_counts
+from efficienttrack.workflow.config import PRESETS
 
 TINY = PRESETS["tiny"]
 FAST = replace(TINY, device="cpu", model=replace(TINY.model, steps=30), policy=replace(TINY.policy, steps=30))

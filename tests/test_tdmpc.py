@@ -21,11 +21,11 @@ from efficienttrack.baselines.tdmpc import (
     tdmpc_settings,
     train_tdmpc,
 )
-from efficienttrack.checkpoints import load_tensors
-from efficienttrack.cycles import generate_references
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.metrics import METRIC_KEYS
-from efficienttrack.references import Reference
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.data.cycles import generate_references
+from efficienttrack.data.metrics import METRIC_KEYS
+from efficienttrack.data.references import Reference
+from efficienttrack.learn.checkpoints import load_tensors
 from efficienttrack.systems.spec import SystemSpec
 
 TINY = replace(PRESETS["quick"], seed_steps=20, schedule_steps=40, device="cpu")

@@ -1,4 +1,4 @@
-"""Fitting a run into minutes (efficienttrack.time_budget): the factor's arithmetic, and a run that trains fewer steps."""
+"""Fitting a run into minutes (workflow.time_budget): the factor's arithmetic, and a run that trains fewer steps."""
 
 import io
 import json
@@ -9,16 +9,16 @@ import pytest
 from rich.console import Console
 from typer.testing import CliRunner
 
-from efficienttrack import time_budget
 from efficienttrack.cli import app
-from efficienttrack.config import RunConfig, from_dict
-from efficienttrack.dynamics import ModelConfig
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.pipeline import run_pipeline
-from efficienttrack.policy import PolicyConfig
-from efficienttrack.stages import RunLog, Stages
-from efficienttrack.time_budget import LAST_PLAN_MARGIN, RESERVE, StepTimes, TimeBudget, budget_scale, step_seconds
-from efficienttrack.training import read_scalars
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.learn.dynamics import ModelConfig
+from efficienttrack.learn.policy import PolicyConfig
+from efficienttrack.learn.training import read_scalars
+from efficienttrack.workflow import time_budget
+from efficienttrack.workflow.config import RunConfig, from_dict
+from efficienttrack.workflow.pipeline import run_pipeline
+from efficienttrack.workflow.stages import RunLog, Stages
+from efficienttrack.workflow.time_budget import LAST_PLAN_MARGIN, RESERVE, StepTimes, TimeBudget, budget_scale, step_seconds
 from toy_system import TOY, TOY_CFG, toy_split
 
 CFG = RunConfig(model=ModelConfig(steps=100), policy=PolicyConfig(steps=50), rounds=3, warm_budget=0.5, time_budget=10)

@@ -5,9 +5,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-from efficienttrack import dynamics, policy, training
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.training import LOSS_TAG, LR_TAG, SCALARS_CSV, held_out_subset, read_scalars
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.learn import dynamics, policy, training
+from efficienttrack.learn.training import LOSS_TAG, LR_TAG, SCALARS_CSV, held_out_subset, read_scalars
 from test_dynamics import lag_records
 
 CFG = dataclasses.replace(dynamics.MODEL_PRESETS["tiny"], steps=30, save_every=10, eval_every=10)

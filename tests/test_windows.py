@@ -2,11 +2,11 @@ import numpy as np
 import pytest
 import torch
 
-from efficienttrack.dataset import Sequences
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.metrics import position_error
-from efficienttrack.records import EpisodeRecord
-from efficienttrack.windows import pad_time_major, window_starts
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.data.dataset import Sequences
+from efficienttrack.data.metrics import position_error
+from efficienttrack.data.records import EpisodeRecord
+from efficienttrack.data.windows import pad_time_major, window_starts
 
 
 def test_pad_time_major_repeats_each_arrays_last_row():

@@ -13,9 +13,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from efficienttrack.config import PRESETS
-from efficienttrack.references import Reference
+from efficienttrack.data.references import Reference
 from efficienttrack.systems.spec import SystemSpec
+from efficienttrack.workflow.config import PRESETS
 
 
 class LagSystem:

@@ -1,13 +1,13 @@
 """What the methods trained by backpropagation through a model share: their networks as environment agents, seeded noise.
 
 Open-loop EfficientTrack (:mod:`.openloop`) and SuperTrack (:mod:`.supertrack`) train a policy π_φ of
-:mod:`efficienttrack.policy` through a dynamics model of :mod:`efficienttrack.dynamics`, and are measured (and, for
+:mod:`efficienttrack.learn.policy` through a dynamics model of :mod:`efficienttrack.learn.dynamics`, and are measured (and, for
 SuperTrack, collect their data) through :func:`efficienttrack.envs.evaluate`, whose agent sees the environments'
 332-value observation. :func:`policy_act` turns π_φ into such an agent:
 
-- closed loop: π_φ = :class:`~efficienttrack.policy.AdjustmentPolicy` with ``max_adjust`` = the system's bound, so
+- closed loop: π_φ = :class:`~efficienttrack.learn.policy.AdjustmentPolicy` with ``max_adjust`` = the system's bound, so
   the environment's action is ``a / max_adjust`` ∈ (−1, 1) (the environment sends ``q*_{t+1} + action · max_adjust``);
-- open loop: π_φ = :class:`~efficienttrack.policy.PWMPolicy`, whose output u / 1000 ∈ (−1, 1) is the action itself.
+- open loop: π_φ = :class:`~efficienttrack.learn.policy.PWMPolicy`, whose output u / 1000 ∈ (−1, 1) is the action itself.
 
 The observation's second history (the references sent, or the last actions) is what the policy's ``qref_hist`` is in
 either loop, so the networks see in the environments what they saw in training.
@@ -21,10 +21,10 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.joints import N_JOINTS, OBS_DIM
 from efficienttrack.envs.core import FUTURE, HISTORY, check_loop
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.joints import N_JOINTS, OBS_DIM
-from efficienttrack.policy import AdjustmentPolicy, PWMPolicy
+from efficienttrack.learn.policy import AdjustmentPolicy, PWMPolicy
 
 Act = Callable[[np.ndarray], np.ndarray]
 """An agent: observations (N, 332) float32 → actions (N, 4) in [−1, 1]."""
@@ -118,8 +118,8 @@ def policy_act(policy: AdjustmentPolicy | None, loop: str, noise: Noise | None =
     """π_φ (None: zero actions) as an environment agent for :func:`efficienttrack.envs.evaluate`, optionally noisy.
 
     Args:
-        policy: an :class:`~efficienttrack.policy.AdjustmentPolicy` (closed loop; its ``max_adjust`` is the system's
-            bound) or a :class:`~efficienttrack.policy.PWMPolicy` (open loop), on the CPU; None for zero actions.
+        policy: an :class:`~efficienttrack.learn.policy.AdjustmentPolicy` (closed loop; its ``max_adjust`` is the system's
+            bound) or a :class:`~efficienttrack.learn.policy.PWMPolicy` (open loop), on the CPU; None for zero actions.
         loop: ``"closed"`` or ``"open"``.
         noise: exploration noise added to the action (then clipped by the environment), or None.
 

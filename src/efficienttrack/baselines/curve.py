@@ -2,7 +2,7 @@
 
 A baseline trains for a budget of interaction steps and, when its count first reaches each evaluation point, runs its
 deterministic policy on the held-out references (:func:`efficienttrack.envs.evaluate`) and scores it with
-:func:`efficienttrack.metrics.compute_metrics`: the same episodes and metrics as EfficientTrack's evaluation.
+:func:`efficienttrack.data.metrics.compute_metrics`: the same episodes and metrics as EfficientTrack's evaluation.
 :class:`CurveRecorder` keeps those points and rewrites ``curve.json`` after each, so a long run loses nothing.
 """
 
@@ -16,14 +16,14 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from efficienttrack.configfile import check_seed
+from efficienttrack.core.configfile import check_seed
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import check_output_folder, write_json
+from efficienttrack.core.progress import ProgressDisplay
+from efficienttrack.data.metrics import MIN_STEPS, compute_metrics
+from efficienttrack.data.references import Reference
 from efficienttrack.envs.core import check_loop
 from efficienttrack.envs.evaluation import evaluate
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import check_output_folder, write_json
-from efficienttrack.metrics import MIN_STEPS, compute_metrics
-from efficienttrack.progress import ProgressDisplay
-from efficienttrack.references import Reference
 from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.systems.spec import SystemSpec
 
@@ -147,7 +147,7 @@ class CurveRecorder:
         Args:
             count: the interaction steps trained so far.
             wall_seconds: the training wall time so far (evaluations excluded).
-            metrics: :func:`~efficienttrack.metrics.compute_metrics` of the test episodes.
+            metrics: :func:`~efficienttrack.data.metrics.compute_metrics` of the test episodes.
             extra: further facts of the point (e.g. ``{"passes": 2}``), added to it.
         """
         point = {"interaction_steps": int(count), "wall_seconds": float(wall_seconds), "metrics": metrics}
@@ -210,7 +210,9 @@ def check_refs(refs: Sequence[Reference], name: str, min_steps: int = 2) -> list
         raise EfficientTrackError(f"{name}: no references given")
     for ref in refs:
         if not isinstance(ref, Reference):
-            raise EfficientTrackError(f"{name}: expected References (efficienttrack.references), got {type(ref).__name__}")
+            raise EfficientTrackError(
+                f"{name}: expected References (efficienttrack.data.references), got {type(ref).__name__}"
+            )
         if len(ref) < min_steps:
             raise EfficientTrackError(f"{name}: reference '{ref.name}' has {len(ref)} steps, needs at least {min_steps}")
     return refs

@@ -34,17 +34,17 @@ from typing import Any
 import numpy as np
 from scipy.signal import butter, filtfilt
 
-from efficienttrack.angles import wrap
 from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_eval_points, check_refs
-from efficienttrack.configfile import check_seed
-from efficienttrack.episodes import Sent, batches, rollout
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import check_output_folder, output_lock
-from efficienttrack.joints import N_JOINTS
-from efficienttrack.metrics import MIN_STEPS, compute_metrics
-from efficienttrack.progress import ProgressDisplay
-from efficienttrack.records import EpisodeRecord
-from efficienttrack.references import Reference
+from efficienttrack.core.angles import wrap
+from efficienttrack.core.configfile import check_seed
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import check_output_folder, output_lock
+from efficienttrack.core.joints import N_JOINTS
+from efficienttrack.core.progress import ProgressDisplay
+from efficienttrack.data.metrics import MIN_STEPS, compute_metrics
+from efficienttrack.data.records import EpisodeRecord
+from efficienttrack.data.references import Reference
+from efficienttrack.deploy.episodes import Sent, batches, rollout
 from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.systems.spec import SystemSpec
 
@@ -207,7 +207,7 @@ def run_trial(
     """Run every reference once with its correction, all together on the batched system (the closed loop).
 
     A shorter reference holds its last desired position while the longer ones finish (as
-    :func:`efficienttrack.episodes.rollout` runs them); its errors there are kept too, its record is cut to its length.
+    :func:`efficienttrack.deploy.episodes.rollout` runs them); its errors there are kept too, its record is cut to its length.
 
     Args:
         system: the closed-loop system, checked and opened.

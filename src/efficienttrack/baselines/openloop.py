@@ -1,19 +1,19 @@
 """EfficientTrack in the open loop (the paper's "Ours (Open.)"): a model of the plant itself, a policy that sends PWM.
 
-The same method as the closed loop (:func:`efficienttrack.pipeline.run_pipeline`), one level down:
+The same method as the closed loop (:func:`efficienttrack.workflow.pipeline.run_pipeline`), one level down:
 
-1. **collect** (Algorithm 1, :func:`efficienttrack.collect.run_pass`): the PD controller drives the plant along the
+1. **collect** (Algorithm 1, :func:`efficienttrack.workflow.collect.run_pass`): the PD controller drives the plant along the
    training references with noise on its reference (σ ~ U(0, σ_max) per episode, noisy:clean 9:2); the records keep
    the PWM u the PD law applied, so they are (o, u) sequences of the plant.
-2. **model**: g_θ of the plant, ô_{t+1} = o_t + g_θ(o_H, u_H, u_t) (:class:`~efficienttrack.dynamics.PlantModel`),
-   trained by the closed loop's multi-step trainer (:func:`~efficienttrack.dynamics.train_model`).
-3. **policy**: u_t / 1000 = π_φ(o_H, u_H, q*_F) (:class:`~efficienttrack.policy.PWMPolicy`, tanh-bounded to ±1000 PWM),
+2. **model**: g_θ of the plant, ô_{t+1} = o_t + g_θ(o_H, u_H, u_t) (:class:`~efficienttrack.learn.dynamics.PlantModel`),
+   trained by the closed loop's multi-step trainer (:func:`~efficienttrack.learn.dynamics.train_model`).
+3. **policy**: u_t / 1000 = π_φ(o_H, u_H, q*_F) (:class:`~efficienttrack.learn.policy.PWMPolicy`, tanh-bounded to ±1000 PWM),
    trained through the frozen g_θ on the discounted tracking error plus k_smooth × the command's change
-   (:func:`~efficienttrack.policy.train_policy`). Where the closed loop's policy starts at a = 0, which is the PD
+   (:func:`~efficienttrack.learn.policy.train_policy`). Where the closed loop's policy starts at a = 0, which is the PD
    controller, u = 0 is a machine standing still; so π_φ first imitates the PD law's recorded commands
    (``imitation_steps`` of behaviour cloning on the same windows) and starts from there.
 4. **evaluate** on the held-out references through the open-loop environment (:func:`efficienttrack.envs.evaluate`,
-   ``loop="open"``), scored by :func:`efficienttrack.metrics.compute_metrics`.
+   ``loop="open"``), scored by :func:`efficienttrack.data.metrics.compute_metrics`.
 
 :func:`train_efficienttrack_open` runs this after 1, 2, 5, 10 … collection passes within the budget (the passes are
 collected once, in order; each pass count trains from scratch on its first p passes, as the study's closed-loop
@@ -33,20 +33,20 @@ import torch
 from efficienttrack.baselines.agent import policy_act
 from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_run, earlier_points
 from efficienttrack.baselines.resume import references_digest
-from efficienttrack.collect import MAX_PASSES, CollectConfig, pass_counts, run_pass
-from efficienttrack.configfile import check_seed
-from efficienttrack.dataset import Sequences
-from efficienttrack.dynamics import NORM_SAMPLES, ModelConfig, PlantModel, train_model
+from efficienttrack.core.configfile import check_seed
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import output_lock
+from efficienttrack.core.progress import ProgressDisplay
+from efficienttrack.data.dataset import Sequences
+from efficienttrack.data.records import EpisodeRecord
+from efficienttrack.data.references import Reference
 from efficienttrack.envs.core import open_system
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import output_lock
-from efficienttrack.nets import check_size, resolve_device
-from efficienttrack.policy import PolicyConfig, PWMPolicy, train_policy
-from efficienttrack.progress import ProgressDisplay
-from efficienttrack.records import EpisodeRecord
-from efficienttrack.references import Reference
+from efficienttrack.learn.dynamics import NORM_SAMPLES, ModelConfig, PlantModel, train_model
+from efficienttrack.learn.nets import check_size, resolve_device
+from efficienttrack.learn.policy import PolicyConfig, PWMPolicy, train_policy
+from efficienttrack.learn.training import MAX_STEPS
 from efficienttrack.systems.spec import SystemSpec
-from efficienttrack.training import MAX_STEPS
+from efficienttrack.workflow.collect import MAX_PASSES, CollectConfig, pass_counts, run_pass
 
 
 @dataclass(frozen=True)
@@ -161,7 +161,7 @@ def train_efficienttrack_open(
     it finds there and trains only the pass counts still missing (the passes are collected again: they are the same).
 
     Args:
-        loop: must be ``"open"`` (the closed loop is :func:`efficienttrack.pipeline.run_pipeline`).
+        loop: must be ``"open"`` (the closed loop is :func:`efficienttrack.workflow.pipeline.run_pipeline`).
         system: the spec of a system with a PWM-level plant under it (``SystemSpec(plant=...)`` or the built-in one).
         train_refs: the training references (``.q`` (T, 4) rad).
         test_refs: the held-out references (each ≥ 4 steps).
@@ -170,7 +170,8 @@ def train_efficienttrack_open(
         folder: output folder for ``curve.json``.
         preset: ``"full"``, ``"quick"`` (:data:`OPEN_PRESETS`) or an :class:`OpenLoopSettings`.
         eval_at: interaction counts; each is measured after the most passes whose steps do not exceed it (at least
-            one). None: the pass counts 1, 2, 5, 10 … that fit the budget (:func:`~efficienttrack.collect.pass_counts`).
+            one). None: the pass counts 1, 2, 5, 10 … that fit the budget
+            (:func:`~efficienttrack.workflow.collect.pass_counts`).
         progress: a display for the interaction count and the last MAE, or None.
 
     Returns:

@@ -17,9 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from efficienttrack.checkpoints import CHECKPOINT_READ_ERRORS, load_tensors
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.references import Reference
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.data.references import Reference
+from efficienttrack.learn.checkpoints import CHECKPOINT_READ_ERRORS, load_tensors
 
 STATE_FILE = "training_state.pt"
 """A resumable baseline's training state in its output folder while it trains; removed once the run has finished."""

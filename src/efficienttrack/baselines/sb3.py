@@ -3,7 +3,7 @@
 :func:`train_baseline` trains one method with SB3 (not rewritten here) on the training references, on
 N environments that step one batched system (:class:`~efficienttrack.baselines.vec_env.SB3VecEnv` over
 :class:`efficienttrack.envs.TrackingVectorEnv`), and at chosen interaction counts evaluates the deterministic policy
-on the held-out references with :func:`efficienttrack.envs.evaluate` and :func:`efficienttrack.metrics.compute_metrics`:
+on the held-out references with :func:`efficienttrack.envs.evaluate` and :func:`efficienttrack.data.metrics.compute_metrics`:
 the same episodes and the same metrics as EfficientTrack's evaluation. The curve goes to ``curve.json`` point by point.
 
 An interaction step is one environment step of one machine (20 Hz): N parallel environments stepping once are N
@@ -26,12 +26,12 @@ from efficienttrack.baselines.resume import SAVE_EVERY_SECONDS, STATE_FILE, run_
 from efficienttrack.baselines.sb3_state import restore_state, save_state
 from efficienttrack.baselines.settings import PPOSettings, SACSettings, method_settings
 from efficienttrack.baselines.vec_env import SB3VecEnv
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import atomic_write, output_lock
+from efficienttrack.core.progress import ProgressDisplay
+from efficienttrack.data.references import Reference
 from efficienttrack.envs.core import open_system
 from efficienttrack.envs.vector import TrackingVectorEnv
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import atomic_write, output_lock
-from efficienttrack.progress import ProgressDisplay
-from efficienttrack.references import Reference
 from efficienttrack.systems.spec import SystemSpec
 
 LOOPS = ("closed", "open")
@@ -92,7 +92,7 @@ def train_baseline(
     Training runs on the training references (one episode per reference, picked by each environment's seeded
     generator) with ``settings.n_envs`` environments stepping one batched system. When the interaction count first
     reaches a point of ``eval_at``, the deterministic policy (the mean action, clipped to [−1, 1]) runs every test
-    reference once (:func:`efficienttrack.envs.evaluate`) and :func:`efficienttrack.metrics.compute_metrics` scores it.
+    reference once (:func:`efficienttrack.envs.evaluate`) and :func:`efficienttrack.data.metrics.compute_metrics` scores it.
     ``folder/curve.json`` (``{"method", "loop", "seed", "budget", "system", "settings", "curve": [point, ...]}``) is
     rewritten atomically after each point. Between rollouts, every ``save_every_seconds``, the training state goes to
     ``folder/training_state.pt`` (:mod:`.sb3_state`: no pickle); the same run started again in the folder resumes

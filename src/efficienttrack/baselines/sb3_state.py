@@ -22,7 +22,7 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.save_util import recursive_getattr
 
 from efficienttrack.baselines.resume import read_state, restoring
-from efficienttrack.fileio import atomic_write
+from efficienttrack.core.fileio import atomic_write
 
 BUFFER_FIELDS = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
 """The arrays of SB3's ``ReplayBuffer`` (``(buffer_size, n_envs, ...)``) that are saved, up to the filled row."""

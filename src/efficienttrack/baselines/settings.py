@@ -15,7 +15,7 @@ from typing import Any
 from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.vec_env import VecEnv
 
-from efficienttrack.errors import EfficientTrackError
+from efficienttrack.core.errors import EfficientTrackError
 
 
 def _check_count(value: object, field: str) -> None:

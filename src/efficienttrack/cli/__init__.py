@@ -17,8 +17,8 @@ from typing import Annotated
 import typer
 
 import efficienttrack
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import os_error_text
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import os_error_text
 
 # isort: split
 # Importing a command module registers its commands, and in this order ``efficienttrack --help`` lists them.

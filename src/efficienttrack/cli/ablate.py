@@ -19,8 +19,8 @@ from efficienttrack.cli.study import (
     TrainRefsOpt,
     comma_names,
 )
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import check_output_folder, prepare_output_folder
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import check_output_folder, prepare_output_folder
 
 
 @app.command("ablate")
@@ -69,7 +69,7 @@ def ablate_command(
     and figure in OUT, mean ± std over seeds. Each job writes OUT/jobs/efficienttrack-<variant>-s<seed>/; a rerun
     skips the finished ones. Exit code 1 when a job failed (the others still ran).
     """
-    from efficienttrack.references import load_references
+    from efficienttrack.data.references import load_references
     from efficienttrack.study import ablation_jobs, ablation_report, get_ablation, make_ablation_study, run_ablation
     from efficienttrack.study.jobs import STUDY_CONFIG
     from efficienttrack.study.run import ABLATION_OUTPUTS

@@ -8,8 +8,8 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import output_lock
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import output_lock
 
 TABLE_WIDTH = 132
 """Characters the columns of a metrics table take besides its row labels."""

@@ -19,11 +19,11 @@ from efficienttrack.cli.common import (
     app,
     wide_console,
 )
-from efficienttrack.collect import CollectConfig
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import check_output_file, check_output_folder, finite_json, prepare_output_folder
-from efficienttrack.metrics import metrics_by_path, metrics_table, rounded, write_metrics_csv
-from efficienttrack.records import RECORD_SUFFIXES, load_records, record_files, save_records
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import check_output_file, check_output_folder, finite_json, prepare_output_folder
+from efficienttrack.data.metrics import metrics_by_path, metrics_table, rounded, write_metrics_csv
+from efficienttrack.data.records import RECORD_SUFFIXES, load_records, record_files, save_records
+from efficienttrack.workflow.collect import CollectConfig
 
 refs_app = typer.Typer(help="Reference trajectories: generate and plot.", no_args_is_help=True)
 
@@ -50,8 +50,8 @@ def refs_generate_command(
     ] = False,
 ) -> None:
     """Draw operator-like loading cycles (15–25 s at 20 Hz) and write them as ref_XX.npy."""
-    from efficienttrack.cycles import generate_references
-    from efficienttrack.references import SUFFIXES, save_references
+    from efficienttrack.data.cycles import generate_references
+    from efficienttrack.data.references import SUFFIXES, save_references
 
     check_output_folder(out)
     refs = generate_references(n, seed, preset_name)
@@ -67,8 +67,8 @@ def refs_plot_command(
     out: Annotated[Path | None, typer.Option("--out", help="PNG to write; default SOURCE/references.png.")] = None,
 ) -> None:
     """Draw all references per joint, in degrees against time."""
-    from efficienttrack.plots import plot_references
-    from efficienttrack.references import load_references
+    from efficienttrack.data.references import load_references
+    from efficienttrack.workflow.plots import plot_references
 
     path = check_output_file(out or (source if source.is_dir() else source.parent) / REFERENCES_PLOT)
     refs = load_references(source)
@@ -122,7 +122,7 @@ def convert_command(
     ] = False,
 ) -> None:
     """Convert episode records between formats (upstream .npy/.csv → .npz, .npz ↔ .csv; a deploy log .jsonl → records)."""
-    from efficienttrack.deploy import records_from_log
+    from efficienttrack.deploy.deployment import records_from_log
 
     check_output_folder(out)
     logs = [path for path in paths if path.suffix == ".jsonl" and path.is_file()]
@@ -168,7 +168,7 @@ def import_rosbag_command(
     ] = False,
 ) -> None:
     """Import ROS 2 logs (rosbag2) as episode records on the 20 Hz grid, without ROS (docs/ros2.md)."""
-    from efficienttrack.rosbag import read_rosbag
+    from efficienttrack.data.rosbag import read_rosbag
 
     check_output_folder(out)
     options = {"desired": desired, "joint_states": joint_states, "joints": joint, "clock": clock, "max_gap": max_gap}
@@ -194,8 +194,8 @@ def collect_command(
     seed: Annotated[int, typer.Option("--seed", help="Noise seed.")] = COLLECT.seed,
 ) -> None:
     """Algorithm 1: track the references with the position controller, with and without noise, and record it."""
-    from efficienttrack.collect import collect
-    from efficienttrack.references import load_references
+    from efficienttrack.data.references import load_references
+    from efficienttrack.workflow.collect import collect
 
     check_output_folder(out)
     ratio = CollectConfig.parse_noise_ratio(noise_ratio)

@@ -18,9 +18,9 @@ from efficienttrack.cli.common import (
     app,
     parse_options,
 )
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import check_output_folder, prepare_output_folder
-from efficienttrack.loop import LoopConfig
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import check_output_folder, prepare_output_folder
+from efficienttrack.deploy.loop import LoopConfig
 
 LOOP = LoopConfig()
 """Where the ``deploy`` options take their defaults from."""
@@ -34,9 +34,9 @@ def export_command(
     force: Annotated[bool, typer.Option("--force", help="Replace an earlier export in OUT (other files are kept).")] = False,
 ) -> None:
     """Export a trained policy to ONNX (policy.onnx) with its contract (policy.json), for the torch-free runtime."""
-    from efficienttrack.export import checkpoint_source, export_policy
-    from efficienttrack.onnx_runtime import CONTRACT_FILE, ONNX_FILE
-    from efficienttrack.policy import load_policy
+    from efficienttrack.deploy.export import checkpoint_source, export_policy
+    from efficienttrack.deploy.onnx_runtime import CONTRACT_FILE, ONNX_FILE
+    from efficienttrack.learn.policy import load_policy
 
     check_output_folder(out)
     pi_phi = load_policy(policy, "cpu")
@@ -96,8 +96,8 @@ def deploy_command(
     --arm --shadow; every run starts and ends with a = 0. Exit code 1 when a watchdog stopped a run. Each run is also
     written as episode records in OUT/records/, the data of the next round (efficienttrack round --data OUT/records).
     """
-    from efficienttrack.deploy import DEPLOY_OUTPUTS, deploy, deployment_parts
-    from efficienttrack.references import load_references
+    from efficienttrack.data.references import load_references
+    from efficienttrack.deploy.deployment import DEPLOY_OUTPUTS, deploy, deployment_parts
 
     if not arm:
         raise EfficientTrackError(

@@ -9,10 +9,10 @@ from typing import Annotated
 import typer
 
 from efficienttrack.cli.common import DeviceOpt, RecursiveOpt, ThreadsOpt, _lock, _set_threads, app
-from efficienttrack.config import RunConfig
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import check_output_file, check_output_folder, finite_json, prepare_output_folder
-from efficienttrack.records import load_records
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import check_output_file, check_output_folder, finite_json, prepare_output_folder
+from efficienttrack.data.records import load_records
+from efficienttrack.workflow.config import RunConfig
 
 TrainSeedOpt = Annotated[int, typer.Option("--seed", help="Seed of initialization and window sampling.")]
 
@@ -52,7 +52,7 @@ InitPolicyOpt = Annotated[
 
 def _check_checkpoint(out: Path) -> None:
     """Check that checkpoint ``out`` (a ``.pt``) and its log folder (``OUT`` with ``.logs``) can be written."""
-    from efficienttrack.checkpoints import check_checkpoint_path
+    from efficienttrack.learn.checkpoints import check_checkpoint_path
 
     check_output_file(out)
     check_checkpoint_path(out)
@@ -81,7 +81,7 @@ def _warm_start(option: str, path: Path | None, load, cfg, device: str):
 
     Returns ``(network or None, config)``: the network's own sizes and loss, the schedule of ``cfg`` (the preset).
     """
-    from efficienttrack.next_round import continued_config
+    from efficienttrack.workflow.next_round import continued_config
 
     if path is None:
         return None, cfg
@@ -111,7 +111,7 @@ def train_model_command(
     force: TrainForceOpt = False,
 ) -> None:
     """Train the closed-loop dynamics model on records (multi-step BPTT); an interrupted run resumes."""
-    from efficienttrack.dynamics import MODEL_PRESETS, load_model, save_model, train_model
+    from efficienttrack.learn.dynamics import MODEL_PRESETS, load_model, save_model, train_model
 
     _check_checkpoint(out)
     _set_threads(threads)
@@ -138,7 +138,7 @@ def model_error_command(
     recursive: RecursiveOpt = False,
 ) -> None:
     """Multi-step model prediction error (MPE, the paper's Tr.MPE/Te.MPE) on records, degrees."""
-    from efficienttrack.dynamics import load_model, model_error
+    from efficienttrack.learn.dynamics import load_model, model_error
 
     _set_threads(threads)
     result = model_error(load_model(model, device), load_records(data, recursive), steps)
@@ -168,8 +168,8 @@ def train_policy_command(
     force: TrainForceOpt = False,
 ) -> None:
     """Train the adjustment policy through the frozen model (multi-step BPTT); an interrupted run resumes."""
-    from efficienttrack.dynamics import load_model
-    from efficienttrack.policy import POLICY_PRESETS, load_policy, predicted_tracking_error, save_policy, train_policy
+    from efficienttrack.learn.dynamics import load_model
+    from efficienttrack.learn.policy import POLICY_PRESETS, load_policy, predicted_tracking_error, save_policy, train_policy
 
     _check_checkpoint(out)
     _set_threads(threads)
@@ -231,9 +231,9 @@ def round_command(
     on the new episodes (and on --held-out) before and after, and the tracking error recorded and model-predicted.
     An interrupted round resumes (rerun the same command); a finished one is refused without --force.
     """
-    from efficienttrack.dynamics import MODEL_PRESETS, load_model
-    from efficienttrack.next_round import ROUND_JSON, ROUND_OUTPUTS, next_round
-    from efficienttrack.policy import POLICY_PRESETS, load_policy
+    from efficienttrack.learn.dynamics import MODEL_PRESETS, load_model
+    from efficienttrack.learn.policy import POLICY_PRESETS, load_policy
+    from efficienttrack.workflow.next_round import ROUND_JSON, ROUND_OUTPUTS, next_round
 
     check_output_folder(out)
     _set_threads(threads)

@@ -22,9 +22,9 @@ from efficienttrack.cli.common import (
     app,
     wide_console,
 )
-from efficienttrack.config import ROUND_DATA
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import check_output_folder, prepare_output_folder
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import check_output_folder, prepare_output_folder
+from efficienttrack.workflow.config import ROUND_DATA
 
 RunForceOpt = Annotated[
     bool,
@@ -82,7 +82,7 @@ def _run_config(
     time_budget: float | None = None,
 ):
     """The run's settings: the preset, amended by the ``--config`` file, then by the command's own options."""
-    from efficienttrack.config import load_config, preset, with_overrides
+    from efficienttrack.workflow.config import load_config, preset, with_overrides
 
     if round_data is not None and round_data not in ROUND_DATA:
         raise EfficientTrackError(f"--round-data '{round_data}': expected one of {', '.join(ROUND_DATA)}")
@@ -123,8 +123,8 @@ def evaluate_command(
 
     An interrupted evaluation (or one whose system failed) resumes with the episodes not yet recorded.
     """
-    from efficienttrack.pipeline import EVALUATE_JSON, EVALUATE_OUTPUTS, evaluate
-    from efficienttrack.references import load_references
+    from efficienttrack.data.references import load_references
+    from efficienttrack.workflow.pipeline import EVALUATE_JSON, EVALUATE_OUTPUTS, evaluate
 
     check_output_folder(out)
     spec, references = _system_spec(system, plant, pd, system_opt, limits), load_references(refs)
@@ -158,8 +158,8 @@ def run_command(
     force: RunForceOpt = False,
 ) -> None:
     """The whole method: collect, train model and policy, evaluate PD alone vs EfficientTrack on the test references."""
-    from efficienttrack.pipeline import RUN_OUTPUTS, run_pipeline
-    from efficienttrack.references import load_references
+    from efficienttrack.data.references import load_references
+    from efficienttrack.workflow.pipeline import RUN_OUTPUTS, run_pipeline
 
     check_output_folder(out)
     _set_threads(threads)
@@ -187,7 +187,7 @@ def demo_command(
     force: RunForceOpt = False,
 ) -> None:
     """The whole method on the built-in xe75 simulator with generated references (32 train / 8 test)."""
-    from efficienttrack.pipeline import DEMO_OUTPUTS, demo
+    from efficienttrack.workflow.pipeline import DEMO_OUTPUTS, demo
 
     check_output_folder(out)
     _set_threads(threads)

@@ -11,8 +11,8 @@ from typing import Annotated
 import typer
 
 from efficienttrack.cli.common import PdOpt, PlantOpt, RecursiveOpt, SystemOpt, SystemOpts, _system_spec
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import check_output_file, check_output_folder, finite_json, prepare_output_folder
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import check_output_file, check_output_folder, finite_json, prepare_output_folder
 from efficienttrack.systems.fit import FitConfig
 
 sim_app = typer.Typer(help="The built-in hydraulic simulator: calibrate and check fidelity.", no_args_is_help=True)
@@ -99,8 +99,8 @@ def sim_fidelity_command(
     recursive: RecursiveOpt = False,
 ) -> None:
     """Compare a simulator with real PD logs: closed-loop tracking MAE ratio, open-loop 20-step error and travel."""
-    from efficienttrack.plots import plot_sim_vs_real
     from efficienttrack.systems.fit import fidelity, load_logs, select_by_jitter
+    from efficienttrack.workflow.plots import plot_sim_vs_real
 
     if plot is not None:
         check_output_folder(plot, "--plot")

@@ -9,8 +9,8 @@ import typer
 
 from efficienttrack.cli.common import LimitsOpt, PdOpt, PlantOpt, SystemOpt, SystemOpts, _lock, _system_spec, app
 from efficienttrack.cli.sim import parse_ints
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import check_output_folder, prepare_output_folder
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import check_output_folder, prepare_output_folder
 
 
 def comma_names(text: str, flag: str) -> list[str]:
@@ -97,7 +97,7 @@ def study_command(
     Each job writes its own folder OUT/jobs/<method>-<loop>-s<seed>/; a rerun skips the finished ones, and the
     report is rebuilt from the folders. Exit code 1 when a job failed (the others still ran).
     """
-    from efficienttrack.references import load_references
+    from efficienttrack.data.references import load_references
     from efficienttrack.study import make_jobs, make_study, report, run_study
     from efficienttrack.study.jobs import STUDY_CONFIG
     from efficienttrack.study.run import STUDY_OUTPUTS

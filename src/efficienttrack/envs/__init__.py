@@ -4,7 +4,7 @@
 ``gymnasium.make(CLOSED_LOOP_ID, system="xe75", refs=DIR)`` and ``gymnasium.make_vec(CLOSED_LOOP_ID, num_envs=16, ...)``
 (the native :class:`TrackingVectorEnv`, one batched system call per step) work with no extra step. The observation,
 action and reward are defined in :mod:`efficienttrack.envs.core` and tabled in ``docs/envs.md``; :func:`evaluate`
-runs a trained agent on held-out references as records that :func:`efficienttrack.metrics.compute_metrics` scores.
+runs a trained agent on held-out references as records that :func:`efficienttrack.data.metrics.compute_metrics` scores.
 
 Only the ids and the registration are imported with this package (registering on ``import efficienttrack`` stays
 cheap); the other names load their module when first used.

@@ -1,6 +1,6 @@
 """What the environments share, without gymnasium: the paper's observation, the action, the reward, N episodes at once.
 
-One episode tracks one reference q*_0 … q*_{L−1} (L − 1 steps, as :func:`efficienttrack.episodes.rollout` runs it).
+One episode tracks one reference q*_0 … q*_{L−1} (L − 1 steps, as :func:`efficienttrack.deploy.episodes.rollout` runs it).
 At step t the agent sees (N machines at once, float32):
 
 ========= =========== ============================ ==============================================================
@@ -13,9 +13,9 @@ q*_F      (F, 4)      rad                          the desired positions ``q*_{t
 ========= =========== ============================ ==============================================================
 
 flattened in that order (h = 21, F = 20: 168 + 84 + 80 = 332 values). At an episode start the histories are padded
-as training pads them (:func:`efficienttrack.windows.initial_history`: ``[o_0]·h``, ``[q_0]·h``; the open loop's
+as training pads them (:func:`efficienttrack.data.windows.initial_history`: ``[o_0]·h``, ``[q_0]·h``; the open loop's
 action history with zeros) and ``q*_F`` past the reference's end with its last desired position
-(:func:`efficienttrack.windows.pad_time_major`).
+(:func:`efficienttrack.data.windows.pad_time_major`).
 
 The action a_t ∈ [−1, 1]⁴ (joints boom, arm, bucket, swing; clipped into it):
 
@@ -37,15 +37,15 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from efficienttrack.angles import wrap
-from efficienttrack.cycles import generate_references
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.joints import MAX_HORIZON, N_JOINTS, OBS_DIM, PWM_SCALE
-from efficienttrack.references import Reference, load_references
+from efficienttrack.core.angles import wrap
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.joints import MAX_HORIZON, N_JOINTS, OBS_DIM, PWM_SCALE
+from efficienttrack.data.cycles import generate_references
+from efficienttrack.data.references import Reference, load_references
+from efficienttrack.data.windows import History, initial_history, pad_time_major, push_observation, push_reference
 from efficienttrack.systems.limits import GuardLimits
 from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.systems.spec import SystemSpec
-from efficienttrack.windows import History, initial_history, pad_time_major, push_observation, push_reference
 
 LOOPS = ("closed", "open")
 """The two loops: ``closed`` (the policy adjusts the PD controller's reference) and ``open`` (the policy sends PWM)."""
@@ -142,9 +142,9 @@ def resolve_references(refs: RefsArg) -> list[Reference]:
     """The references of an environment.
 
     Args:
-        refs: a folder or file of references (:func:`~efficienttrack.references.load_references`), a list of
-            :class:`~efficienttrack.references.Reference`, or None for :data:`DEFAULT_REFERENCES` generated
-            loading cycles (:func:`~efficienttrack.cycles.generate_references`, seed 0).
+        refs: a folder or file of references (:func:`~efficienttrack.data.references.load_references`), a list of
+            :class:`~efficienttrack.data.references.Reference`, or None for :data:`DEFAULT_REFERENCES` generated
+            loading cycles (:func:`~efficienttrack.data.cycles.generate_references`, seed 0).
 
     Returns:
         At least one reference.

@@ -3,7 +3,8 @@
 :func:`evaluate` is how a baseline trained on the environments is measured exactly like EfficientTrack: the agent
 sees the environments' observations (:func:`efficienttrack.envs.core.observe`), its actions are applied as the
 environments apply them (:class:`efficienttrack.envs.core.ActionMap`), and the episodes run in the one episode loop
-(:func:`efficienttrack.episodes.rollout`), so that :func:`efficienttrack.metrics.compute_metrics` scores the records.
+(:func:`efficienttrack.deploy.episodes.rollout`), so that :func:`efficienttrack.data.metrics.compute_metrics` scores the
+records.
 With ``act`` returning zeros the closed loop is the PD controller alone, record for record.
 """
 
@@ -13,6 +14,10 @@ from collections.abc import Callable
 
 import numpy as np
 
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.data.records import EpisodeRecord
+from efficienttrack.data.windows import History, push_observation, push_reference
+from efficienttrack.deploy.episodes import STEP_TIMEOUT, Sent, batches, rollout
 from efficienttrack.envs.core import (
     FUTURE,
     HISTORY,
@@ -23,12 +28,8 @@ from efficienttrack.envs.core import (
     open_system,
     resolve_references,
 )
-from efficienttrack.episodes import STEP_TIMEOUT, Sent, batches, rollout
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.records import EpisodeRecord
 from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.systems.spec import SystemSpec
-from efficienttrack.windows import History, push_observation, push_reference
 
 Act = Callable[[np.ndarray], np.ndarray]
 """A deterministic agent: observations (N, D) float32 → actions (N, 4) in [−1, 1] (anything ``np.asarray`` takes)."""
@@ -69,14 +70,14 @@ def evaluate(
     Args:
         act: observations (N, D) float32 → actions (N, 4) in [−1, 1] (clipped into it); N = the references run
             together.
-        refs: a folder of references, a list of :class:`~efficienttrack.references.Reference`, or None for the
+        refs: a folder of references, a list of :class:`~efficienttrack.data.references.Reference`, or None for the
             environments' default (8 generated loading cycles, seed 0).
         loop: ``"closed"`` (the action adjusts the PD controller's reference) or ``"open"`` (the action is PWM / 1000).
         system: the spec of the system (default ``SystemSpec()``, the built-in ``xe75``), or the already-opened system
             to step (the closed loop, or the plant for the open loop).
         history: h, as the agent was trained with.
         future: F, as the agent was trained with.
-        step_timeout: seconds a system step may take (:func:`~efficienttrack.episodes.rollout`); None: no limit.
+        step_timeout: seconds a system step may take (:func:`~efficienttrack.deploy.episodes.rollout`); None: no limit.
 
     Returns:
         One record per reference, in order: q, qd (T, 4) measured; q_ref (T, 4) rad, the reference sent (closed loop)

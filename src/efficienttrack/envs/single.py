@@ -9,6 +9,9 @@ import gymnasium
 import numpy as np
 from gymnasium import spaces
 
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.joints import N_JOINTS
+from efficienttrack.data.references import Reference
 from efficienttrack.envs.core import (
     FUTURE,
     HISTORY,
@@ -20,9 +23,6 @@ from efficienttrack.envs.core import (
     open_system,
     resolve_references,
 )
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.joints import N_JOINTS
-from efficienttrack.references import Reference
 from efficienttrack.systems.spec import SystemSpec
 
 RESET_OPTIONS = ("reference",)
@@ -98,8 +98,8 @@ class TrackingEnv(gymnasium.Env[np.ndarray, np.ndarray]):
         loop: ``"closed"`` or ``"open"``.
         system: a :class:`~efficienttrack.systems.spec.SystemSpec`, or a system's name or ``module:callable``
             (default ``xe75``); the open loop uses its PWM-level plant.
-        refs: a folder of references, a list of :class:`~efficienttrack.references.Reference`, or None for 8
-            generated loading cycles (:func:`~efficienttrack.cycles.generate_references`, seed 0).
+        refs: a folder of references, a list of :class:`~efficienttrack.data.references.Reference`, or None for 8
+            generated loading cycles (:func:`~efficienttrack.data.cycles.generate_references`, seed 0).
         plant: a PWM-level plant instead of ``system`` (closed with ``pd`` for the closed loop).
         pd: PD gains for ``plant``: a preset name or a JSON file.
         system_opts: keyword options of the system's or plant's callable.

@@ -18,6 +18,7 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.envs.core import (
     FUTURE,
     HISTORY,
@@ -30,7 +31,6 @@ from efficienttrack.envs.core import (
     resolve_references,
 )
 from efficienttrack.envs.single import RESET_OPTIONS, chosen_reference, spaces_for
-from efficienttrack.errors import EfficientTrackError
 from efficienttrack.systems.spec import SystemSpec
 
 

@@ -2,7 +2,7 @@
 
 One row per variant: the mean and the sample standard deviation over the seeds (null with one seed) of each job's
 point (:func:`efficienttrack.study.ablations.run_variant`): the interaction steps (equal for every variant), the model's
-Tr.MPE and Te.MPE, the policy's Po.MAE, every test metric of :func:`~efficienttrack.metrics.compute_metrics` and the
+Tr.MPE and Te.MPE, the policy's Po.MAE, every test metric of :func:`~efficienttrack.data.metrics.compute_metrics` and the
 wall time. The table shows the paper's columns of the ablation (Table II: Tr.MPE, Te.MPE, MAE; Table III: Po.MAE,
 1st oSMT, MAE), the CSV and JSON every field.
 """
@@ -22,8 +22,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import atomic_write, write_csv, write_json
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import atomic_write, write_csv, write_json
 from efficienttrack.study.ablations import ABLATIONS, Ablation
 from efficienttrack.study.jobs import STUDY_CONFIG
 from efficienttrack.study.report import COLUMNS, METRICS, cell, read_jobs, stats

@@ -5,11 +5,11 @@ variants of one setting: ``noise-ratio`` (the noisy:clean mix of Algorithm 1: th
 (the weight of the policy's smoothness term: Table III) and ``history`` (the length of the histories the dynamics
 model sees). Every variant collects the same number of passes over the training references (the study's
 ``run_config.collect.passes``), so that they differ only in the setting ablated, and runs
-:func:`~efficienttrack.pipeline.run_pipeline` once, in ``OUT/jobs/efficienttrack-<variant>-s<seed>/run/``.
+:func:`~efficienttrack.workflow.pipeline.run_pipeline` once, in ``OUT/jobs/efficienttrack-<variant>-s<seed>/run/``.
 
 A variant's job reports one point: the test metrics of EfficientTrack, the model's multi-step prediction errors
 (Tr.MPE on the training episodes, Te.MPE on EfficientTrack's test episodes) and Po.MAE, the policy's tracking error
-as its model predicts it (:func:`~efficienttrack.policy.predicted_tracking_error`), on the training episodes (the
+as its model predicts it (:func:`~efficienttrack.learn.policy.predicted_tracking_error`), on the training episodes (the
 paper's: "on the model-predicted positions during training") and on the held-out PD episodes of the test references.
 """
 
@@ -25,22 +25,22 @@ from typing import Any
 
 from rich.console import Console
 
-from efficienttrack.collect import CollectConfig
-from efficienttrack.config import RunConfig
-from efficienttrack.dynamics import load_model
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import write_json
-from efficienttrack.nets import resolve_device
-from efficienttrack.pipeline import run_pipeline
-from efficienttrack.policy import load_policy, predicted_tracking_error
-from efficienttrack.records import load_records
-from efficienttrack.references import Reference
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import write_json
+from efficienttrack.data.records import load_records
+from efficienttrack.data.references import Reference
+from efficienttrack.learn.dynamics import load_model
+from efficienttrack.learn.nets import resolve_device
+from efficienttrack.learn.policy import load_policy, predicted_tracking_error
+from efficienttrack.learn.training import held_out_subset
 from efficienttrack.study.jobs import STUDY_PRESETS, Job, Point, Study, Variant, check_seeds, make_study, point
 from efficienttrack.systems.spec import SystemSpec
-from efficienttrack.training import held_out_subset
+from efficienttrack.workflow.collect import CollectConfig
+from efficienttrack.workflow.config import RunConfig
+from efficienttrack.workflow.pipeline import run_pipeline
 
 PO_MAE_STEPS = 16_384
-"""Most recorded steps Po.MAE is computed from, per set of episodes (:func:`~efficienttrack.training.held_out_subset`:
+"""Most recorded steps Po.MAE is computed from, per set of episodes (:func:`~efficienttrack.learn.training.held_out_subset`:
 evenly spaced whole episodes), bounding its cost on a large collection."""
 RUN = "run"
 """The pipeline's run folder inside a variant's job folder."""
@@ -286,7 +286,7 @@ def policy_mae(folder: Path, device: str) -> dict[str, Any]:
 def run_variant(job: Job, folder: Path) -> list[Point]:
     """One variant of an ablation: the whole pipeline with the variant's settings and the job's seed, in ``folder/run``.
 
-    The run folder resumes (:func:`~efficienttrack.pipeline.run_pipeline`); the point is written to
+    The run folder resumes (:func:`~efficienttrack.workflow.pipeline.run_pipeline`); the point is written to
     ``folder/point.json`` when it is complete and read from there on a rerun.
 
     Args:

@@ -21,10 +21,10 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import write_json
-from efficienttrack.provenance import provenance
-from efficienttrack.stop_signals import stop_signals_as_interrupt
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import write_json
+from efficienttrack.core.provenance import provenance
+from efficienttrack.core.stop_signals import stop_signals_as_interrupt
 from efficienttrack.study.jobs import ERROR, RESULT, Job, job_folder
 from efficienttrack.study.methods import METHODS
 
@@ -130,7 +130,7 @@ def process_pool(workers: int) -> Iterator[ProcessPoolExecutor]:
 
     Leaving the block normally, or by an error, waits for the submitted work, as ``with ProcessPoolExecutor()`` does.
     Ctrl-C, or a SIGTERM or SIGHUP sent to this process alone (``kill``, a supervisor), raises
-    :class:`KeyboardInterrupt` in the block (:func:`~efficienttrack.stop_signals.stop_signals_as_interrupt`) and
+    :class:`KeyboardInterrupt` in the block (:func:`~efficienttrack.core.stop_signals.stop_signals_as_interrupt`) and
     terminates the workers instead of waiting for them: without it they would run their jobs to the end, orphaned.
 
     Args:

@@ -15,11 +15,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from efficienttrack.config import PRESETS, RunConfig, from_dict, with_overrides
-from efficienttrack.configfile import check_seed
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.references import Reference
+from efficienttrack.core.configfile import check_seed
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.data.references import Reference
 from efficienttrack.systems.spec import SystemSpec
+from efficienttrack.workflow.config import PRESETS, RunConfig, from_dict, with_overrides
 
 LOOPS = ("closed", "open")
 """Closed loop: the policy adjusts the PD controller's reference; open loop: the policy sends PWM to the plant."""
@@ -40,7 +40,7 @@ class StudyPreset:
     """The sizes of a study's methods."""
 
     run: str
-    """EfficientTrack's settings: a name of :data:`efficienttrack.config.PRESETS`."""
+    """EfficientTrack's settings: a name of :data:`efficienttrack.workflow.config.PRESETS`."""
     baselines: str
     """The baselines' settings: the name of their presets (``quick``, ``full``) in :mod:`efficienttrack.baselines`."""
     budget: int
@@ -290,7 +290,7 @@ def point(interaction_steps: int, wall_seconds: float, metrics: dict[str, Any], 
     Args:
         interaction_steps: training interactions with the system so far.
         wall_seconds: wall time the method took to get there.
-        metrics: :func:`~efficienttrack.metrics.compute_metrics` of the test episodes.
+        metrics: :func:`~efficienttrack.data.metrics.compute_metrics` of the test episodes.
         **extra: further facts of the point (e.g. ``passes``).
 
     Returns:

@@ -25,15 +25,15 @@ from pathlib import Path
 
 from rich.console import Console
 
-from efficienttrack.collect import pass_counts
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import write_json
-from efficienttrack.metrics import compute_metrics, rounded
-from efficienttrack.pipeline import run_pipeline
-from efficienttrack.progress import ProgressDisplay
-from efficienttrack.runtime import track
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import write_json
+from efficienttrack.core.progress import ProgressDisplay
+from efficienttrack.data.metrics import compute_metrics, rounded
+from efficienttrack.deploy.runtime import track
 from efficienttrack.study.ablations import run_variant
 from efficienttrack.study.jobs import LOOPS, STUDY_PRESETS, Job, Point, Study, check_seeds, point
+from efficienttrack.workflow.collect import pass_counts
+from efficienttrack.workflow.pipeline import run_pipeline
 
 
 @dataclass(frozen=True)
@@ -104,13 +104,13 @@ def check_passes(study: Study) -> None:
 
 
 def run_efficienttrack(job: Job, folder: Path) -> list[Point]:
-    """EfficientTrack: the pipeline once per pass count (:func:`~efficienttrack.collect.pass_counts`), each in its folder.
+    """EfficientTrack: the pipeline once per pass count (:func:`~efficienttrack.workflow.collect.pass_counts`), each alone.
 
     The open loop (a plant model and a PWM policy) is :func:`efficienttrack.baselines.openloop.train_efficienttrack_open`;
     an ablation's job (one variant of the settings, at the study's passes) is
     :func:`efficienttrack.study.ablations.run_variant`.
 
-    ``folder/passes_<p>/`` is a run folder (:func:`~efficienttrack.pipeline.run_pipeline`, which resumes) with the
+    ``folder/passes_<p>/`` is a run folder (:func:`~efficienttrack.workflow.pipeline.run_pipeline`, which resumes) with the
     study's ``run_config``, ``job.seed`` as the seed of training and of the collection noise, and ``p`` collection
     passes; its point is written to ``folder/passes_<p>/point.json`` when the run is finished, and read from there on a
     rerun.

@@ -4,7 +4,7 @@ Each method and loop is reported at its best point, as the paper's Table I does 
 optimal value"): for each seed the point of its curve with the lowest test MAE, then the mean and the standard
 deviation over the seeds (sample standard deviation; null with one seed) of that point's interaction steps (I.S.),
 interaction time (I.T. = I.S. / 20 Hz, hours), the wall time to reach it and every metric of
-:func:`~efficienttrack.metrics.compute_metrics`.
+:func:`~efficienttrack.data.metrics.compute_metrics`.
 """
 
 from __future__ import annotations
@@ -22,9 +22,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import atomic_write, write_csv, write_json
-from efficienttrack.metrics import METRIC_KEYS, interaction_hours
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import atomic_write, write_csv, write_json
+from efficienttrack.data.metrics import METRIC_KEYS, interaction_hours
 from efficienttrack.study.jobs import ERROR, JOBS, LOOPS, RESULT
 from efficienttrack.study.methods import METHODS
 

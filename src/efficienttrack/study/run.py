@@ -22,8 +22,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.provenance import claim_folder
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.provenance import claim_folder
 from efficienttrack.study.ablation_report import OUTPUTS as ABLATION_REPORT
 from efficienttrack.study.ablation_report import AblationReport, ablation_report
 from efficienttrack.study.ablations import Ablation

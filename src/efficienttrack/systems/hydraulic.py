@@ -46,9 +46,9 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from efficienttrack.angles import wrap
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.joints import DT, N_JOINTS, SWING
+from efficienttrack.core.angles import wrap
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.joints import DT, N_JOINTS, SWING
 from efficienttrack.systems.limits import DEFAULT_LIMITS, GuardLimits
 from efficienttrack.systems.pd import XE75_PD, ClosedLoop
 

@@ -21,10 +21,10 @@ from typing import Any
 
 import numpy as np
 
-from efficienttrack.angles import wrap
-from efficienttrack.configfile import config_from_dict, read_mapping_file
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.joints import JOINT_NAMES, MAX_ABS_ANGLE, N_JOINTS, SWING
+from efficienttrack.core.angles import wrap
+from efficienttrack.core.configfile import config_from_dict, read_mapping_file
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.joints import JOINT_NAMES, MAX_ABS_ANGLE, N_JOINTS, SWING
 
 XE75_MAX_ADJUST = (0.15, 0.30, 0.40, 0.40)
 """Per-joint adjustment bound of the real XE75 deployment (boom, arm, bucket, swing), rad."""

@@ -25,9 +25,9 @@ import math
 
 import numpy as np
 
-from efficienttrack.angles import wrap
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.joints import DT, N_JOINTS, SWING
+from efficienttrack.core.angles import wrap
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.joints import DT, N_JOINTS, SWING
 from efficienttrack.systems.limits import GuardLimits
 from efficienttrack.systems.pd import PAPER_PD, ClosedLoop
 

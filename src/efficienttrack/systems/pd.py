@@ -18,9 +18,9 @@ from typing import Any
 
 import numpy as np
 
-from efficienttrack.angles import wrap
-from efficienttrack.configfile import is_finite_number
-from efficienttrack.errors import EfficientTrackError
+from efficienttrack.core.angles import wrap
+from efficienttrack.core.configfile import is_finite_number
+from efficienttrack.core.errors import EfficientTrackError
 
 
 @dataclass(frozen=True)

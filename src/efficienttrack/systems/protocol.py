@@ -38,8 +38,8 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.joints import N_JOINTS, OBS_DIM
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.joints import N_JOINTS, OBS_DIM
 from efficienttrack.systems.limits import DEFAULT_LIMITS, GuardLimits
 
 

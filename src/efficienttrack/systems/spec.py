@@ -2,7 +2,7 @@
 
 A **spec** is a built-in name (``xe75``: the calibrated hydraulic simulator under the real PD law; ``paper``: the
 paper's own simulator under its PD law, :mod:`efficienttrack.systems.paper`; ``learned``: a trained closed-loop
-model, :mod:`efficienttrack.learned_system`) or an import path ``"module.path:callable"``. The callable is called
+model, :mod:`efficienttrack.learn.learned_system`) or an import path ``"module.path:callable"``. The callable is called
 with the keyword options (``--system-opt key=value``) and must return the system. Modules are looked up in the
 current working directory first, so a ``mymachines.py`` next to where the command runs is found without installing it.
 
@@ -22,7 +22,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
-from efficienttrack.errors import EfficientTrackError
+from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.systems.limits import GuardLimits
 from efficienttrack.systems.pd import PD_PRESETS, ClosedLoop, PDGains
 from efficienttrack.systems.protocol import BatchedSystem
@@ -32,7 +32,7 @@ DEFAULT_SYSTEM = "xe75"
 BUILTIN_SYSTEMS: dict[str, str] = {
     "xe75": "efficienttrack.systems.hydraulic:xe75_closed_loop",
     "paper": "efficienttrack.systems.paper:paper_closed_loop",
-    "learned": "efficienttrack.learned_system:learned_system",
+    "learned": "efficienttrack.learn.learned_system:learned_system",
 }
 """Built-in reference-level systems: name → import path."""
 BUILTIN_PLANTS: dict[str, str] = {

@@ -5,11 +5,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from efficienttrack.dynamics import ModelConfig
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.nets import check_size, resolve_device
-from efficienttrack.policy import PolicyConfig
-from efficienttrack.training import MAX_STEPS
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.learn.dynamics import ModelConfig
+from efficienttrack.learn.nets import check_size, resolve_device
+from efficienttrack.learn.policy import PolicyConfig
+from efficienttrack.learn.training import MAX_STEPS
 
 
 @dataclass(frozen=True)
@@ -30,7 +30,7 @@ class SuperTrackSettings:
         default_factory=lambda: PolicyConfig(horizon=20, steps=100, batch_size=128, lr=1e-3, cosine_decay=False)
     )
     """π_φ and the optimizer steps it is trained per iteration (``steps``) through the world model on the discounted
-    tracking loss plus k_smooth × the action's change (:func:`efficienttrack.policy.train_policy`); its
+    tracking loss plus k_smooth × the action's change (:func:`efficienttrack.learn.policy.train_policy`); its
     ``max_adjust`` is replaced by the system's bound in the closed loop and not used in the open loop."""
     steps_per_iteration: int = 4096
     """Interaction steps collected per iteration (whole episodes on training references drawn at random, seeded)."""

@@ -18,11 +18,11 @@ from torch import nn
 
 from efficienttrack.baselines.agent import Noise
 from efficienttrack.baselines.resume import read_state, restoring
-from efficienttrack.fileio import atomic_write
-from efficienttrack.records import EpisodeRecord
+from efficienttrack.core.fileio import atomic_write
+from efficienttrack.data.records import EpisodeRecord
 
 ARRAYS = ("q", "qd", "q_ref", "q_des", "u", "t")
-"""The arrays of an :class:`~efficienttrack.records.EpisodeRecord` (``u`` may be None)."""
+"""The arrays of an :class:`~efficienttrack.data.records.EpisodeRecord` (``u`` may be None)."""
 
 
 class Progress(NamedTuple):

@@ -7,17 +7,18 @@ One iteration of :func:`train_supertrack`:
    episode loop (:func:`efficienttrack.envs.evaluate`); the episodes go into the replay buffer (the most recent
    ``buffer_steps``). In the first iteration the policy is a = 0 (closed loop: the PD controller; open loop: u = 0,
    so the noise alone moves the machine).
-2. **world model**: ``model.steps`` multi-step optimizer steps on buffer windows (:func:`efficienttrack.dynamics.train_model`,
-   warm-started from the last iteration's model): in the closed loop g_θ of the PD loop driven by the references sent,
-   in the open loop g_θ of the plant driven by the PWM (:class:`~efficienttrack.dynamics.PlantModel`).
+2. **world model**: ``model.steps`` multi-step optimizer steps on buffer windows
+   (:func:`efficienttrack.learn.dynamics.train_model`, warm-started from the last iteration's model): in the closed
+   loop g_θ of the PD loop driven by the references sent, in the open loop g_θ of the plant driven by the PWM
+   (:class:`~efficienttrack.learn.dynamics.PlantModel`).
 3. **policy**: ``policy.steps`` optimizer steps through the frozen world model from buffer windows on the discounted
-   tracking loss plus the smoothness term (:func:`efficienttrack.policy.train_policy`, warm-started).
+   tracking loss plus the smoothness term (:func:`efficienttrack.learn.policy.train_policy`, warm-started).
 4. **evaluate** the noiseless policy on the held-out references when the interaction count first reaches an
    evaluation point (:class:`~efficienttrack.baselines.curve.CurveRecorder`).
 
 What is SuperTrack's and what is ours: SuperTrack's loop (collect with the policy and noise, train the world model,
 train the policy through it, repeat), its world-model window 8, its learning rates; ours: the networks and losses of
-EfficientTrack (:mod:`efficienttrack.dynamics`, :mod:`efficienttrack.policy`: SuperTrack's character-specific
+EfficientTrack (:mod:`efficienttrack.learn.dynamics`, :mod:`efficienttrack.learn.policy`: SuperTrack's character-specific
 losses on rigid-body positions and rotations become the joint tracking error of an excavator), the policy window 20
 (the environments show 20 desired positions; SuperTrack's is 32), and the noise.
 """
@@ -37,14 +38,14 @@ from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_run
 from efficienttrack.baselines.resume import SAVE_EVERY_SECONDS, STATE_FILE, run_identity
 from efficienttrack.baselines.supertrack.settings import SuperTrackSettings, supertrack_settings
 from efficienttrack.baselines.supertrack.state import Progress, restore_state, save_state
-from efficienttrack.dynamics import ClosedLoopModel, PlantModel, train_model
+from efficienttrack.core.fileio import output_lock
+from efficienttrack.core.progress import ProgressDisplay
+from efficienttrack.data.records import EpisodeRecord
+from efficienttrack.data.references import Reference
 from efficienttrack.envs.core import open_system
 from efficienttrack.envs.evaluation import evaluate
-from efficienttrack.fileio import output_lock
-from efficienttrack.policy import AdjustmentPolicy, PWMPolicy, train_policy
-from efficienttrack.progress import ProgressDisplay
-from efficienttrack.records import EpisodeRecord
-from efficienttrack.references import Reference
+from efficienttrack.learn.dynamics import ClosedLoopModel, PlantModel, train_model
+from efficienttrack.learn.policy import AdjustmentPolicy, PWMPolicy, train_policy
 from efficienttrack.systems.spec import SystemSpec
 
 

@@ -14,7 +14,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from efficienttrack.errors import EfficientTrackError
+from efficienttrack.core.errors import EfficientTrackError
 
 PRIORITY_EPS = 1e-6
 """Added to every updated priority, so that no sequence drops out for good."""

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from efficienttrack.errors import EfficientTrackError
+from efficienttrack.core.errors import EfficientTrackError
 
 EVALUATE_WITH = ("policy", "plan")
 """How the curve's deterministic agent acts: π's mean action, or the planner without exploration noise."""

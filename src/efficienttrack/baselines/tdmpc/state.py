@@ -19,7 +19,7 @@ import torch
 from efficienttrack.baselines.resume import read_state, restoring
 from efficienttrack.baselines.tdmpc.buffer import PrioritizedBuffer
 from efficienttrack.baselines.tdmpc.learner import Learner
-from efficienttrack.fileio import atomic_write
+from efficienttrack.core.fileio import atomic_write
 
 BUFFER_ARRAYS = ("obs", "next_obs", "action", "reward", "priority")
 """The arrays of :class:`~.buffer.PrioritizedBuffer` (``(capacity, ...)``), saved up to the rows ever written."""

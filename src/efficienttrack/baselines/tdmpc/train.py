@@ -26,12 +26,12 @@ from efficienttrack.baselines.tdmpc.networks import TOLD
 from efficienttrack.baselines.tdmpc.planner import PlannerConfig, plan
 from efficienttrack.baselines.tdmpc.settings import TDMPCSettings, tdmpc_settings
 from efficienttrack.baselines.tdmpc.state import Generators, restore_state, save_state
+from efficienttrack.core.fileio import atomic_write, output_lock
+from efficienttrack.core.progress import ProgressDisplay
+from efficienttrack.data.references import Reference
 from efficienttrack.envs.core import open_system
 from efficienttrack.envs.single import TrackingEnv
-from efficienttrack.fileio import atomic_write, output_lock
-from efficienttrack.nets import resolve_device
-from efficienttrack.progress import ProgressDisplay
-from efficienttrack.references import Reference
+from efficienttrack.learn.nets import resolve_device
 from efficienttrack.systems.spec import SystemSpec
 
 METHOD = "tdmpc"
@@ -120,7 +120,7 @@ def train_tdmpc(
 
     When the interaction count reaches a point of ``eval_at``, the deterministic agent (``settings.evaluate_with``:
     π's mean action by default, or the planner without noise) runs every test reference once
-    (:func:`efficienttrack.envs.evaluate`) and :func:`efficienttrack.metrics.compute_metrics` scores it.
+    (:func:`efficienttrack.envs.evaluate`) and :func:`efficienttrack.data.metrics.compute_metrics` scores it.
     ``folder/curve.json`` (``{"method": "tdmpc", "loop", "seed", "budget", "system", "settings", "curve"}``) is
     rewritten atomically after each point. Between episodes, every ``save_every_seconds``, the state goes to
     ``folder/training_state.pt`` (:mod:`.state`: no pickle); the same run started again in the folder resumes from it

@@ -1,6 +1,6 @@
 """Fit the hydraulic simulator to a machine's logs, and measure how closely a simulator reproduces them.
 
-- :mod:`~efficienttrack.systems.fit.logs`: the logs loaded (:func:`efficienttrack.records.load_records`),
+- :mod:`~efficienttrack.systems.fit.logs`: the logs loaded (:func:`efficienttrack.data.records.load_records`),
   selected by reference jitter, padded time-major and cut into windows.
 - :mod:`~efficienttrack.systems.fit.simulate`: the simulator's fast paths on those windows and episodes.
 - :mod:`~efficienttrack.systems.fit.calibrate`: the fit (:func:`calibrate`, :class:`FitConfig`, :func:`save_params`).

@@ -22,11 +22,11 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from efficienttrack.angles import wrap
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.fileio import atomic_write
-from efficienttrack.joints import N_JOINTS
-from efficienttrack.records import EpisodeRecord
+from efficienttrack.core.angles import wrap
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import atomic_write
+from efficienttrack.core.joints import N_JOINTS
+from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.systems.fit.logs import (
     Padded,
     Windows,

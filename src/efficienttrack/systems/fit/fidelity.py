@@ -25,10 +25,10 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from efficienttrack.angles import wrap
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.joints import N_JOINTS
-from efficienttrack.records import EpisodeRecord
+from efficienttrack.core.angles import wrap
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.joints import N_JOINTS
+from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.systems.fit.logs import Padded, Windows, make_windows, pad, tracking_mae, window_error
 from efficienttrack.systems.protocol import BatchedSystem
 

@@ -1,9 +1,9 @@
 """A machine's PD logs as the fit and the fidelity check see them: loaded, selected, padded, cut into windows.
 
 Episodes are stacked time-major (:class:`Padded`, (T, N, 4)), shorter ones padded with their last row
-(:func:`efficienttrack.windows.pad_time_major`) and masked. Windows are gathered time-major too
+(:func:`efficienttrack.data.windows.pad_time_major`) and masked. Windows are gathered time-major too
 (:class:`Windows`, (H, W, 4)), since the simulator steps all of them at once; which windows exist is
-:func:`efficienttrack.windows.window_starts`, the same function the learned model's (batch-major) windows use.
+:func:`efficienttrack.data.windows.window_starts`, the same function the learned model's (batch-major) windows use.
 """
 
 from __future__ import annotations
@@ -14,16 +14,16 @@ from typing import NamedTuple
 
 import numpy as np
 
-from efficienttrack.angles import wrap
-from efficienttrack.errors import EfficientTrackError
-from efficienttrack.joints import DT, N_JOINTS
-from efficienttrack.metrics import position_error, tracking_error
-from efficienttrack.records import EpisodeRecord, load_records
-from efficienttrack.windows import pad_time_major, window_starts
+from efficienttrack.core.angles import wrap
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.joints import DT, N_JOINTS
+from efficienttrack.data.metrics import position_error, tracking_error
+from efficienttrack.data.records import EpisodeRecord, load_records
+from efficienttrack.data.windows import pad_time_major, window_starts
 
 
 def load_logs(paths: Sequence[str | Path], need_u: bool = True, recursive: bool = False) -> list[EpisodeRecord]:
-    """Read the episodes of the given files or folders with :func:`efficienttrack.records.load_records`.
+    """Read the episodes of the given files or folders with :func:`efficienttrack.data.records.load_records`.
 
     Args:
         paths: episode files or folders (e.g. ``/work/shared/data/xe75/pd_noise_train``).
@@ -110,7 +110,7 @@ class Padded(NamedTuple):
 
 
 def pad(records: Sequence[EpisodeRecord]) -> Padded:
-    """Stack records time-major, padding each with its last row (:func:`efficienttrack.windows.pad_time_major`).
+    """Stack records time-major, padding each with its last row (:func:`efficienttrack.data.windows.pad_time_major`).
 
     Args:
         records: N episodes (T_i, 4) per field; a record without ``u`` gets zeros.
@@ -149,7 +149,7 @@ class Windows(NamedTuple):
 def make_windows(data: Padded, horizon: int, stride: int = 1, history: int = 21) -> Windows:
     """Every ``stride``-th start t0 (per episode) with a full ``horizon`` of logged steps after it.
 
-    The starts are :func:`efficienttrack.windows.window_starts` (t0 + horizon ≤ T − 1), gathered time-major.
+    The starts are :func:`efficienttrack.data.windows.window_starts` (t0 + horizon ≤ T − 1), gathered time-major.
 
     Args:
         data: padded logs.

@@ -1,0 +1,1 @@
+"""Base layer: errors, angles, the machine's facts, files, configuration files, progress, provenance, signals."""

@@ -1,0 +1,346 @@
+"""The fixed-rate loop over a folder of references (``efficienttrack deploy``), and the simulator as a machine.
+
+:func:`deploy` runs :class:`~efficienttrack.deploy.loop.Loop` along each reference in turn, one machine opened per reference,
+each with its own per-tick log ``OUT/<reference>.jsonl``, and keeps ``OUT/deploy.json`` (the settings and one summary
+per finished run) up to date after every run. A run that a watchdog stopped ends the deployment: the references after
+it are not started. After each run its log is also written as episode records (:func:`records_from_log`,
+``OUT/records/``), the data of the next continual-learning round (``efficienttrack round --data OUT/records``).
+
+The machine is either the simulator (:class:`SimulatedMachine` around a system of :mod:`efficienttrack.systems.spec`,
+the built-in ``xe75`` by default, reset at each reference's start) or a user's adapter (:func:`load_machine`, an import
+path ``module:callable`` returning a :class:`~efficienttrack.deploy.loop.Machine`).
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import write_json
+from efficienttrack.core.joints import DT
+from efficienttrack.data.records import EpisodeRecord
+from efficienttrack.data.references import Reference
+from efficienttrack.deploy.loop import MONOTONIC, Clock, Loop, LoopConfig, LoopResult, LoopRuntime, Machine, Reading, TickLog
+from efficienttrack.systems.limits import GuardLimits
+from efficienttrack.systems.protocol import BatchedSystem
+from efficienttrack.systems.spec import SystemSpec, load_callable
+
+DEPLOY_JSON = "deploy.json"
+"""The settings and the summaries of a deployment's runs, in its output folder."""
+DEPLOY_RECORDS = "records"
+"""Folder of the episode records made from the runs' logs, in a deployment's output folder."""
+DEPLOY_OUTPUTS = (DEPLOY_JSON, "*.jsonl", DEPLOY_RECORDS)
+"""What ``deploy`` writes in its output folder (what ``--force`` clears)."""
+UNUSABLE_TICK_EVENTS = frozenset({"dropped", "nonfinite", "stale"})
+"""Loop events of a tick whose reading is missing or old: no record row (:func:`records_from_log`)."""
+
+
+class SimulatedClock:
+    """A clock that only moves when slept on: a simulator runs as fast as it computes.
+
+    Args:
+        start: the clock's time at first, s.
+    """
+
+    def __init__(self, start: float = 0.0) -> None:
+        self.t = float(start)
+
+    def now(self) -> float:
+        """The simulated time, s."""
+        return self.t
+
+    def sleep(self, seconds: float) -> None:
+        """Advance the time by ``seconds`` at once.
+
+        Args:
+            seconds: how long, ≥ 0.
+        """
+        self.t += max(float(seconds), 0.0)
+
+
+class SimulatedMachine:
+    """A closed-loop system (``SystemSpec.open()``, e.g. the built-in ``xe75``) as a :class:`Machine`.
+
+    Opening resets the simulator at ``q0``; ``read`` returns its state stamped with the clock's time; ``send`` steps it
+    once (one control period) and returns the reference as given.
+
+    Args:
+        system: the checked system (one machine).
+        q0: (4,) rad, the start position (the reference's first).
+        clock: the loop's clock (for the stamps).
+    """
+
+    def __init__(self, system: BatchedSystem, q0: np.ndarray, clock: Clock = MONOTONIC) -> None:
+        self.system, self.q0, self.clock = system, np.asarray(q0, dtype=np.float64), clock
+        self._obs: np.ndarray | None = None
+
+    def __enter__(self) -> SimulatedMachine:
+        """Reset the simulator at ``q0``."""
+        self._obs = np.asarray(self.system.reset(self.q0[None]), dtype=np.float64)[0]
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        """Nothing to release."""
+        self._obs = None
+
+    def read(self) -> Reading:
+        """The simulator's state, stamped now."""
+        if self._obs is None:
+            raise EfficientTrackError(f"{self.system.name}: read before open")
+        return Reading(self._obs.copy(), self.clock.now())
+
+    def send(self, q_ref: np.ndarray) -> np.ndarray:
+        """One simulator step towards ``q_ref`` (4,) rad; returns it."""
+        if self._obs is None:
+            raise EfficientTrackError(f"{self.system.name}: send before open")
+        self._obs = np.asarray(self.system.step(np.asarray(q_ref, dtype=np.float64)[None]), dtype=np.float64)[0]
+        return np.asarray(q_ref, dtype=np.float64)
+
+
+def load_machine(spec: str, options: dict[str, Any]) -> Callable[[Reference], Machine]:
+    """A user's machine adapter by import path: a factory of one adapter per reference.
+
+    Args:
+        spec: ``"module.path:callable"``; the callable is called with ``options`` and returns a
+            :class:`~efficienttrack.deploy.loop.Machine` (a context manager with ``read`` and ``send``).
+        options: its keyword options (``--machine-opt key=value``).
+
+    Returns:
+        reference → a new adapter (the reference is not passed on: a real machine starts where it stands).
+    """
+    factory = load_callable(spec, "machine")
+
+    def make(ref: Reference) -> Machine:
+        try:
+            machine = factory(**options)
+        except TypeError as exc:
+            raise EfficientTrackError(f"machine '{spec}': cannot be built with options {options}: {exc}") from exc
+        missing = [name for name in ("__enter__", "__exit__", "read", "send") if not hasattr(machine, name)]
+        if missing:
+            raise EfficientTrackError(
+                f"machine '{spec}': the adapter has no {', '.join(missing)} (see efficienttrack.deploy.loop.Machine)"
+            )
+        return machine
+
+    return make
+
+
+def deploy(
+    references: Sequence[Reference],
+    runtime: LoopRuntime,
+    make_machine: Callable[[Reference], Machine],
+    limits: GuardLimits,
+    out: str | Path,
+    cfg: LoopConfig | None = None,
+    clock: Clock = MONOTONIC,
+    shadow: bool = False,
+    settings: dict[str, Any] | None = None,
+    on_done: Callable[[LoopResult], None] | None = None,
+) -> list[LoopResult]:
+    """Run the loop along each reference in turn; stop at the first run a watchdog stopped.
+
+    Args:
+        references: the references (``.name``, ``.q`` (L, 4) rad), each checked against ``limits`` before anything moves.
+        runtime: the runtime, started afresh for each reference.
+        make_machine: reference → its machine adapter (opened and closed by the loop).
+        limits: the machine's limits (joint limits of every reference sent, the rate of the adjustment).
+        out: the output folder (created): ``<reference>.jsonl`` per run, :data:`DEPLOY_JSON`, and the runs' episode
+            records in :data:`DEPLOY_RECORDS` (:func:`records_from_log`).
+        cfg: the loop's timing and watchdogs.
+        clock: the loop's clock.
+        shadow: send the raw reference; only log the adjustment.
+        settings: what to record in :data:`DEPLOY_JSON` besides the loop's settings (the policy, the system, …).
+        on_done: called with each run's result as soon as it ends.
+
+    Returns:
+        One result per run started (the last one stopped early when ``results[-1].stopped``).
+    """
+    cfg = LoopConfig() if cfg is None else cfg
+    for ref in references:
+        limits.check_reference(ref.q, ref.name)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    results: list[LoopResult] = []
+    header = {**(settings or {}), "shadow": shadow, "loop": vars(cfg), "limits": limits.to_dict()}
+    for ref in references:
+        with TickLog(out / f"{ref.name}.jsonl", cfg.fsync_every) as log:
+            result = Loop(runtime, make_machine(ref), limits, cfg, clock, log, shadow).run(ref.q, ref.name)
+        results.append(result)
+        _save_run_records(log.path, out / DEPLOY_RECORDS, shadow)
+        write_json(out / DEPLOY_JSON, {**header, "runs": [r.summary() for r in results]})
+        if on_done is not None:
+            on_done(result)
+        if result.stopped:
+            break
+    return results
+
+
+def records_from_log(path: str | Path, shadow: bool | None = None) -> list[EpisodeRecord]:
+    """The episode records of one run's tick log (``OUT/<reference>.jsonl``), to train the next round on.
+
+    Row k of a record is tick k of the run: ``q``, ``qd`` of its reading, ``q_ref`` the reference the machine took,
+    ``q_des`` = q*_{k+1}, ``t`` its deadline (s after the start), ``u`` None. Only ticks on the 20 Hz grid with a fresh
+    reading make rows: a tick whose reading was missing, not finite or old (:data:`UNUSABLE_TICK_EVENTS`), or that
+    follows skipped periods, ends a record, and the next usable tick starts another. Records are named after the
+    reference, the second and later ones ``<reference>-2``, ``-3``, …; stretches shorter than 2 ticks are dropped. A
+    log cut short by a crash gives the ticks it has (a last line cut in the middle is left out).
+
+    Args:
+        path: the run's log.
+        shadow: whether the run was in shadow mode (the raw reference sent), kept in each record's meta; None: unknown.
+
+    Returns:
+        The records, in the order of their ticks (none when no two usable ticks follow each other).
+
+    Raises:
+        EfficientTrackError: the file cannot be read, a line before the last is not JSON, or a line is not a tick's
+            (fields missing or of the wrong kind), or a record has non-finite values.
+    """
+    path = Path(path)
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise EfficientTrackError(f"{path}: cannot read the tick log ({exc})") from exc
+    ticks = []
+    for number, line in enumerate(lines, 1):
+        try:
+            entry = json.loads(line)
+        except json.JSONDecodeError as exc:
+            if number == len(lines):  # the line a crash cut short
+                break
+            raise EfficientTrackError(f"{path}: line {number} is not JSON ({exc.msg}): not a deploy tick log?") from exc
+        if isinstance(entry, dict) and "event" in entry:
+            continue
+        ticks.append(_checked_tick(entry, f"{path}: line {number}"))
+    name = path.stem
+    stretches, current = [], []
+    for entry in ticks:
+        if current and entry["tick"] != current[-1]["tick"] + 1:  # whole periods were skipped
+            stretches.append(current)
+            current = []
+        if UNUSABLE_TICK_EVENTS & set(entry["events"]) or None in entry["obs"]:
+            stretches.append(current)
+            current = []
+            continue
+        current.append(entry)
+    stretches.append(current)
+    records = []
+    for stretch in (part for part in stretches if len(part) >= 2):
+        label = name if not records else f"{name}-{len(records) + 1}"
+        obs = np.array([entry["obs"] for entry in stretch], dtype=np.float64)
+        meta = {"name": label, "reference": name, "source": "deploy", "first_tick": stretch[0]["tick"], "shadow": shadow}
+        record = EpisodeRecord(
+            q=obs[:, :4],
+            qd=obs[:, 4:],
+            q_ref=np.array([entry["q_ref"] for entry in stretch], dtype=np.float64),
+            q_des=np.array([entry["q_des"] for entry in stretch], dtype=np.float64),
+            u=None,
+            t=np.array([entry["t"] for entry in stretch], dtype=np.float64),
+            meta=meta,
+        )
+        records.append(record.validate(f"{path} (ticks {stretch[0]['tick']}–{stretch[-1]['tick']})"))
+    return records
+
+
+TICK_VECTORS = {"obs": 8, "q_ref": 4, "q_des": 4}
+"""The vectors of a tick log's line that make a record row, and their lengths."""
+
+
+def _checked_tick(entry: Any, source: str) -> dict[str, Any]:
+    """A tick log's line with what a record row needs (numbers or nulls), else EfficientTrackError naming ``source``."""
+    if not isinstance(entry, dict):
+        raise EfficientTrackError(f"{source} is not a JSON object: not a deploy tick log?")
+    missing = [key for key in ("tick", "t", "events", *TICK_VECTORS) if key not in entry]
+    if missing:
+        raise EfficientTrackError(f"{source} has no {', '.join(missing)}: not a deploy tick log?")
+    for key, length in TICK_VECTORS.items():
+        value = entry[key]
+        if not (isinstance(value, list) and len(value) == length and all(_number_or_null(v) for v in value)):
+            raise EfficientTrackError(f"{source}: field '{key}' must be {length} numbers (or nulls), got {value!r:.80}")
+    if not (_number_or_null(entry["t"]) and isinstance(entry["tick"], int) and isinstance(entry["events"], list)):
+        raise EfficientTrackError(f"{source}: fields 'tick', 't', 'events' must be an integer, a number and a list")
+    return entry
+
+
+def _number_or_null(value: Any) -> bool:
+    return value is None or (isinstance(value, int | float) and not isinstance(value, bool))
+
+
+def _save_run_records(log: Path, folder: Path, shadow: bool) -> None:
+    """Write a finished run's records (:func:`records_from_log`) into ``folder``; a log that gives none only warns."""
+    try:
+        records = records_from_log(log, shadow)
+    except EfficientTrackError as exc:  # the run is over and its log kept: say why, go on with the next reference
+        warnings.warn(f"no episode records from {log.name}: {exc}", stacklevel=2)
+        return
+    if not records:
+        warnings.warn(f"no episode records from {log.name}: no two usable ticks in a row", stacklevel=2)
+        return
+    folder.mkdir(exist_ok=True)
+    for record in records:
+        record.save(folder / f"{record.meta['name']}.npz")
+
+
+def deployment_parts(
+    spec: SystemSpec,
+    machine: str | None,
+    machine_options: dict[str, Any],
+    policy: str | Path | None,
+    device: str,
+    fast: bool,
+) -> tuple[LoopRuntime, Callable[[Reference], Machine], GuardLimits, Clock]:
+    """What ``efficienttrack deploy`` runs: the runtime, the machine factory, the limits and the clock.
+
+    Args:
+        spec: the simulated system (used when ``machine`` is None); with ``machine``, only its limits file counts.
+        machine: a user's adapter ``module:callable``, or None for the simulator.
+        machine_options: the adapter's keyword options.
+        policy: a policy checkpoint (``policy.pt``, run by the torch runtime), an export folder (``policy.onnx`` and
+            ``policy.json`` of ``efficienttrack export``, run by the torch-free
+            :class:`~efficienttrack.deploy.onnx_runtime.OnnxRuntime` on the CPU), or None for the raw reference alone (a = 0).
+        device: where a checkpoint runs (an export runs on the CPU).
+        fast: run the simulator on a simulated clock, as fast as it computes (refused for a user's machine).
+
+    Returns:
+        The runtime, reference → machine adapter, the machine's limits, and the clock.
+    """
+    if machine is not None:
+        if fast:
+            raise EfficientTrackError(
+                "--fast runs the simulator on a simulated clock; a machine (--machine) runs in real time only"
+            )
+        if spec.limits is None:
+            raise EfficientTrackError("--machine needs --limits FILE: the joint limits and adjustment bounds of that machine")
+        if spec.system is not None or spec.plant is not None:
+            raise EfficientTrackError("give --machine SPEC or a simulated --system/--plant, not both")
+        limits, make_machine, clock = GuardLimits.load(spec.limits), load_machine(machine, machine_options), MONOTONIC
+    else:
+        system = spec.open()
+        if system.dt != DT:
+            raise EfficientTrackError(f"{system.name}: runs at dt = {system.dt} s; the loop runs at {DT} s (20 Hz)")
+        clock = SimulatedClock() if fast else MONOTONIC
+        limits = system.limits
+
+        def make_machine(ref: Reference) -> Machine:
+            return SimulatedMachine(system, ref.q[0], clock)
+
+    if policy is not None and Path(policy).is_dir():
+        from efficienttrack.deploy.onnx_runtime import OnnxRuntime, load_onnx_policy
+
+        exported = load_onnx_policy(policy)
+        if exported.contract.dt != DT:
+            raise EfficientTrackError(
+                f"{policy}: the export was made for dt = {exported.contract.dt} s; the loop runs at {DT} s (20 Hz)"
+            )
+        return OnnxRuntime(exported, limits=limits), make_machine, limits, clock
+    from efficienttrack.deploy.runtime import Runtime
+    from efficienttrack.learn.policy import load_policy  # torch: only here, the loop itself runs without it
+
+    runtime = Runtime(None if policy is None else load_policy(policy, device), limits=limits)
+    return runtime, make_machine, limits, clock

@@ -1,0 +1,488 @@
+"""The trajectory adjustment policy a_t = π_φ(o_H, q^r_H, q*_F), q^r_{t+1} = q*_{t+1} + a_t, and its trainer.
+
+The policy is trained by multi-step backpropagation through the frozen closed-loop dynamics model: from each
+recorded window, the model is rolled h steps under the policy with the future desired positions, and the loss
+is the paper's discounted tracking error plus the smoothness regularizer
+
+    L(φ) = (1/h) Σ_{i=1..h} γ^i ‖wrap(q̂_{t+i} − q*_{t+i})‖² + k_smooth (1/(h−1)) Σ_{i=2..h} ‖a_{t+i} − a_{t+i−1}‖²
+
+in rad² (the paper's units, for which γ = 0.98 and k_smooth = 1.0 are tuned). Implementation choices:
+
+1. Inputs as for the model (:func:`~efficienttrack.learn.nets.relative_features`, standardized on the training windows),
+   with the h future desired positions as targets.
+2. The output is ``tanh × max_adjust`` per joint, and its last layer starts at zero: the untrained policy is
+   the position controller alone (a = 0).
+3. Windows start at every recorded step; desired positions past an episode's end repeat its last one.
+
+The open loop (:class:`PWMPolicy` through a :class:`~efficienttrack.learn.dynamics.PlantModel`): the policy outputs the
+command u_t / 1000 = π_φ(o_H, u_H, q*_F) ∈ (−1, 1)⁴ (tanh × 1: PWM within ±1000), the model is driven by it, and the
+smoothness term weighs the change of the command (PWM / 1000)². The loss and the trainer are the same.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import nn
+
+from efficienttrack.core.angles import wrap
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.joints import MAX_HORIZON
+from efficienttrack.data.dataset import Sequences
+from efficienttrack.data.records import EpisodeRecord
+from efficienttrack.data.windows import push
+from efficienttrack.learn.checkpoints import load_checkpoint, save_checkpoint, warm_start
+from efficienttrack.learn.dynamics import NORM_SAMPLES, ClosedLoopModel
+from efficienttrack.learn.nets import (
+    MAX_HIDDEN,
+    MAX_LAYERS,
+    MLP,
+    Standardizer,
+    check_size,
+    check_training_memory,
+    feature_width,
+    relative_features,
+    resolve_device,
+)
+from efficienttrack.learn.training import TrainingSchedule, TrainLoop, fingerprint, held_out_subset
+from efficienttrack.systems.limits import XE75_MAX_ADJUST
+
+EVAL_CHUNK = 8192
+"""Windows per batch in :func:`predicted_tracking_error`."""
+HELD_OUT_TAG = "held_out/tracking_error_deg"
+"""Scalar tag of the model-predicted tracking error on held-out episodes, logged during training (docs/logged-metrics.md)."""
+HELD_OUT_LABEL = "held-out model-predicted tracking error (°)"
+"""What :data:`HELD_OUT_TAG` is, for plot axes."""
+LOSS_LABEL = "L_track + k_smooth·L_reg (rad²)"
+"""What the policy's training loss is, for plot axes."""
+
+
+@dataclass(frozen=True)
+class PolicyConfig(TrainingSchedule):
+    """Size, loss and training settings of the adjustment policy (the schedule's fields: :class:`TrainingSchedule`)."""
+
+    hidden: int = 128
+    """Units per hidden layer (paper 512)."""
+    layers: int = 3
+    """Hidden Linear → LayerNorm → ELU blocks (paper 6)."""
+    horizon: int = 20
+    """h: the paper's one length of the policy, read as :attr:`history_length`, :attr:`future_length` and
+    :attr:`rollout_length` (paper 20)."""
+    gamma: float = 0.98
+    """γ: discount of the tracking loss over the rollout (paper 0.98)."""
+    k_smooth: float = 1.0
+    """k_smooth: weight of the action-smoothness regularizer (paper 1.0)."""
+    max_adjust: tuple[float, ...] = XE75_MAX_ADJUST
+    """(4,) rad, bound of |a| per joint (boom, arm, bucket, swing)."""
+
+    def __post_init__(self) -> None:
+        """Validate the fields."""
+        super().__post_init__()
+        check_size("PolicyConfig", "hidden", self.hidden, 1, MAX_HIDDEN)
+        check_size("PolicyConfig", "layers", self.layers, 1, MAX_LAYERS)
+        check_size("PolicyConfig", "horizon", self.horizon, 2, MAX_HORIZON)  # ≥ 2: the smoothness term needs two actions
+        if len(self.max_adjust) != 4 or not all(math.isfinite(b) and b > 0 for b in self.max_adjust):
+            raise EfficientTrackError(f"PolicyConfig.max_adjust must be 4 positive bounds (rad), got {self.max_adjust}")
+        if not (math.isfinite(self.gamma) and math.isfinite(self.k_smooth)) or not 0 < self.gamma <= 1 or self.k_smooth < 0:
+            raise EfficientTrackError(f"PolicyConfig: need 0 < gamma ≤ 1, k_smooth ≥ 0, got {self.gamma}, {self.k_smooth}")
+
+    @property
+    def history_length(self) -> int:
+        """Length of the histories o_H, q^r_H the policy sees (``horizon``)."""
+        return self.horizon
+
+    @property
+    def future_length(self) -> int:
+        """F: future desired positions q*_F the policy sees (``horizon``)."""
+        return self.horizon
+
+    @property
+    def rollout_length(self) -> int:
+        """Steps the model is rolled under the policy per training window (``horizon``)."""
+        return self.horizon
+
+    @property
+    def in_dim(self) -> int:
+        """Network input features: :func:`~efficienttrack.learn.nets.feature_width` of the history and the F targets."""
+        return feature_width(self.history_length, self.future_length)
+
+
+POLICY_PRESETS: dict[str, PolicyConfig] = {
+    "paper": PolicyConfig(
+        hidden=512, layers=6, horizon=20, batch_size=2048, lr=1e-5,
+        steps=None, epochs=2000, cosine_decay=False, grad_clip=None, save_every=1000,
+    ),
+    "cpu": PolicyConfig(),
+    "tiny": PolicyConfig(hidden=32, layers=2, horizon=4, batch_size=64, lr=3e-3, steps=200, save_every=100),
+}  # fmt: skip
+"""Named policy configs: the paper's (a GPU job), ``cpu`` (minutes on 2 cores), ``tiny`` (tests, seconds)."""
+
+
+class SeenLengths(NamedTuple):
+    """What a policy sees at time t.
+
+    Attributes:
+        history: h, length of the histories o_H, q^r_H.
+        future: F, future desired positions q*_F.
+    """
+
+    history: int
+    future: int
+
+
+def seen_lengths(cfg: PolicyConfig | None) -> SeenLengths:
+    """History and future lengths a policy with config ``cfg`` sees; (1, 1) without a policy (a = 0 needs q*_{t+1}).
+
+    Args:
+        cfg: the policy's config, or None for the position controller alone.
+    """
+    return SeenLengths(1, 1) if cfg is None else SeenLengths(cfg.history_length, cfg.future_length)
+
+
+def desired_length(cfg: PolicyConfig | None, steps: int) -> int:
+    """Future desired positions a ``steps``-step rollout under the policy needs: q*_{t+1} … q*_{t+steps−1+F}.
+
+    Args:
+        cfg: the policy's config, or None for the position controller alone (F = 1).
+        steps: H, rollout length.
+    """
+    return steps - 1 + seen_lengths(cfg).future
+
+
+class AdjustmentPolicy(nn.Module):
+    """π_φ: the bounded adjustment added to the next desired position.
+
+    Args:
+        cfg: the policy config (sizes, ``history_length`` h, ``future_length`` F, ``max_adjust``).
+    """
+
+    channel = "q_ref"
+    """What the policy's output drives (:data:`~efficienttrack.data.dataset.CHANNELS`): the reference, q*_{t+1} + a_t."""
+    kind = "adjustment_policy"
+    """Its checkpoint kind (:func:`save_policy`)."""
+
+    def __init__(self, cfg: PolicyConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.features = Standardizer(cfg.in_dim)
+        self.pi_phi = MLP(cfg.in_dim, 4, cfg.hidden, cfg.layers, out_scale=self._bound(cfg))
+        last = self.pi_phi.body[-1]
+        nn.init.zeros_(last.weight)
+        nn.init.zeros_(last.bias)
+
+    @torch.no_grad()
+    def fit_scaling(self, obs_hist: torch.Tensor, qref_hist: torch.Tensor, qdes_future: torch.Tensor) -> None:
+        """Set the feature statistics from recorded windows (shapes as in :meth:`forward`).
+
+        Args:
+            obs_hist: (B, h', 8) [rad, rad/s], recorded observation histories, h' ≥ h (the last h are used).
+            qref_hist: (B, h', 4) rad, the matching reference histories.
+            qdes_future: (B, F', 4) rad, the desired positions that follow, F' ≥ F (the first F are used).
+        """
+        self.features.fit(self._features(obs_hist, qref_hist, qdes_future))
+
+    def forward(self, obs_hist: torch.Tensor, qref_hist: torch.Tensor, qdes_future: torch.Tensor) -> torch.Tensor:
+        """a_t = π_φ(o_H, q^r_H, q*_F).
+
+        Args:
+            obs_hist: (B, h', 8) [rad, rad/s], ``o_{t−h'+1} … o_t``, h' ≥ h (the last h are used).
+            qref_hist: (B, h', 4) rad, ``q^r_{t−h'+1} … q^r_t``.
+            qdes_future: (B, F', 4) rad, ``q*_{t+1} … q*_{t+F'}``, F' ≥ F (the first F are used).
+
+        Returns:
+            (B, 4) rad, the adjustment a_t, |a| < max_adjust per joint.
+        """
+        return self.pi_phi(self.features(self._features(obs_hist, qref_hist, qdes_future)))
+
+    def _features(self, obs_hist: torch.Tensor, qref_hist: torch.Tensor, qdes_future: torch.Tensor) -> torch.Tensor:
+        h, F = seen_lengths(self.cfg)
+        return relative_features(obs_hist[:, -h:], qref_hist[:, -h:], qdes_future[:, :F], commands=self.channel == "u")
+
+    @staticmethod
+    def _bound(cfg: PolicyConfig) -> torch.Tensor:
+        """(4,) bound of the output: ``max_adjust`` rad."""
+        return torch.tensor(cfg.max_adjust)
+
+
+class PWMPolicy(AdjustmentPolicy):
+    """π_φ of the open loop: the command u_t / 1000 = π_φ(o_H, u_H, q*_F) ∈ (−1, 1)⁴ sent to the plant.
+
+    Inputs as :class:`AdjustmentPolicy`'s with ``qref_hist`` the last commands ``u_{t−h} … u_{t−1}`` / 1000 (taken as
+    they are); the output bound is 1 (PWM ±1000) and ``cfg.max_adjust`` is not used. The last layer starts at zero:
+    the untrained policy sends u = 0.
+
+    Args:
+        cfg: the policy config (sizes, ``history_length`` h, ``future_length`` F).
+    """
+
+    channel = "u"
+    """Its output is the command u / 1000."""
+    kind = "pwm_policy"
+    """Its checkpoint kind (:func:`save_policy`)."""
+
+    @staticmethod
+    def _bound(cfg: PolicyConfig) -> torch.Tensor:
+        """(4,) bound of the output: 1 (PWM / 1000)."""
+        return torch.ones(4)
+
+
+class PolicyRollout(NamedTuple):
+    """The model rolled under the policy (time-major within each window: axis 1 is the step).
+
+    Attributes:
+        q_hat: (B, H, 4) rad, predicted positions ``q̂_{t+1} … q̂_{t+H}``.
+        a: (B, H, 4) rad, adjustments ``a_t … a_{t+H−1}``.
+        q_ref: (B, H, 4) rad, references ``q^r_{t+1} … q^r_{t+H}`` the policy produced.
+    """
+
+    q_hat: torch.Tensor
+    a: torch.Tensor
+    q_ref: torch.Tensor
+
+
+def drive(channel: str, a: torch.Tensor, q_next: torch.Tensor) -> torch.Tensor:
+    """What an action drives the model with: the reference ``q*_{t+1} + a_t`` (closed loop) or the command ``a_t`` (open).
+
+    Args:
+        channel: the model's :attr:`~efficienttrack.learn.dynamics.ClosedLoopModel.channel` (``"q_ref"`` or ``"u"``).
+        a: (B, 4), the action (rad, or PWM / 1000).
+        q_next: (B, 4) rad, ``q*_{t+1}``.
+
+    Returns:
+        (B, 4), ``q^r_{t+1}`` rad or ``u_t`` / 1000.
+    """
+    return a if channel == "u" else q_next + a
+
+
+def policy_rollout(
+    g_theta: ClosedLoopModel,
+    pi_phi: AdjustmentPolicy | None,
+    obs_hist: torch.Tensor,
+    qref_hist: torch.Tensor,
+    qdes_future: torch.Tensor,
+    steps: int,
+) -> PolicyRollout:
+    """Roll g_θ ``steps`` steps under π_φ: a_i = π_φ(o_H, q^r_H, q*_F), q^r_{i+1} = q*_{i+1} + a_i, ô_{i+1} = g_θ(…).
+
+    With a :class:`~efficienttrack.learn.dynamics.PlantModel` (the open loop) the action is the command: u_i = a_i
+    (:func:`drive`).
+
+    Args:
+        g_theta: the (frozen) closed-loop dynamics model, or a plant model with a :class:`PWMPolicy`.
+        pi_phi: the policy, or None for a = 0 (the position controller alone; the open loop: u = 0).
+        obs_hist: (B, h', 8) [rad, rad/s], recorded ``o_H`` at t, h' ≥ both networks' h.
+        qref_hist: (B, h', 4) rad, recorded ``q^r_H`` at t.
+        qdes_future: (B, F', 4) rad, ``q*_{t+1} … q*_{t+F'}`` with F' ≥ :func:`desired_length` (policy, steps).
+        steps: H, rollout length.
+
+    Returns:
+        Predicted positions, adjustments and references.
+    """
+    cfg = pi_phi.cfg if pi_phi is not None else None
+    if pi_phi is not None and pi_phi.channel != g_theta.channel:
+        raise EfficientTrackError(f"policy_rollout: a {type(pi_phi).__name__} cannot drive a {type(g_theta).__name__}")
+    needed = desired_length(cfg, steps)
+    if qdes_future.shape[1] < needed:
+        raise EfficientTrackError(f"policy_rollout: needs {needed} future desired positions, got {qdes_future.shape[1]}")
+    F = seen_lengths(cfg).future
+    q_hat, actions, refs = [], [], []
+    for i in range(steps):
+        q_star_F = qdes_future[:, i : i + F]
+        a_i = pi_phi(obs_hist, qref_hist, q_star_F) if pi_phi is not None else torch.zeros_like(q_star_F[:, 0])
+        q_r = drive(g_theta.channel, a_i, q_star_F[:, 0])
+        o_hat = g_theta(obs_hist, qref_hist, q_r)
+        obs_hist, qref_hist = push(obs_hist, o_hat), push(qref_hist, q_r)
+        q_hat.append(o_hat[:, :4])
+        actions.append(a_i)
+        refs.append(q_r)
+    return PolicyRollout(torch.stack(q_hat, 1), torch.stack(actions, 1), torch.stack(refs, 1))
+
+
+class PolicyTrainResult(NamedTuple):
+    """Outcome of :func:`train_policy`.
+
+    Attributes:
+        policy: the trained π_φ (on the training device, eval mode).
+        losses: (steps,) float, L_track + k_smooth·L_reg of every optimizer step, rad².
+        seconds: wall time of this call.
+        steps: optimizer steps in total.
+        windows: training windows available.
+        fingerprint: what it was trained from (:func:`~efficienttrack.learn.training.fingerprint`), for its checkpoint.
+    """
+
+    policy: AdjustmentPolicy
+    losses: np.ndarray
+    seconds: float
+    steps: int
+    windows: int
+    fingerprint: str
+
+
+def train_policy(
+    cfg: PolicyConfig,
+    model: ClosedLoopModel,
+    records: Sequence[EpisodeRecord],
+    device: str | torch.device = "auto",
+    seed: int = 0,
+    progress: bool = True,
+    checkpoint: str | Path | None = None,
+    log_dir: str | Path | None = None,
+    held_out: Sequence[EpisodeRecord] = (),
+    init: AdjustmentPolicy | None = None,
+    network: type[AdjustmentPolicy] = AdjustmentPolicy,
+) -> PolicyTrainResult:
+    """Train π_φ by multi-step backpropagation through the frozen model (Algorithm 1, TrainPolicy).
+
+    Args:
+        cfg: policy config (see :data:`POLICY_PRESETS`).
+        model: the trained g_θ; it is not changed (its parameters get no gradient).
+        records: episodes whose windows (observations, references, desired positions) start the rollouts.
+        device: ``"auto"``, ``"cpu"``, ``"cuda"``.
+        seed: seeds initialization and window sampling.
+        progress: show a progress bar with the loss.
+        checkpoint: training-state file, saved every ``cfg.save_every`` steps and resumed from when present.
+        log_dir: folder for the scalar log (``scalars.csv`` and TensorBoard events; see :class:`TrainLog`), or None.
+        held_out: episodes not trained on; with ``log_dir``, the h-step model-predicted tracking error of the
+            policy from their windows (:data:`HELD_OUT_TAG`, on at most
+            :data:`~efficienttrack.learn.training.HELD_OUT_STEPS` recorded steps) is logged every ``cfg.eval_every`` steps.
+
+        init: a trained π_φ to start from (a warm start, e.g. the previous round's), with its feature scaling;
+            None starts at a = 0 (a zero last layer) scaled on ``records``.
+        network: :class:`AdjustmentPolicy`, or :class:`PWMPolicy` with a :class:`~efficienttrack.learn.dynamics.PlantModel`
+            (the open loop; every record then needs its commands ``u``).
+
+    Returns:
+        The policy, per-step losses, time, steps and window count.
+    """
+    started = time.perf_counter()
+    device = resolve_device(device)
+    H, F, desired = cfg.rollout_length, cfg.future_length, desired_length(cfg, cfg.rollout_length)
+    check_training_memory("PolicyConfig", cfg.batch_size, H, [cfg, model.cfg], device)
+    if network.channel != model.channel or (init is not None and type(init) is not network):
+        raise EfficientTrackError(f"train_policy: a {network.__name__} is trained through a {type(model).__name__}, "
+                                  f"from {type(init).__name__}")  # fmt: skip
+    torch.manual_seed(seed)
+    history = max(cfg.history_length, model.cfg.history_length)
+    data = Sequences(records, history=history, future=desired, device=device, channel=model.channel)
+    starts = data.starts(0)
+    g_theta = type(model)(model.cfg).to(device)
+    g_theta.load_state_dict(model.state_dict())
+    g_theta.eval().requires_grad_(False)
+    pi_phi = network(cfg).to(device)
+    if init is not None:
+        warm_start(pi_phi, init, "initial policy")
+    else:
+        sample = data.window(starts[torch.randperm(len(starts))[:NORM_SAMPLES].to(device)], horizon=0, desired=F)
+        pi_phi.fit_scaling(sample.obs_hist, sample.qref_hist, sample.qdes_future)
+    gamma_i = cfg.gamma ** torch.arange(1, H + 1, device=device, dtype=torch.float32)
+    optimizer = torch.optim.AdamW(pi_phi.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    inputs = fingerprint(records, seed, model, init)
+    subset = held_out_subset(held_out)
+    evaluate = (lambda: {HELD_OUT_TAG: predicted_tracking_error(g_theta, subset, pi_phi, H).mae_deg}) if subset else None
+    total = cfg.total_steps(len(starts))
+    loop = TrainLoop("policy", cfg, total, pi_phi, optimizer, seed, checkpoint, progress, inputs, log_dir, evaluate)
+
+    for step in loop:
+        window = data.window(starts[loop.sample(len(starts), cfg.batch_size).to(device)], horizon=0, desired=desired)
+        q_star = window.qdes_future
+        # rollout: H steps of g_θ under π_φ, q^r_{i+1} = q*_{i+1} + a_i, q*_F sliding along q*_{t+1..t+H−1+F}
+        q_hat, a, _ = policy_rollout(g_theta, pi_phi, window.obs_hist, window.qref_hist, q_star, steps=H)
+        # loss: L_track = (1/H) Σ γ^i ‖q̂_{t+i} − q*_{t+i}‖², L_reg = (1/(H−1)) Σ ‖a_{t+i} − a_{t+i−1}‖²
+        L_track = (gamma_i * wrap(q_hat - q_star[:, :H]).pow(2).sum(-1)).sum(1).mean() / H
+        L_reg = (a[:, 1:] - a[:, :-1]).pow(2).sum(-1).sum(1).mean() / (H - 1)
+        loss = L_track + cfg.k_smooth * L_reg
+        # step
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if cfg.grad_clip is not None:
+            nn.utils.clip_grad_norm_(pi_phi.parameters(), cfg.grad_clip)
+        loop.set_lr(step)
+        optimizer.step()
+        # log
+        loop.record(step, loss.item())
+
+    pi_phi.eval()
+    return PolicyTrainResult(pi_phi, loop.losses(), time.perf_counter() - started, loop.total, len(starts), inputs)
+
+
+class TrackingError(NamedTuple):
+    """Model-predicted tracking error of a policy (or of a = 0), degrees.
+
+    Attributes:
+        mae_deg: mean |wrap(q̂ − q*)| over windows, steps and joints, deg.
+        per_joint_deg: (4,) mean per joint, deg.
+        windows: number of rollouts (one per recorded step).
+    """
+
+    mae_deg: float
+    per_joint_deg: list[float]
+    windows: int
+
+
+@torch.inference_mode()
+def predicted_tracking_error(
+    model: ClosedLoopModel,
+    records: Sequence[EpisodeRecord],
+    policy: AdjustmentPolicy | None = None,
+    steps: int = 20,
+    device: str | torch.device | None = None,
+) -> TrackingError:
+    """How well ``policy`` (None: a = 0) tracks the desired positions according to ``model``.
+
+    From every recorded step t, roll the model ``steps`` steps under the policy and average
+    |wrap(q̂_{t+i} − q*_{t+i})|.
+
+    Args:
+        model: g_θ.
+        records: episodes giving the start histories and desired positions.
+        policy: π_φ, or None for the position controller alone.
+        steps: rollout length.
+        device: where to compute (the model's device when None).
+
+    Returns:
+        The mean error overall and per joint, in degrees.
+    """
+    device = next(model.parameters()).device if device is None else resolve_device(device)
+    model = model.eval().to(device)
+    policy = policy.eval().to(device) if policy is not None else None
+    cfg = policy.cfg if policy is not None else None
+    desired = desired_length(cfg, steps)
+    history = max(seen_lengths(cfg).history, model.cfg.history_length)
+    data = Sequences(records, history=history, future=desired, device=device, channel=model.channel)
+    starts = data.starts(0)
+    total = torch.zeros(4, dtype=torch.float64, device=device)
+    for chunk in starts.split(EVAL_CHUNK):
+        window = data.window(chunk, horizon=0, desired=desired)
+        rolled = policy_rollout(model, policy, window.obs_hist, window.qref_hist, window.qdes_future, steps)
+        total += wrap(rolled.q_hat - window.qdes_future[:, :steps]).abs().sum((0, 1)).double()
+    per_joint = torch.rad2deg(total / (len(starts) * steps)).cpu().numpy()
+    return TrackingError(float(per_joint.mean()), per_joint.tolist(), len(starts))
+
+
+def save_policy(policy: AdjustmentPolicy, path: str | Path, fingerprint: str | None = None) -> Path:
+    """Save π_φ: state_dict at ``path`` (e.g. ``policy.pt``) and its PolicyConfig as JSON next to it.
+
+    ``fingerprint`` is what it was trained from (``PolicyTrainResult.fingerprint``), kept in the JSON and carried into
+    an export's contract; None when not known.
+    """
+    return save_checkpoint(policy, policy.kind, policy.cfg, path, fingerprint)
+
+
+def load_policy(
+    path: str | Path, device: str | torch.device = "cpu", network: type[AdjustmentPolicy] = AdjustmentPolicy
+) -> AdjustmentPolicy:
+    """Load a policy saved by :func:`save_policy` (tensors only, ``weights_only=True``), in eval mode on ``device``.
+
+    Args:
+        path: the ``.pt`` file written by :func:`save_policy`; its JSON config must lie next to it.
+        device: where to put the policy (``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or a torch device).
+        network: the class saved: :class:`AdjustmentPolicy` or :class:`PWMPolicy` (a file of the other is refused).
+    """
+    return load_checkpoint(path, network.kind, PolicyConfig, network, device)

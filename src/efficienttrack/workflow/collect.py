@@ -1,0 +1,348 @@
+"""Algorithm 1, data collection: the PD loop tracks the references with (or without) noise.
+
+For every reference q*_{0:L−1}, the machine is reset to q*_0 and at each step t the reference
+``q^r_{t+1} = q*_{t+1} + d_t`` is sent, with ``d_t = clip(n_t, −σ, σ)``, ``n_t ~ N(0, σ²)`` per joint,
+and ``σ ~ U(0, σ_max)`` drawn once per episode. The noise is an adjustment of the reference like the policy's, so it
+passes the same limits: ``σ_max`` may not exceed the machine's adjustment bound (refused before anything moves), and
+a noisy reference beyond the joint limits is clamped into them (the step's guard bit ``CLAMPED``, counted in the
+record's ``meta["guard"]``). A pass runs every reference once. Each episode is either
+noisy or clean (d = 0), and the noisy:clean mix follows ``noise_ratio`` (the paper's best is 9:2) over
+the episodes, so that any number of passes keeps it: a single pass over 40 references gives 33 noisy and
+7 clean episodes (the paper's fastset). Interaction steps (I.S.) are the steps the machine was driven.
+
+Every episode is flushed to ``out/.pass_<k>.partial/`` as soon as it (or its batch) has run, and
+the folder becomes ``out/pass_<k>/`` when the pass is complete: an interrupted collection resumes
+with the first episode not yet recorded. The noise of pass k, reference i, comes from its own
+seeded generator, so a resumed or re-batched collection is identical to an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import warnings
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from efficienttrack.core.angles import wrap
+from efficienttrack.core.configfile import check_seed
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.joints import JOINT_NAMES
+from efficienttrack.core.progress import ProgressDisplay
+from efficienttrack.core.provenance import claim_folder
+from efficienttrack.data.records import EpisodeRecord, load_named_records, load_records, save_records
+from efficienttrack.data.references import Reference
+from efficienttrack.deploy.episodes import Guard, Sent, batches, rollout
+from efficienttrack.systems.limits import GuardLimits
+from efficienttrack.systems.protocol import BatchedSystem
+
+MAX_PASSES = 1000
+"""Most passes over the references a collection may ask for (the paper: 10)."""
+NOISE_MIX = "episode"
+"""How ``collect.json`` names the noise mixing (noisy or clean per episode); folders mixed per pass are refused."""
+
+
+@dataclass(frozen=True)
+class CollectConfig:
+    """Settings of Algorithm 1."""
+
+    sigma_max: float = 0.05
+    """Upper bound σ_max of the per-episode noise level σ ~ U(0, σ_max), rad."""
+    noise_ratio: tuple[float, float] = (9.0, 2.0)
+    """Noisy episodes : clean episodes, as relative weights (the paper's best mix is 9:2)."""
+    passes: int = 10
+    """Passes over the reference set (the paper: 10 passes over 40 references = 176,720 steps)."""
+    seed: int = 0
+    """Seed of the noise generators."""
+
+    def __post_init__(self) -> None:
+        """Check the values (EfficientTrackError naming the field)."""
+        if not (np.isfinite(self.sigma_max) and self.sigma_max >= 0):
+            raise EfficientTrackError(f"collect.sigma_max: must be ≥ 0 rad, got {self.sigma_max}")
+        weights = self.noise_ratio
+        if len(weights) != 2 or not all(np.isfinite(w) and w >= 0 for w in weights) or sum(weights) == 0:
+            raise EfficientTrackError(f"collect.noise_ratio: needs two weights ≥ 0, not both 0, got {self.noise_ratio}")
+        if not isinstance(self.passes, int) or isinstance(self.passes, bool) or not 1 <= self.passes <= MAX_PASSES:
+            raise EfficientTrackError(f"collect.passes: must be an integer in [1, {MAX_PASSES}], got {self.passes!r}")
+        check_seed(self.seed, "collect.seed")
+
+    @staticmethod
+    def parse_noise_ratio(text: str, option: str = "--noise-ratio") -> tuple[float, float]:
+        """Read a ``noise_ratio`` written as ``noisy:clean`` (the paper's notation, e.g. ``9:2``).
+
+        Args:
+            text: the two weights separated by a colon.
+            option: where ``text`` came from, named in errors.
+
+        Returns:
+            (noisy, clean) weights; :class:`CollectConfig` checks their values.
+
+        Raises:
+            EfficientTrackError: not two numbers separated by a colon.
+        """
+        parts = text.split(":")
+        try:
+            noisy, clean = (float(part) for part in parts)
+        except ValueError as exc:
+            raise EfficientTrackError(f"{option} '{text}': expected noisy:clean, two numbers like 9:2") from exc
+        return noisy, clean
+
+    @property
+    def noise_ratio_text(self) -> str:
+        """``noise_ratio`` as ``noisy:clean`` (``9:2``), read back exactly by :meth:`parse_noise_ratio`."""
+        return ":".join(str(float(w)).removesuffix(".0") for w in self.noise_ratio)
+
+    def noisy_episodes(self, pass_index: int, references: int) -> np.ndarray:
+        """Which episodes of pass k are noisy: the ratio spread evenly over all episodes, seeded choice within a pass.
+
+        Pass k gets ``⌊(k+1)·n·s⌉ − ⌊k·n·s⌉`` noisy episodes (n references, s = noisy share), so every
+        prefix of passes keeps the ratio; which references they are is a permutation seeded by (seed, pass).
+
+        Args:
+            pass_index: k, the pass.
+            references: n, the references in a pass.
+
+        Returns:
+            (n,) bool, True where the episode of reference i is noisy.
+        """
+        noisy, clean = self.noise_ratio
+        share = noisy / (noisy + clean)
+        done = np.floor(np.array([pass_index, pass_index + 1]) * references * share + 0.5 + 1e-9)  # rounded half up
+        count = int(done[1] - done[0])
+        chosen = np.random.default_rng([self.seed, pass_index, references]).permutation(references)[:count]
+        mask = np.zeros(references, dtype=bool)
+        mask[chosen] = True
+        return mask
+
+
+def pass_counts(budget: int, steps_per_pass: int) -> list[int]:
+    """The collection passes EfficientTrack is run with: 1, 2, 5, 10, 20, 50 … while their steps fit the budget.
+
+    Args:
+        budget: interaction steps allowed.
+        steps_per_pass: interaction steps of one pass (Σ (L_i − 1) over the training references), ≥ 1.
+
+    Returns:
+        The pass counts p (≤ ``collect.MAX_PASSES``) with p · steps_per_pass ≤ budget, ascending; empty when not even
+        one pass fits.
+    """
+    counts, scale = [], 1
+    while True:
+        for p in (scale, 2 * scale, 5 * scale):
+            if p > MAX_PASSES or p * steps_per_pass > budget:
+                return counts
+            counts.append(p)
+        scale *= 10
+
+
+class CollectResult(NamedTuple):
+    """Outcome of :func:`collect`.
+
+    Attributes:
+        records: every episode, pass by pass (meta: name, sigma, pass, noisy, guard).
+        interaction_steps: total steps the machine was driven (I.S.), including resumed passes.
+        resumed_passes: passes read back from disk instead of run.
+    """
+
+    records: list[EpisodeRecord]
+    interaction_steps: int
+    resumed_passes: int
+
+
+class NoiseDriver:
+    """Collection references ``q*_{t+1} + d_t`` for N episodes with fixed per-episode noise, clamped into the limits.
+
+    Args:
+        noise: (T_max, N, 4) rad, the clipped noise d_t of every step (zeros for clean episodes).
+        limits: the machine's joint limits; a noisy reference beyond them is clamped into them.
+    """
+
+    def __init__(self, noise: np.ndarray, limits: GuardLimits) -> None:
+        self.noise = noise
+        self.limits = limits
+        self._t = 0
+
+    def start(self, obs0: np.ndarray) -> None:
+        """Begin the episodes.
+
+        Args:
+            obs0: (N, 8) [rad, rad/s], the start observations (not needed for noise).
+        """
+        self._t = 0
+
+    def step(self, obs: np.ndarray, q_des_future: np.ndarray) -> Sent:
+        """Reference for step t+1: ``q*_{t+1}`` plus this step's noise.
+
+        Args:
+            obs: (N, 8) [rad, rad/s], ``o_t`` (not needed for noise).
+            q_des_future: (N, h, 4) rad, ``q*_{t+1} …``; only ``[:, 0]`` is used.
+
+        Returns:
+            The sent reference (N, 4) rad, ``q_ref − q*_{t+1}`` as adjustment, no fallbacks, ``CLAMPED`` where the
+            reference was clamped into the joint limits.
+        """
+        q_des = q_des_future[:, 0]
+        wanted = q_des + self.noise[self._t]
+        self._t += 1
+        q_ref = self.limits.clamp(wanted)
+        clamped = np.any(q_ref != wanted, axis=1)
+        guard = np.where(clamped, Guard.CLAMPED.value, 0).astype(np.uint16)
+        return Sent(q_ref=q_ref, adjustment=wrap(q_ref - q_des), fallback=np.zeros(len(q_ref), dtype=bool), guard=guard)
+
+
+def episode_noise(cfg: CollectConfig, pass_index: int, ref_index: int, steps: int) -> tuple[float, np.ndarray]:
+    """Noise level and noise of one noisy episode, from its own generator (seed, pass, reference).
+
+    Args:
+        cfg: collection settings (``sigma_max``, ``seed``).
+        pass_index: k, the pass.
+        ref_index: i, the reference's position in the reference set.
+        steps: T, steps of the episode.
+
+    Returns:
+        σ in rad (U(0, σ_max)) and d (steps, 4) rad, N(0, σ²) clipped to ±σ.
+    """
+    rng = np.random.default_rng([cfg.seed, pass_index, ref_index])
+    sigma = float(rng.uniform(0.0, cfg.sigma_max))
+    return sigma, np.clip(rng.normal(0.0, sigma, size=(steps, 4)), -sigma, sigma)
+
+
+def run_pass(
+    system: BatchedSystem,
+    references: Sequence[Reference],
+    cfg: CollectConfig,
+    pass_index: int,
+    progress: ProgressDisplay | None = None,
+    finished: Mapping[str, EpisodeRecord] | None = None,
+    on_done: Callable[[list[EpisodeRecord]], None] | None = None,
+) -> list[EpisodeRecord]:
+    """One pass of Algorithm 1 over all references (together when the system is batched).
+
+    Args:
+        system: the closed-loop system.
+        references: the references (``.name``, ``.q`` (L_i, 4) rad).
+        cfg: collection settings.
+        pass_index: k, which decides the noisy episodes (``cfg.noisy_episodes``) and seeds the noise.
+        progress: progress display for the steps, or None.
+        finished: episodes of this pass already recorded, by reference name; they are not run again.
+        on_done: called with the records of every group of episodes as soon as it has run (to flush them).
+
+    Returns:
+        One record per reference; meta = {name, sigma, pass, noisy, guard} (guard: {"clamped": steps} where a noisy
+        reference was clamped into the joint limits, else empty); ``q_ref`` = sent, ``q_des`` = desired.
+    """
+    noisy = cfg.noisy_episodes(pass_index, len(references))
+    finished = finished or {}
+    todo = [i for i, ref in enumerate(references) if ref.name not in finished]
+    new: dict[str, EpisodeRecord] = {}
+    for part in batches(system, len(todo)):
+        indices = todo[part]
+        arrays = [references[i].q for i in indices]
+        noise = np.zeros((max(len(q) for q in arrays) - 1, len(indices), 4))
+        sigmas = np.zeros(len(indices))
+        for j, i in enumerate(indices):  # per-episode generators keep batching and resuming reproducible
+            if noisy[i]:
+                sigmas[j], noise[: len(arrays[j]) - 1, j] = episode_noise(cfg, pass_index, i, len(arrays[j]) - 1)
+        records = rollout(system, arrays, NoiseDriver(noise, system.limits), 1, progress, f"pass {pass_index + 1}")
+        for record, i, sigma in zip(records, indices, sigmas, strict=True):
+            guard = record.meta.get("guard", {})  # the steps clamped into the joint limits
+            record.meta = {"name": references[i].name, "sigma": float(sigma), "pass": pass_index, "noisy": bool(noisy[i])}
+            record.meta["guard"] = guard
+            new[references[i].name] = record
+        if on_done is not None:
+            on_done(records)
+    return [finished.get(ref.name) or new[ref.name] for ref in references]
+
+
+def check_noise_level(sigma_max: float, limits: GuardLimits) -> None:
+    """Refuse a noise level the machine's adjustment bound cannot hold, naming the joint and the bound.
+
+    The noise moves the reference away from the desired path as the policy's adjustment does; the machine's limits
+    say how far that may go (``max_adjust``), so a larger ``σ_max`` would ask for noise the guard forbids.
+
+    Args:
+        sigma_max: rad, the upper bound of the per-episode noise level.
+        limits: the machine's limits.
+    """
+    bound = np.asarray(limits.max_adjust, dtype=np.float64)
+    if sigma_max > bound.min():
+        joint = int(np.argmin(bound))
+        raise EfficientTrackError(
+            f"collect.sigma_max: {sigma_max:g} rad exceeds the machine's adjustment bound of {bound[joint]:g} rad "
+            f"({JOINT_NAMES[joint]}; max_adjust {', '.join(f'{b:g}' for b in bound)} rad): the noise is an adjustment of "
+            "the reference, and the guard allows no more; lower --sigma-max or widen max_adjust with --limits"
+        )
+
+
+def _pass_dir(out: Path, k: int) -> Path:
+    return out / f"pass_{k:03d}"
+
+
+def _flush(records: list[EpisodeRecord], folder: Path) -> None:
+    save_records(records, folder)
+
+
+def collect(
+    system: BatchedSystem,
+    references: Sequence[Reference],
+    cfg: CollectConfig,
+    out: str | Path | None = None,
+    progress: bool = True,
+) -> CollectResult:
+    """Algorithm 1: ``cfg.passes`` passes over the references, written to ``out`` pass by pass.
+
+    Args:
+        system: the closed-loop system (``load_system``).
+        references: the references (``.name``, ``.q`` (L_i, 4) rad of desired positions), unique names.
+        cfg: collection settings.
+        out: folder for the records (``pass_<k>/<name>.npz`` plus ``collect.json``); passes
+            already there are read back instead of run. None keeps everything in memory.
+        progress: show progress (bars on a terminal, plain lines otherwise).
+
+    Returns:
+        All records, the interaction steps (I.S.) and how many passes were resumed from disk.
+
+    Raises:
+        EfficientTrackError: a reference outside the system's joint limits (before anything moves), or ``out`` holds a
+            collection made with other settings or references.
+    """
+    if not references:
+        raise EfficientTrackError("collect: no references given")
+    check_noise_level(cfg.sigma_max, system.limits)
+    for ref in references:
+        system.limits.check_reference(ref.q, ref.name)
+    if cfg.noise_ratio[0] > 0 and not any(cfg.noisy_episodes(k, len(references)).any() for k in range(cfg.passes)):
+        warnings.warn(
+            f"collect: {cfg.passes} pass(es) over {len(references)} reference(s) at noisy:clean "
+            f"{cfg.noise_ratio_text} give no noisy episode; the model will see no noise (use more passes)",
+            stacklevel=2,
+        )
+    names = [ref.name for ref in references]
+    folder = Path(out) if out is not None else None
+    if folder is not None:
+        steps = [len(ref.q) - 1 for ref in references]
+        manifest = {"config": asdict(cfg), "noise_mix": NOISE_MIX, "references": names, "steps": steps}
+        manifest = json.loads(json.dumps(manifest))  # tuples as lists, as read back
+        claim_folder(folder / "collect.json", manifest, "this folder holds a collection with other settings or references")
+    records: list[EpisodeRecord] = []
+    resumed = 0
+    with ProgressDisplay(progress) as bar:
+        passes = bar.add_task("collecting (passes)", total=cfg.passes)
+        for k in range(cfg.passes):
+            if folder is not None and _pass_dir(folder, k).is_dir():
+                records += load_named_records(_pass_dir(folder, k), names)
+                resumed += 1
+            elif folder is None:
+                records += run_pass(system, references, cfg, k, bar)
+            else:
+                partial = _pass_dir(folder, k).with_name(f".{_pass_dir(folder, k).name}.partial")
+                finished = {r.meta["name"]: r for r in load_records(partial)} if partial.is_dir() else {}
+                records += run_pass(system, references, cfg, k, bar, finished, functools.partial(_flush, folder=partial))
+                os.replace(partial, _pass_dir(folder, k))
+            bar.advance(passes)
+    return CollectResult(records=records, interaction_steps=sum(len(r) for r in records), resumed_passes=resumed)

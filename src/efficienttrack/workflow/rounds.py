@@ -1,0 +1,234 @@
+"""Continual-learning rounds: deploy the policy, record, retrain from the previous weights, evaluate; and their table.
+
+Round 1 is Algorithm 1 (:func:`efficienttrack.workflow.pipeline.run_pipeline`). Round k ≥ 2 deploys π_{k−1} on the
+training references (one pass, no noise, as the paper's real-machine rounds), then trains g_θ and π_φ starting
+from θ_{k−1} and φ_{k−1} (warm starts, with their feature scaling) on every episode recorded so far
+(``round_data = "all"``) or on the new pass only (``"new"``, the paper's choice), and evaluates the new policy on
+the test references. A later round trains ``warm_budget`` × round 1's optimizer steps, with the same sizes and the
+same way of training as the ``round`` command (:func:`~efficienttrack.workflow.next_round.continued_config`). Each round
+k ≥ 2 lives in ``OUT/rounds/<k>/`` with the layout of a run folder (its own
+``stages/``, so an interrupted round resumes where it stopped)::
+
+    OUT/rounds/<k>/records/deploy/          π_{k−1} on the training references: the round's new data
+    OUT/rounds/<k>/model.pt, policy.pt      θ_k, φ_k (configs beside them); checkpoints/, logs/ while training
+    OUT/rounds/<k>/records/efficienttrack/  π_k on the test references
+
+The rounds table has the columns of the paper's Table IV: interactions used for training so far (I.S., I.T.),
+1st/2nd-order smoothness, MAE, RMSE, FMAE, ETD-MAE, ETD-FMAE, and the model's Tr.MPE / Te.MPE.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from functools import partial
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import torch
+from rich.table import Table
+
+from efficienttrack.core.fileio import atomic_write, write_csv
+from efficienttrack.data.metrics import compute_metrics, interaction_hours, rounded
+from efficienttrack.data.records import EpisodeRecord
+from efficienttrack.data.references import Reference
+from efficienttrack.learn import dynamics, policy
+from efficienttrack.learn.dynamics import ClosedLoopModel
+from efficienttrack.learn.policy import AdjustmentPolicy
+from efficienttrack.systems.protocol import BatchedSystem
+from efficienttrack.workflow.config import RunConfig
+from efficienttrack.workflow.next_round import continued_config
+from efficienttrack.workflow.stages import RunLog, Stages, evaluate_stage, train_stage
+
+ROUNDS = "rounds"
+"""Folder of the rounds after the first in a run folder: ``rounds/<k>/``."""
+INTERACTIONS_STAGE = "interactions"
+"""Stage of a later round noting the training interactions up to it (``stages/interactions.json``), for ``evaluate``."""
+TABLE_COLUMNS = (
+    ("I.S.", "interaction_steps", "{:d}"),
+    ("I.T. (h)", "interaction_hours", "{:.2f}"),
+    ("1st oSMT °", "smt1_deg", "{:.2f}"),
+    ("2nd oSMT °", "smt2_deg", "{:.2f}"),
+    ("MAE °", "mae_deg", "{:.2f}"),
+    ("RMSE °", "rmse_deg", "{:.2f}"),
+    ("FMAE °", "fmae_deg", "{:.2f}"),
+    ("ETD-MAE cm", "etd_mae_cm", "{:.2f}"),
+    ("ETD-FMAE cm", "etd_fmae_cm", "{:.2f}"),
+    ("Tr.MPE °", "tr_mpe_deg", "{:.3f}"),
+    ("Te.MPE °", "te_mpe_deg", "{:.3f}"),
+)
+"""The rounds table's columns: heading, key of a row, format (the paper's Table IV, plus the model's errors)."""
+
+
+class RoundState(NamedTuple):
+    """Where a round leaves off: what the next one starts from.
+
+    Attributes:
+        g_theta: the round's closed-loop dynamics model.
+        pi_phi: the round's adjustment policy.
+        records: every training episode recorded up to this round (collection, then each deployment pass).
+        interaction_steps: steps the machine was driven for training up to this round (I.S.).
+        test_records: the round's policy on the test references.
+        summary: the round's entry of ``metrics.json``'s ``rounds`` (:func:`round_summary`).
+        folder: the round's folder (``OUT`` for round 1).
+        facts: the training stages' facts of the round, ``{"model": {...}, "policy": {...}}`` (seconds, log folder).
+    """
+
+    g_theta: ClosedLoopModel
+    pi_phi: AdjustmentPolicy
+    records: list[EpisodeRecord]
+    interaction_steps: int
+    test_records: list[EpisodeRecord]
+    summary: dict[str, Any]
+    folder: Path
+    facts: dict[str, dict[str, Any]]
+
+
+def round_summary(
+    k: int,
+    interaction_steps: int,
+    test_records: Sequence[EpisodeRecord],
+    g_theta: ClosedLoopModel,
+    train_records: Sequence[EpisodeRecord],
+    train_seconds: float,
+) -> dict[str, Any]:
+    """One round's entry of ``metrics.json``'s ``rounds`` list.
+
+    Args:
+        k: the round, from 1.
+        interaction_steps: training interactions up to and including this round (I.S.).
+        test_records: the round's policy on the test references.
+        g_theta: the round's model.
+        train_records: what the round trained on (for Tr.MPE).
+        train_seconds: the round's model and policy training time, s.
+
+    Returns:
+        ``{"round", "interaction_steps", "interaction_hours", "train_seconds", "efficienttrack": {metrics},
+        "model": {"tr_mpe_deg", "te_mpe_deg"}}``.
+    """
+    return {
+        "round": k,
+        "interaction_steps": interaction_steps,
+        "interaction_hours": round(interaction_hours(interaction_steps), 4),
+        "train_seconds": round(train_seconds, 2),
+        "efficienttrack": rounded(compute_metrics(test_records)),
+        "model": {
+            "tr_mpe_deg": round(float(dynamics.model_error(g_theta, train_records).mpe_deg), 4),
+            "te_mpe_deg": round(float(dynamics.model_error(g_theta, test_records).mpe_deg), 4),
+        },
+    }
+
+
+def run_round(
+    k: int,
+    previous: RoundState,
+    cfg: RunConfig,
+    system: BatchedSystem,
+    train_refs: Sequence[Reference],
+    test_refs: Sequence[Reference],
+    held_out: Sequence[EpisodeRecord],
+    out: Path,
+    log: RunLog,
+    device: torch.device,
+) -> RoundState:
+    """Round k ≥ 2: deploy π_{k−1} on the training references, retrain from θ_{k−1}, φ_{k−1}, evaluate (resumable).
+
+    Args:
+        k: the round, ≥ 2.
+        previous: where round k − 1 left off.
+        cfg: the run's settings (``round_data`` decides what the round trains on).
+        system: the closed-loop system.
+        train_refs: the training references, deployed on once without noise.
+        test_refs: the held-out references.
+        held_out: episodes for the held-out figures of the training logs (the PD runs of the test references).
+        out: the run folder; the round writes ``out/rounds/<k>/``.
+        log: the run's console log.
+        device: where the networks run.
+
+    Returns:
+        Where round k leaves off.
+    """
+    folder = out / ROUNDS / str(k)
+    stages = Stages(folder)
+    log.print(f"round {k}: deploying the round-{k - 1} policy on the {len(train_refs)} training references")
+    deployed = evaluate_stage(stages, "deploy", folder, system, previous.pi_phi, train_refs, device)
+    records = [*previous.records, *deployed]
+    train_records = records if cfg.round_data == "all" else deployed
+    common: dict[str, Any] = {"device": device, "seed": cfg.seed, "held_out": held_out}
+    model_cfg = continued_config(cfg.model.scaled(cfg.warm_budget), previous.g_theta.cfg)
+    policy_cfg = continued_config(cfg.policy.scaled(cfg.warm_budget), previous.pi_phi.cfg)
+    trainer: Callable[..., Any] = partial(dynamics.train_model, model_cfg, train_records, init=previous.g_theta, **common)
+    g_theta, model_facts = train_stage(stages, "model", folder, log, trainer, dynamics.save_model, dynamics.load_model, device)
+    trainer = partial(policy.train_policy, policy_cfg, g_theta, train_records, init=previous.pi_phi, **common)
+    pi_phi, policy_facts = train_stage(stages, "policy", folder, log, trainer, policy.save_policy, policy.load_policy, device)
+    test_records = evaluate_stage(stages, "efficienttrack", folder, system, pi_phi, test_refs, device)
+    steps = previous.interaction_steps + sum(len(r) for r in deployed)
+    stages.done(INTERACTIONS_STAGE, ("interaction_steps",)) or stages.finish(INTERACTIONS_STAGE, {"interaction_steps": steps})
+    seconds = model_facts["seconds"] + policy_facts["seconds"]
+    summary = round_summary(k, steps, test_records, g_theta, train_records, seconds)
+    log.print(f"round {k}: test MAE {summary['efficienttrack']['mae_deg']:.3f}° after {steps} interaction steps")
+    facts = {"model": model_facts, "policy": policy_facts}
+    return RoundState(g_theta, pi_phi, records, steps, test_records, summary, folder, facts)
+
+
+def rounds_rows(pd: dict[str, Any], rounds: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The rounds table as rows: the PD controller alone, then every round.
+
+    Args:
+        pd: the PD controller's metrics on the test references (:func:`~efficienttrack.data.metrics.compute_metrics`).
+        rounds: the rounds' entries (:func:`round_summary`).
+
+    Returns:
+        One flat dict per row: ``"method"`` and the keys of :data:`TABLE_COLUMNS` (None where not defined, e.g.
+        the PD controller's interactions and model errors).
+    """
+    keys = [key for _, key, _ in TABLE_COLUMNS]
+    rows = [{"method": "PD", **{key: pd.get(key) for key in keys}}]
+    for entry in rounds:
+        flat = {
+            **entry["efficienttrack"],
+            **entry["model"],
+            **{k: entry[k] for k in ("interaction_steps", "interaction_hours")},
+        }
+        rows.append({"method": f"Round {entry['round']}", **{key: flat.get(key) for key in keys}})
+    return rows
+
+
+def _cell(value: Any, fmt: str) -> str:
+    return "–" if value is None else fmt.format(value)
+
+
+def rounds_table(rows: Sequence[dict[str, Any]], title: str) -> Table:
+    """A rich table of :func:`rounds_rows`, the columns of the paper's Table IV.
+
+    Args:
+        rows: the rows.
+        title: the table's title.
+    """
+    table = Table(title=title, caption="test references; I.S./I.T.: training interactions so far (steps, h at 20 Hz)")
+    table.add_column("method", no_wrap=True)
+    for heading, _, _ in TABLE_COLUMNS:
+        table.add_column(heading, justify="right", no_wrap=True)
+    for row in rows:
+        table.add_row(row["method"], *(_cell(row[key], fmt) for _, key, fmt in TABLE_COLUMNS))
+    return table
+
+
+def write_rounds(rows: Sequence[dict[str, Any]], folder: Path) -> tuple[Path, Path]:
+    """Write the rounds table as ``rounds.csv`` (full precision) and ``rounds.md`` (as printed), atomically.
+
+    Args:
+        rows: the rows (:func:`rounds_rows`).
+        folder: where to write.
+
+    Returns:
+        The CSV and Markdown paths.
+    """
+    keys = ["method", *(key for _, key, _ in TABLE_COLUMNS)]
+    csv_path = write_csv(folder / "rounds.csv", keys, ([row[key] for key in keys] for row in rows))
+    headings = ["method", *(heading for heading, _, _ in TABLE_COLUMNS)]
+    lines = ["| " + " | ".join(headings) + " |", "|---" + "|---:" * len(TABLE_COLUMNS) + "|"]
+    lines += [
+        "| " + " | ".join([row["method"], *(_cell(row[key], fmt) for _, key, fmt in TABLE_COLUMNS)]) + " |" for row in rows
+    ]
+    md_path = atomic_write(folder / "rounds.md", lambda f: f.write("\n".join(lines) + "\n"), mode="w")
+    return csv_path, md_path
