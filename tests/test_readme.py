@@ -41,3 +41,34 @@ def test_plug_in_example_runs_as_written(tmp_path):
         done = subprocess.run([str(CONSOLE_SCRIPT), *argv[1:]], cwd=tmp_path, env=env, capture_output=True, text=True)
         assert done.returncode == 0, f"README command failed: {line}\n{done.stdout}\n{done.stderr}"
     assert "EfficientTrack" in done.stdout and (tmp_path / "runs" / "mine" / "metrics.json").is_file()
+
+
+def python_quick_start() -> str:
+    """The README's ```python block that begins with ``import efficienttrack as et``."""
+    block = re.search(r"```python\n(import efficienttrack as et\n.*?)```", README.read_text(), re.S)
+    assert block, "README: no ```python block starting with 'import efficienttrack as et'"
+    return block.group(1)
+
+
+def test_the_python_quick_start_runs_as_written_and_beats_pd(tmp_path):
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "src"), "COLUMNS": "160"}
+    done = subprocess.run([sys.executable, "-c", python_quick_start()], cwd=tmp_path, env=env, capture_output=True, text=True)
+    assert done.returncode == 0, f"README quick start failed:\n{done.stdout}\n{done.stderr}"
+    pd_mae, et_mae = (float(x) for x in done.stdout.strip().splitlines()[-1].split())
+    assert et_mae < pd_mae
+    assert (tmp_path / "runs" / "python" / "policy.pt").is_file()
+
+
+def test_the_top_level_api_names_resolve_and_stay_lazy():
+    import efficienttrack
+
+    code = "import sys, efficienttrack; print('torch' in sys.modules)"
+    done = subprocess.run(
+        [sys.executable, "-c", code], env={**os.environ, "PYTHONPATH": str(ROOT / "src")}, capture_output=True, text=True
+    )
+    assert done.stdout.strip() == "False", done.stderr  # importing the package imports no torch
+    for name in efficienttrack.API:
+        assert callable(getattr(efficienttrack, name)), name
+    assert efficienttrack.run.__name__ == "run_pipeline" and efficienttrack.round.__name__ == "next_round"
+    with pytest.raises(AttributeError, match="no attribute 'nope'"):
+        efficienttrack.nope  # noqa: B018

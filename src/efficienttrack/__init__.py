@@ -1,11 +1,63 @@
 """EfficientTrack: high-precision excavator trajectory tracking from learned closed-loop dynamics.
 
+The Python API is as short as the command line: ``efficienttrack.run``, ``collect``, ``train_model``,
+``train_policy``, ``evaluate``, ``round``, ``export``, ``load_policy`` and ``run_study`` (the ``study`` command; the
+name ``efficienttrack.study`` is its package), with what they take (``SystemSpec``, ``preset``, references and
+records). They are imported on first use, so ``import efficienttrack`` stays light: the torch-free runtime imports
+the package without torch.
+
 Importing the package registers the Gymnasium environments ``EfficientTrack/ClosedLoop-v0`` and
 ``EfficientTrack/OpenLoop-v0`` (:mod:`efficienttrack.envs`) when gymnasium is installed; without it (a torch- and
 gymnasium-free runtime install) the package imports all the same.
 """
 
+from importlib import import_module
+from typing import Any
+
 __version__ = "0.1.0"
+
+API: dict[str, tuple[str, str]] = {
+    "run": ("efficienttrack.workflow.pipeline", "run_pipeline"),
+    "evaluate": ("efficienttrack.workflow.pipeline", "evaluate"),
+    "demo": ("efficienttrack.workflow.pipeline", "demo"),
+    "collect": ("efficienttrack.workflow.collect", "collect"),
+    "train_model": ("efficienttrack.learn.dynamics", "train_model"),
+    "train_policy": ("efficienttrack.learn.policy", "train_policy"),
+    "round": ("efficienttrack.workflow.next_round", "next_round"),
+    "export": ("efficienttrack.deploy.export", "export_policy"),
+    "load_policy": ("efficienttrack.learn.policy", "load_policy"),
+    "load_model": ("efficienttrack.learn.dynamics", "load_model"),
+    "run_study": ("efficienttrack.study.run", "run_study"),
+    "SystemSpec": ("efficienttrack.systems.spec", "SystemSpec"),
+    "load_system": ("efficienttrack.systems.spec", "load_system"),
+    "load_plant": ("efficienttrack.systems.spec", "load_plant"),
+    "RunConfig": ("efficienttrack.workflow.config", "RunConfig"),
+    "preset": ("efficienttrack.workflow.config", "preset"),
+    "Reference": ("efficienttrack.data.references", "Reference"),
+    "load_references": ("efficienttrack.data.references", "load_references"),
+    "generate_references": ("efficienttrack.data.cycles", "generate_references"),
+    "load_records": ("efficienttrack.data.records", "load_records"),
+    "compute_metrics": ("efficienttrack.data.metrics", "compute_metrics"),
+}
+"""The top-level names: name → (module, attribute), imported when first used."""
+
+__all__ = ["__version__", *API]
+
+
+def __getattr__(name: str) -> Any:
+    """Import a top-level API name from its module on first use (PEP 562)."""
+    if name not in API:
+        raise AttributeError(f"module 'efficienttrack' has no attribute '{name}'")
+    module, attribute = API[name]
+    value = getattr(import_module(module), attribute)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    """The module's names, the lazily imported API included."""
+    return sorted({*globals(), *API})
+
 
 try:
     import gymnasium  # noqa: F401  (only to learn whether it is installed)
