@@ -16,9 +16,11 @@ from efficienttrack.baselines.sb3_state import restore_state, save_state
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.progress import ProgressDisplay
 from efficienttrack.data.cycles import generate_references
-from efficienttrack.data.metrics import METRIC_KEYS
+from efficienttrack.data.features import relative_features
+from efficienttrack.data.metrics import METRIC_KEYS, compute_metrics
 from efficienttrack.data.references import Reference
-from efficienttrack.envs import TrackingEnv, TrackingVectorEnv
+from efficienttrack.envs import TrackingEnv, TrackingVectorEnv, evaluate
+from efficienttrack.envs.features import pd_pipeline, split_observation
 from efficienttrack.learn.checkpoints import load_tensors
 from efficienttrack.systems.spec import SystemSpec
 
@@ -227,3 +229,36 @@ def test_presets_keep_the_papers_settings():
     assert method_settings("ppo").n_envs == 16
     assert method_settings("sac").buffer_size == 100_000
     assert method_settings("ppo", "quick").n_envs < 16 and method_settings("sac", "quick").net_arch == (32, 32)
+
+
+def test_the_paper_presets_carry_the_research_codes_settings():
+    sac, ppo = method_settings("sac", "paper"), method_settings("ppo", "paper")
+    assert (sac.gamma, sac.batch_size, sac.learning_rate, sac.net_arch) == (0.98, 4096, 3e-5, (512, 512, 512, 128))
+    assert (ppo.gamma, ppo.gae_lambda, ppo.learning_rate, ppo.clip_range) == (0.98, 0.99, 3e-5, 3.0)
+    assert ppo.n_envs * ppo.n_steps == ppo.batch_size == 4096  # one batch of parallel episodes per update
+    assert all(method_settings(m, p).inputs == "relative" for m in ("ppo", "sac") for p in ("paper", "full", "quick"))
+
+
+@pytest.mark.parametrize("method", ["ppo", "sac"])
+def test_an_untrained_baseline_is_the_pd_controller(refs, tmp_path, method):
+    train, test = refs
+    settings = TINY_PPO if method == "ppo" else TINY_SAC
+    curve = train_baseline(method, "closed", SystemSpec(), train, test, 2, 0, tmp_path, settings, eval_at=[1])
+    pd = evaluate(lambda obs: np.zeros((len(obs), 4)), test, "closed", SystemSpec())
+    assert curve[0]["metrics"]["mae_deg"] == pytest.approx(compute_metrics(pd)["mae_deg"], abs=1e-12)
+
+
+def test_the_observation_pipeline_is_the_networks_input_standardized_on_a_pd_pass(refs):
+    train, _ = refs
+    pipeline = pd_pipeline("closed", SystemSpec(), train)
+    seen = []
+    evaluate(lambda obs: (seen.append(obs), np.zeros((len(obs), 4)))[1], train, "closed", SystemSpec())
+    flat = np.concatenate(seen)
+    features = pipeline(flat)
+    assert features.shape == (len(flat), pipeline.size) and features.dtype == np.float32
+    np.testing.assert_allclose(features.mean(axis=0), 0.0, atol=1e-4)  # standardized on exactly this pass
+    varying = pipeline.std != 1.0
+    np.testing.assert_allclose(features[:, varying].std(axis=0), 1.0, atol=1e-3)
+    obs_hist, second, future = split_observation(flat, 21, 20)
+    as_torch = relative_features(*(torch.as_tensor(x) for x in (obs_hist, second, future))).numpy()
+    np.testing.assert_allclose(pipeline.features(flat), as_torch, rtol=0, atol=1e-12)  # the networks' own features

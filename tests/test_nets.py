@@ -4,8 +4,8 @@ import pytest
 import torch
 
 from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.data.features import feature_width, relative_features
 from efficienttrack.learn.dynamics import ClosedLoopModel, ModelConfig
-from efficienttrack.learn.nets import feature_width, relative_features
 from efficienttrack.learn.policy import AdjustmentPolicy, PolicyConfig, desired_length, policy_rollout, seen_lengths
 
 

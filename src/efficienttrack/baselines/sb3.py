@@ -20,17 +20,19 @@ from typing import Any
 
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.vec_env import VecEnv
 
 from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_run
 from efficienttrack.baselines.resume import SAVE_EVERY_SECONDS, STATE_FILE, run_identity
 from efficienttrack.baselines.sb3_state import restore_state, save_state
 from efficienttrack.baselines.settings import PPOSettings, SACSettings, method_settings
-from efficienttrack.baselines.vec_env import SB3VecEnv
+from efficienttrack.baselines.vec_env import FeatureVecEnv, SB3VecEnv
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import atomic_write, output_lock
 from efficienttrack.core.progress import ProgressDisplay
 from efficienttrack.data.references import Reference
 from efficienttrack.envs.core import open_system
+from efficienttrack.envs.features import pd_pipeline
 from efficienttrack.envs.vector import TrackingVectorEnv
 from efficienttrack.systems.spec import SystemSpec
 
@@ -50,14 +52,22 @@ class _Curve(BaseCallback):
     A point is measured at the first step whose count ``num_timesteps`` reaches it; with N environments the count
     moves in steps of N, so points reached in the same step are measured once, at that step's count. At the start of
     a rollout (the previous update done) the training state is saved when ``every`` seconds have passed since the last.
+    ``see`` turns the evaluation's flat observations into what the policy was trained on (the observation pipeline).
     """
 
     def __init__(
-        self, points: list[int], budget: int, recorder: CurveRecorder, save: Callable[[], None], every: float
+        self,
+        points: list[int],
+        budget: int,
+        recorder: CurveRecorder,
+        save: Callable[[], None],
+        every: float,
+        see: Callable[[np.ndarray], np.ndarray],
     ) -> None:
         super().__init__()
         self.points, self.budget, self.recorder = list(points), budget, recorder
         self.save, self.every, self.saved = save, every, time.perf_counter()
+        self.see = see
 
     def _on_rollout_start(self) -> None:
         if time.perf_counter() - self.saved >= self.every:
@@ -68,7 +78,7 @@ class _Curve(BaseCallback):
         count = self.num_timesteps
         if self.points and count >= self.points[0]:
             self.points = [p for p in self.points if p > count]
-            self.recorder.measure(lambda obs: self.model.predict(obs, deterministic=True)[0], count)
+            self.recorder.measure(lambda obs: self.model.predict(self.see(obs), deterministic=True)[0], count)
         self.recorder.show(count)
         return count < self.budget
 
@@ -90,9 +100,13 @@ def train_baseline(
     """Train PPO or SAC with Stable-Baselines3 for ``budget`` interaction steps; evaluate it along the way.
 
     Training runs on the training references (one episode per reference, picked by each environment's seeded
-    generator) with ``settings.n_envs`` environments stepping one batched system. When the interaction count first
-    reaches a point of ``eval_at``, the deterministic policy (the mean action, clipped to [−1, 1]) runs every test
-    reference once (:func:`efficienttrack.envs.evaluate`) and :func:`efficienttrack.data.metrics.compute_metrics` scores it.
+    generator) with ``settings.n_envs`` environments stepping one batched system. With ``settings.inputs ==
+    "relative"`` the policy sees the standardized relative features of
+    :func:`~efficienttrack.envs.features.pd_pipeline` (statistics from a PD pass over the training references), in
+    training and evaluation alike; the untrained policy is the PD controller (its action mean starts at zero).
+    When the interaction count first reaches a point of ``eval_at``, the deterministic policy (the mean action, clipped
+    to [−1, 1]) runs every test reference once (:func:`efficienttrack.envs.evaluate`) and
+    :func:`efficienttrack.data.metrics.compute_metrics` scores it.
     ``folder/curve.json`` (``{"method", "loop", "seed", "budget", "system", "settings", "curve": [point, ...]}``) is
     rewritten atomically after each point. Between rollouts, every ``save_every_seconds``, the training state goes to
     ``folder/training_state.pt`` (:mod:`.sb3_state`: no pickle); the same run started again in the folder resumes
@@ -146,7 +160,11 @@ def train_baseline(
     state_file = folder / STATE_FILE
     with output_lock(folder / CURVE_FILE, "folder", folder=False):
         recorder = CurveRecorder(header, folder / CURVE_FILE, open_system(loop, system), test_refs, progress, budget)
-        env = SB3VecEnv(TrackingVectorEnv(settings.n_envs, loop=loop, system=system, refs=train_refs))
+        env: VecEnv = SB3VecEnv(TrackingVectorEnv(settings.n_envs, loop=loop, system=system, refs=train_refs))
+        see: Callable[[np.ndarray], np.ndarray] = np.asarray
+        if settings.inputs == "relative":  # the input every learner shares, from the training references only
+            see = pd_pipeline(loop, system, train_refs)
+            env = FeatureVecEnv(env, see)
         try:
             model = settings.build(env, seed)
             if state_file.exists():
@@ -158,7 +176,7 @@ def train_baseline(
             def save() -> None:
                 save_state(model, state_file, run_id, recorder.curve, recorder.wall_seconds)
 
-            callback = _Curve(todo, budget, recorder, save, save_every_seconds)
+            callback = _Curve(todo, budget, recorder, save, save_every_seconds, see)
             model.learn(total_timesteps=budget - done, callback=callback, reset_num_timesteps=done == 0)
             atomic_write(folder / MODEL_FILE, model.save)
             state_file.unlink(missing_ok=True)

@@ -1,9 +1,16 @@
-"""The settings of the Stable-Baselines3 baselines: one frozen dataclass per method, presets ``full`` and ``quick``.
+"""The settings of the Stable-Baselines3 baselines: one frozen dataclass per method, presets ``paper``, ``full``, ``quick``.
 
-``full`` is the paper's setup where the paper states it (PPO: 16 parallel environments; SAC: a replay buffer of
-100,000 transitions) and Stable-Baselines3's own defaults (SB3 2.x, ``MlpPolicy``) for everything else; each field's
-docstring says which. ``quick`` shrinks networks, rollouts and batches so that a few thousand interaction steps take
-seconds on a CPU (tests and smoke runs; its curves say nothing about the methods).
+``paper`` takes the research code's values (``comparative_experiments/PidExcavatorRL``: ``PPO_Agent.py``,
+``train_ppo.py``, ``SAC_Agent.py``, ``train_sac.py`` in the public repository ZiqingZou/EfficientTrack) where SB3 can
+express them; docs/baselines.md lists each field and its source. ``full`` is the paper's stated setup (PPO: 16
+parallel environments; SAC: a replay buffer of 100,000 transitions) with Stable-Baselines3's own defaults (SB3 2.x,
+``MlpPolicy``) for everything else. ``quick`` shrinks networks, rollouts and batches so that a few thousand
+interaction steps take seconds on a CPU (tests and smoke runs; its curves say nothing about the methods).
+
+Every preset gives the learner the input EfficientTrack's networks see (``inputs="relative"``:
+:class:`~efficienttrack.envs.features.ObservationPipeline`) and starts it at the PD controller: the action mean's
+last layer is zero, so the untrained deterministic policy sends a = 0. ``inputs="raw"`` keeps the raw 332 absolute
+values, for comparison.
 """
 
 from __future__ import annotations
@@ -12,10 +19,15 @@ import math
 from dataclasses import asdict, dataclass
 from typing import Any
 
+import torch
 from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.vec_env import VecEnv
+from torch import nn
 
 from efficienttrack.core.errors import EfficientTrackError
+
+INPUTS = ("relative", "raw")
+"""What a baseline sees: the standardized relative features every learner shares, or the raw flat observation."""
 
 
 def _check_count(value: object, field: str) -> None:
@@ -44,6 +56,22 @@ def _check_common(settings: PPOSettings | SACSettings, name: str) -> None:
         _check_count(width, f"{name}.net_arch")
     if not isinstance(settings.device, str) or not settings.device:
         raise EfficientTrackError(f"{name}.device: must be 'auto', 'cpu', 'cuda' or 'cuda:<i>', got {settings.device!r}")
+    if settings.inputs not in INPUTS:
+        raise EfficientTrackError(f"{name}.inputs: must be one of {', '.join(INPUTS)}, got {settings.inputs!r}")
+
+
+def start_at_pd(head: nn.Linear) -> None:
+    """Zero the layer that outputs the action mean: the untrained policy's deterministic action is a = 0 (PD alone).
+
+    Its gradient is not zero (it is the layer's input), so learning starts at once, as EfficientTrack's policy, whose
+    last layer also starts at zero.
+
+    Args:
+        head: the action-mean layer (SB3's ``actor.mu`` for SAC, ``policy.action_net`` for PPO).
+    """
+    with torch.no_grad():
+        head.weight.zero_()
+        head.bias.zero_()
 
 
 @dataclass(frozen=True)
@@ -74,12 +102,18 @@ class PPOSettings:
     """Gradient-norm clip (SB3 default)."""
     net_arch: tuple[int, ...] = (64, 64)
     """Hidden layers of the policy and (separately) of the value network, tanh (SB3's default ``MlpPolicy``)."""
+    log_std_init: float = 0.0
+    """Initial log standard deviation of the Gaussian actions (SB3 default 0: σ = 1 over the whole ±1 action range)."""
+    inputs: str = "relative"
+    """What the policy sees (:data:`INPUTS`): the relative standardized features every learner shares, or ``"raw"``."""
     device: str = "auto"
     """Torch device: ``"auto"`` takes CUDA when present, else the CPU (SB3 default)."""
 
     def __post_init__(self) -> None:
         """Check the values (EfficientTrackError naming the field)."""
         _check_common(self, "ppo")
+        if not isinstance(self.log_std_init, int | float) or not math.isfinite(self.log_std_init):
+            raise EfficientTrackError(f"ppo.log_std_init: must be a finite number, got {self.log_std_init!r}")
         _check_count(self.n_steps, "ppo.n_steps")
         _check_count(self.n_epochs, "ppo.n_epochs")
         if self.n_steps * self.n_envs < 2:
@@ -100,11 +134,14 @@ class PPOSettings:
             seed: the seed.
 
         Returns:
-            The untrained model.
+            The untrained model, its action mean at zero (:func:`start_at_pd`).
         """
-        options = {k: v for k, v in asdict(self).items() if k not in ("n_envs", "net_arch", "device")}
-        policy_kwargs = {"net_arch": list(self.net_arch)}
-        return PPO("MlpPolicy", env, seed=seed, device=self.device, policy_kwargs=policy_kwargs, verbose=0, **options)
+        skip = ("n_envs", "net_arch", "device", "log_std_init", "inputs")
+        options = {k: v for k, v in asdict(self).items() if k not in skip}
+        policy_kwargs = {"net_arch": list(self.net_arch), "log_std_init": self.log_std_init}
+        model = PPO("MlpPolicy", env, seed=seed, device=self.device, policy_kwargs=policy_kwargs, verbose=0, **options)
+        start_at_pd(model.policy.action_net)
+        return model
 
 
 @dataclass(frozen=True)
@@ -133,6 +170,8 @@ class SACSettings:
     """Entropy coefficient α; None learns it from an initial 1.0 towards the target entropy −dim(A) (SB3's ``"auto"``)."""
     net_arch: tuple[int, ...] = (256, 256)
     """Hidden layers of the actor and of each critic, ReLU (SB3's default for SAC)."""
+    inputs: str = "relative"
+    """What the policy and critics see (:data:`INPUTS`): the relative standardized features, or ``"raw"``."""
     device: str = "auto"
     """Torch device: ``"auto"`` takes CUDA when present, else the CPU (SB3 default)."""
 
@@ -155,25 +194,43 @@ class SACSettings:
             seed: the seed.
 
         Returns:
-            The untrained model.
+            The untrained model, its action mean at zero (:func:`start_at_pd`).
         """
-        options: dict[str, Any] = {k: v for k, v in asdict(self).items() if k not in ("n_envs", "net_arch", "device")}
+        skip = ("n_envs", "net_arch", "device", "inputs")
+        options: dict[str, Any] = {k: v for k, v in asdict(self).items() if k not in skip}
         options["ent_coef"] = "auto" if self.ent_coef is None else self.ent_coef
         policy_kwargs = {"net_arch": list(self.net_arch)}
-        return SAC("MlpPolicy", env, seed=seed, device=self.device, policy_kwargs=policy_kwargs, verbose=0, **options)
+        model = SAC("MlpPolicy", env, seed=seed, device=self.device, policy_kwargs=policy_kwargs, verbose=0, **options)
+        start_at_pd(model.actor.mu)
+        return model
 
+
+PAPER_NET = (512, 512, 512, 128)
+"""The research code's hidden layers for both methods' networks (ReLU; it also puts LayerNorms in its critics)."""
 
 PPO_PRESETS: dict[str, PPOSettings] = {
+    "paper": PPOSettings(
+        n_envs=8,
+        n_steps=512,
+        batch_size=4096,
+        n_epochs=8,
+        learning_rate=3e-5,
+        gamma=0.98,
+        gae_lambda=0.99,
+        clip_range=3.0,
+        net_arch=PAPER_NET,
+    ),
     "full": PPOSettings(),
     "quick": PPOSettings(n_envs=4, n_steps=32, batch_size=32, n_epochs=2, net_arch=(32, 32)),
 }
-"""PPO's presets: ``full`` (the paper's 16 environments, SB3's defaults) and ``quick`` (tiny, for tests)."""
+"""PPO's presets: ``paper`` (the research code's), ``full`` (the paper's 16 environments, SB3's defaults), ``quick``."""
 
 SAC_PRESETS: dict[str, SACSettings] = {
+    "paper": SACSettings(batch_size=4096, learning_rate=3e-5, gamma=0.98, net_arch=PAPER_NET),
     "full": SACSettings(),
     "quick": SACSettings(buffer_size=10_000, learning_starts=50, batch_size=32, net_arch=(32, 32)),
 }
-"""SAC's presets: ``full`` (the paper's 100,000-transition buffer, SB3's defaults) and ``quick`` (tiny, for tests)."""
+"""SAC's presets: ``paper`` (the research code's), ``full`` (its 100,000-transition buffer, SB3's defaults), ``quick``."""
 
 PRESETS: dict[str, dict[str, PPOSettings] | dict[str, SACSettings]] = {"ppo": PPO_PRESETS, "sac": SAC_PRESETS}
 """Presets by method name, then preset name."""
@@ -184,7 +241,7 @@ def method_settings(method: str, preset: str | PPOSettings | SACSettings = "full
 
     Args:
         method: ``"ppo"`` or ``"sac"``.
-        preset: ``"full"``, ``"quick"``, or a :class:`PPOSettings` / :class:`SACSettings` of the method.
+        preset: ``"paper"``, ``"full"``, ``"quick"``, or a :class:`PPOSettings` / :class:`SACSettings` of the method.
 
     Returns:
         The settings.

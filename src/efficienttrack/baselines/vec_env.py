@@ -18,9 +18,10 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
-from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvObs, VecEnvStepReturn
+from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvObs, VecEnvStepReturn, VecEnvWrapper
 
 from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.envs.features import ObservationPipeline
 
 FINAL_KEYS = frozenset({"final_obs", "_final_obs", "final_info", "_final_info"})
 """The keys a SAME_STEP vector environment adds to ``infos`` where an episode ended."""
@@ -189,3 +190,32 @@ class SB3VecEnv(VecEnv):
             None for each environment.
         """
         return [None for _ in range(self.num_envs)]
+
+
+class FeatureVecEnv(VecEnvWrapper):
+    """SB3's view of the environments through an :class:`~efficienttrack.envs.features.ObservationPipeline`.
+
+    Observations, the ``terminal_observation`` of ended episodes included, become the standardized relative features
+    (N, D) float32; actions, rewards and dones pass unchanged.
+
+    Args:
+        venv: the environments (:class:`SB3VecEnv`).
+        pipeline: the observation pipeline (fitted on the training references).
+    """
+
+    def __init__(self, venv: VecEnv, pipeline: ObservationPipeline) -> None:
+        self.pipeline = pipeline
+        space = gym.spaces.Box(-np.inf, np.inf, shape=(pipeline.size,), dtype=np.float32)
+        super().__init__(venv, observation_space=space)
+
+    def reset(self) -> VecEnvObs:
+        """Reset every environment; return the first features (N, D)."""
+        return self.pipeline(self.venv.reset())
+
+    def step_wait(self) -> VecEnvStepReturn:
+        """Step every environment; return features (N, D), rewards, dones and infos (terminal observations as features)."""
+        obs, rewards, dones, infos = self.venv.step_wait()
+        for info in infos:
+            if "terminal_observation" in info:
+                info["terminal_observation"] = self.pipeline(info["terminal_observation"][None])[0]
+        return self.pipeline(obs), rewards, dones, infos

@@ -7,7 +7,7 @@ relative to q_t. Everything else (scaling, loss, schedule) is shared.
 
 Implementation choices (numbered, referenced in the docs):
 
-1. Inputs are seen from the current position (:func:`~efficienttrack.learn.nets.relative_features`): past positions
+1. Inputs are seen from the current position (:func:`~efficienttrack.data.features.relative_features`): past positions
    and references as wrapped differences to ``q_t``, so the model works on any machine's angle offsets; every
    feature is standardized with statistics of the training windows (buffers, saved with the weights).
 2. The output ``g_θ`` is the change of the observation, ``tanh × bound`` per channel with
@@ -39,6 +39,7 @@ from efficienttrack.core.angles import wrap
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.joints import MAX_HORIZON
 from efficienttrack.data.dataset import Sequences
+from efficienttrack.data.features import feature_width, relative_features
 from efficienttrack.data.metrics import position_error
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.data.windows import push
@@ -50,8 +51,6 @@ from efficienttrack.learn.nets import (
     Standardizer,
     check_size,
     check_training_memory,
-    feature_width,
-    relative_features,
     resolve_device,
 )
 from efficienttrack.learn.training import TrainingSchedule, TrainLoop, fingerprint, held_out_subset
@@ -108,7 +107,7 @@ class ModelConfig(TrainingSchedule):
 
     @property
     def in_dim(self) -> int:
-        """Network input features: :func:`~efficienttrack.learn.nets.feature_width` of the history and one target q^r_{t+1}."""
+        """Network input features: :func:`~efficienttrack.data.features.feature_width` of the history and one q^r_{t+1}."""
         return feature_width(self.history_length, 1)
 
 
@@ -185,7 +184,7 @@ class PlantModel(ClosedLoopModel):
 
     The forward pass and :meth:`fit_scaling` take the commands where :class:`ClosedLoopModel` takes the references:
     ``qref_hist`` (B, h', 4) is ``u_{t−h'} … u_{t−1}`` and ``qref_next`` (B, 4) is ``u_t``, PWM / 1000. Its features are
-    those of :func:`~efficienttrack.learn.nets.relative_features` with the commands taken as they are (``u_t`` appended to
+    those of :func:`~efficienttrack.data.features.relative_features` with the commands taken as they are (``u_t`` appended to
     the command history), as many as the closed-loop model's.
 
     Args:

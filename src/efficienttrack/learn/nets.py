@@ -1,4 +1,4 @@
-"""What the dynamics model and the policy share: the paper's MLP, feature scaling, relative features, devices and sizes."""
+"""What the dynamics model and the policy share: the paper's MLP, feature scaling, devices and sizes."""
 
 from __future__ import annotations
 
@@ -9,14 +9,11 @@ from typing import Any, TypeVar
 import torch
 from torch import nn
 
-from efficienttrack.core.angles import wrap
 from efficienttrack.core.errors import EfficientTrackError
-from efficienttrack.core.joints import N_JOINTS
+from efficienttrack.data.features import STD_FLOOR
 
 ConfigT = TypeVar("ConfigT")
 
-STD_FLOOR = 1e-6
-"""Smallest standard deviation used to scale a feature; constant features are only centred."""
 MAX_HIDDEN = 8192
 """Most units per hidden layer a config may ask for (the paper: 512)."""
 MAX_LAYERS = 64
@@ -103,50 +100,6 @@ def resolve_device(device: str | torch.device = "auto") -> torch.device:
     if resolved.type == "cuda" and not torch.cuda.is_available():
         raise EfficientTrackError(f"--device '{device}': CUDA is not available on this machine (use auto or cpu)")
     return resolved
-
-
-def feature_width(history: int, targets: int) -> int:
-    """Width of :func:`relative_features` for histories of length ``history`` and ``targets`` positions ahead.
-
-    Args:
-        history: h, length of the observation and reference histories.
-        targets: K, positions ahead (1 for the model: ``q^r_{t+1}``; F for the policy: ``q*_F``).
-
-    Returns:
-        12h + 4K: ``q_t``, h−1 past positions, h velocities, h references and K targets, 4 joints each.
-    """
-    return N_JOINTS * (1 + (history - 1) + history + history + targets)
-
-
-def relative_features(
-    obs_hist: torch.Tensor, qref_hist: torch.Tensor, targets: torch.Tensor, commands: bool = False
-) -> torch.Tensor:
-    """The network input: histories and targets as seen from the current position, so any machine's offsets drop out.
-
-    Features, in order: the current position ``q_t`` (4), past positions ``wrap(q_{t−k} − q_t)``
-    (h−1 × 4), velocities (h × 4), references ``wrap(q^r_{t−k} − q_t)`` (h × 4) and targets
-    ``wrap(target − q_t)`` (K × 4): :func:`feature_width` (h, K) = 12h + 4K values (callers scale them with a
-    :class:`Standardizer`). In the open loop (``commands``) the second history holds PWM commands, which are no
-    angles: they are taken as they are.
-
-    Args:
-        obs_hist: (B, h, 8) [rad, rad/s], ``o_{t−h+1} … o_t``.
-        qref_hist: (B, h', 4) rad, ``q^r_{t−h'+1} … q^r_t`` (h' = h); with ``commands``, (B, h', 4) PWM / 1000, any h'.
-        targets: (B, K, 4) rad, absolute positions ahead (``q^r_{t+1}`` for the model, ``q*_F`` for the policy).
-        commands: ``qref_hist`` holds commands (PWM / 1000), not references.
-
-    Returns:
-        (B, 8h + 4h' + 4K − 4) features (12h + 4K for h' = h).
-    """
-    q_t = obs_hist[:, -1:, :4]
-    parts = (
-        q_t,
-        wrap(obs_hist[:, :-1, :4] - q_t),
-        obs_hist[:, :, 4:],
-        qref_hist if commands else wrap(qref_hist - q_t),
-        wrap(targets - q_t),
-    )
-    return torch.cat([p.flatten(1) for p in parts], dim=1)
 
 
 def check_size(owner: str, name: str, value: Any, low: int, high: int) -> None:

@@ -8,7 +8,7 @@ is the paper's discounted tracking error plus the smoothness regularizer
 
 in rad² (the paper's units, for which γ = 0.98 and k_smooth = 1.0 are tuned). Implementation choices:
 
-1. Inputs as for the model (:func:`~efficienttrack.learn.nets.relative_features`, standardized on the training windows),
+1. Inputs as for the model (:func:`~efficienttrack.data.features.relative_features`, standardized on the training windows),
    with the h future desired positions as targets.
 2. The output is ``tanh × max_adjust`` per joint, and its last layer starts at zero: the untrained policy is
    the position controller alone (a = 0).
@@ -36,6 +36,7 @@ from efficienttrack.core.angles import wrap
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.joints import MAX_HORIZON
 from efficienttrack.data.dataset import Sequences
+from efficienttrack.data.features import feature_width, relative_features
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.data.windows import push
 from efficienttrack.learn.checkpoints import load_checkpoint, save_checkpoint, warm_start
@@ -47,8 +48,6 @@ from efficienttrack.learn.nets import (
     Standardizer,
     check_size,
     check_training_memory,
-    feature_width,
-    relative_features,
     resolve_device,
 )
 from efficienttrack.learn.training import TrainingSchedule, TrainLoop, fingerprint, held_out_subset
@@ -110,7 +109,7 @@ class PolicyConfig(TrainingSchedule):
 
     @property
     def in_dim(self) -> int:
-        """Network input features: :func:`~efficienttrack.learn.nets.feature_width` of the history and the F targets."""
+        """Network input features: :func:`~efficienttrack.data.features.feature_width` of the history and the F targets."""
         return feature_width(self.history_length, self.future_length)
 
 

@@ -51,6 +51,7 @@ from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.joints import DT, N_JOINTS, SWING
 from efficienttrack.systems.limits import DEFAULT_LIMITS, GuardLimits
 from efficienttrack.systems.pd import XE75_PD, ClosedLoop
+from efficienttrack.systems.protocol import machines_to_reset
 
 U_MAX = 1000.0
 DIRECTION = np.array([-1.0, -1.0, -1.0, 1.0])
@@ -532,12 +533,7 @@ class HydraulicExcavator:
         """
         if self.state is None or self._single:
             raise EfficientTrackError("hydraulic simulator: reset_machines needs a batched reset (N, 4) first")
-        index = np.asarray(index, dtype=np.int64)
-        q0 = np.asarray(q0, dtype=np.float64)
-        if q0.shape != (len(index), N_JOINTS):
-            raise EfficientTrackError(
-                f"hydraulic simulator: reset_machines expects q0 of shape ({len(index)}, 4), got {q0.shape}"
-            )
+        index, q0 = machines_to_reset(index, q0, "hydraulic simulator")
         fresh = initial_state(q0, self.params)
         q, qd = within_limits(fresh.q, fresh.qd, self.params)
         fresh = fresh._replace(q=q, qd=qd)

@@ -30,6 +30,7 @@ from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.joints import DT, N_JOINTS, SWING
 from efficienttrack.systems.limits import GuardLimits
 from efficienttrack.systems.pd import PAPER_PD, ClosedLoop
+from efficienttrack.systems.protocol import machines_to_reset
 
 Q_MIN = (-0.4, -1.0, -1.0, -math.pi)
 """(4,) rad, the simulator's lower joint limits (the swing is unlimited and wraps)."""
@@ -195,10 +196,7 @@ class PaperExcavator:
         """
         if self.q is None or self.qd is None or self._single:
             raise EfficientTrackError("paper simulator: reset_machines needs a batched reset (N, 4) first")
-        index = np.asarray(index, dtype=np.int64)
-        q0 = np.asarray(q0, dtype=np.float64)
-        if q0.shape != (len(index), N_JOINTS):
-            raise EfficientTrackError(f"paper simulator: reset_machines expects q0 of shape ({len(index)}, 4), got {q0.shape}")
+        index, q0 = machines_to_reset(index, q0, "paper simulator")
         self.q, self.qd = self.q.copy(), self.qd.copy()
         self.q[index], self.qd[index] = q0, 0.0
         return np.concatenate([self.q[index], self.qd[index]], axis=1)

@@ -184,6 +184,24 @@ class BatchedSystem:
         return obs.reshape(self._n, OBS_DIM)
 
 
+def machines_to_reset(index: Any, q0: Any, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """The arguments of a batched plant's ``reset_machines``, checked and converted.
+
+    Args:
+        index: (K,) which machines.
+        q0: (K, 4) rad, their start positions.
+        name: the plant, for the message.
+
+    Returns:
+        ``index`` as (K,) int64 and ``q0`` as (K, 4) float64.
+    """
+    index = np.asarray(index, dtype=np.int64)
+    q0 = np.asarray(q0, dtype=np.float64)
+    if q0.shape != (len(index), N_JOINTS):
+        raise EfficientTrackError(f"{name}: reset_machines expects q0 of shape ({len(index)}, 4), got {q0.shape}")
+    return index, q0
+
+
 def check_system(system: Any, q0: np.ndarray | None = None, steps: int = 5, name: str = "system") -> None:
     """Check that ``system`` follows the ClosedLoopSystem protocol; raise EfficientTrackError if not.
 

@@ -165,10 +165,14 @@ class SystemSpec:
 
     @property
     def pd_name(self) -> str:
-        """The PD gains a plant is closed with: ``pd``, else a built-in plant's own preset (``paper``), else ``xe75``."""
+        """The PD gains of the plant: ``pd``, else a built-in plant's own preset (``paper``), else ``xe75``.
+
+        For a built-in system without ``--plant`` (``--system paper``) it names the PD law of the system's own plant.
+        """
         if self.pd is not None:
             return self.pd
-        return self.plant if self.plant in PD_PRESETS and self.plant in BUILTIN_PLANTS else "xe75"
+        name = self.plant if self.plant is not None else self.system_name
+        return name if name in PD_PRESETS and name in BUILTIN_PLANTS else "xe75"
 
     def to_dict(self) -> dict[str, Any]:
         """JSON form (for run.json and metrics.json); ``limits`` only when a file is given (older run.json match)."""
