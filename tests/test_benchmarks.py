@@ -19,7 +19,7 @@ SMALL_RUNS = {
     "loop_jitter.py": (["--minutes", "0.01", "--size", "tiny"], "missed ticks"),
 }
 """Benchmarks cheap enough to run here: their smallest arguments and a phrase of the report they must print."""
-HELP_ONLY = ["baseline_throughput.py", "precision.py", "rounds.py", "tdmpc_throughput.py", "tracking.py"]
+HELP_ONLY = ["baseline_inputs.py", "baseline_throughput.py", "precision.py", "rounds.py", "tdmpc_throughput.py", "tracking.py"]
 """Benchmarks that take minutes even at their smallest size: their imports and argument parsing are checked."""
 
 
