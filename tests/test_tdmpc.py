@@ -23,8 +23,9 @@ from efficienttrack.baselines.tdmpc import (
 )
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.data.cycles import generate_references
-from efficienttrack.data.metrics import METRIC_KEYS
+from efficienttrack.data.metrics import METRIC_KEYS, compute_metrics
 from efficienttrack.data.references import Reference
+from efficienttrack.envs import evaluate
 from efficienttrack.learn.checkpoints import load_tensors
 from efficienttrack.systems.spec import SystemSpec
 
@@ -262,3 +263,12 @@ def test_presets_keep_the_papers_settings_and_schedules():
     assert (full.reward_coef, full.value_coef, full.consistency_coef, full.rho, full.discount) == (0.5, 0.1, 2.0, 0.5, 0.98)
     assert full.schedule(0) == (1, 0.5) and full.schedule(25_000) == (5, 0.05) and full.schedule(12_500)[0] == 3
     assert tdmpc_settings("quick").latent_dim == 8 and tdmpc_settings("quick").hidden == 32
+
+
+def test_an_untrained_policy_is_the_pd_controller_and_sees_the_shared_input(refs, tmp_path):
+    train, test = refs
+    settings = replace(TINY, evaluate_with="policy")
+    curve = train_tdmpc("closed", SystemSpec(), train, test, 2, 0, tmp_path, settings, eval_at=[1])
+    pd = evaluate(lambda obs: np.zeros((len(obs), 4)), test, "closed", SystemSpec())
+    assert curve[0]["metrics"]["mae_deg"] == pytest.approx(compute_metrics(pd)["mae_deg"], abs=1e-12)
+    assert json.loads((tmp_path / "curve.json").read_text())["settings"]["inputs"] == "relative"

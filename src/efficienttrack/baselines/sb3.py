@@ -32,7 +32,7 @@ from efficienttrack.core.fileio import atomic_write, output_lock
 from efficienttrack.core.progress import ProgressDisplay
 from efficienttrack.data.references import Reference
 from efficienttrack.envs.core import open_system
-from efficienttrack.envs.features import pd_pipeline
+from efficienttrack.envs.features import See, pd_pipeline
 from efficienttrack.envs.vector import TrackingVectorEnv
 from efficienttrack.systems.spec import SystemSpec
 
@@ -62,7 +62,7 @@ class _Curve(BaseCallback):
         recorder: CurveRecorder,
         save: Callable[[], None],
         every: float,
-        see: Callable[[np.ndarray], np.ndarray],
+        see: See,
     ) -> None:
         super().__init__()
         self.points, self.budget, self.recorder = list(points), budget, recorder
@@ -161,7 +161,7 @@ def train_baseline(
     with output_lock(folder / CURVE_FILE, "folder", folder=False):
         recorder = CurveRecorder(header, folder / CURVE_FILE, open_system(loop, system), test_refs, progress, budget)
         env: VecEnv = SB3VecEnv(TrackingVectorEnv(settings.n_envs, loop=loop, system=system, refs=train_refs))
-        see: Callable[[np.ndarray], np.ndarray] = np.asarray
+        see: See = np.asarray
         if settings.inputs == "relative":  # the input every learner shares, from the training references only
             see = pd_pipeline(loop, system, train_refs)
             env = FeatureVecEnv(env, see)

@@ -15,7 +15,7 @@ same statistics and no state needs saving.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -28,6 +28,9 @@ from efficienttrack.envs.core import FUTURE, HISTORY
 from efficienttrack.envs.evaluation import evaluate
 from efficienttrack.systems.pd import PDGains
 from efficienttrack.systems.spec import SystemSpec
+
+See = Callable[[np.ndarray], np.ndarray]
+"""What a learner sees of flat observations (N, D_obs): an :class:`ObservationPipeline`, or ``np.asarray`` (raw)."""
 
 
 def split_observation(flat: np.ndarray, history: int, future: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -2,7 +2,8 @@
 
 As in the public TD-MPC code (state observations): h is Linear → ELU → Linear; d, R and π are two hidden layers with
 ELU; each Q is Linear → LayerNorm → tanh → Linear → ELU → Linear. Weights are orthogonal, biases zero, and the last
-layers of R and of the Qs start at zero. Every network takes any leading batch shape (``(..., features)``), so the
+layers of R and of the Qs start at zero, and so does π's (unlike the public code): the untrained π sends a = 0, the PD
+controller alone in the closed loop, as every learner here starts. Every network takes any leading batch shape (``(..., features)``), so the
 planner runs (N machines × K sequences) in one call.
 """
 
@@ -51,7 +52,7 @@ class TOLD(nn.Module):
             if isinstance(module, nn.Linear):
                 nn.init.orthogonal_(module.weight)
                 nn.init.zeros_(module.bias)
-        for last in (self.R[-1], self.Q1[-1], self.Q2[-1]):
+        for last in (self.R[-1], self.Q1[-1], self.Q2[-1], self.pi_net[-1]):
             nn.init.zeros_(last.weight)
 
     def encode(self, obs: torch.Tensor) -> torch.Tensor:

@@ -98,11 +98,16 @@ class TDMPCSettings:
     """The curve's deterministic agent: ``"policy"`` (π's mean action, one network call for all test references) or
     ``"plan"`` (the planner without exploration noise, as the public code evaluates; vectorized over the test
     references, but about ``iterations · (num_samples + π samples)`` times the cost; see docs/tdmpc.md)."""
+    inputs: str = "relative"
+    """What the networks see: ``"relative"``, the standardized relative features every learner shares
+    (:class:`~efficienttrack.envs.features.ObservationPipeline`), or ``"raw"``, the flat observation."""
     device: str = "auto"
     """Torch device: ``"auto"`` takes CUDA when present, else the CPU."""
 
     def __post_init__(self) -> None:
         """Check the values (EfficientTrackError naming the field)."""
+        if self.inputs not in ("relative", "raw"):
+            raise EfficientTrackError(f"tdmpc.inputs: must be relative or raw, got {self.inputs!r}")
         for field in ("horizon", "iterations", "num_samples", "num_elites", "batch_size", "buffer_size", "target_every"):
             _check_count(getattr(self, field), field)
         for field in ("latent_dim", "hidden", "encoder_hidden", "schedule_steps", "horizon_start"):

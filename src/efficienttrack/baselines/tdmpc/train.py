@@ -30,6 +30,7 @@ from efficienttrack.core.fileio import atomic_write, output_lock
 from efficienttrack.core.progress import ProgressDisplay
 from efficienttrack.data.references import Reference
 from efficienttrack.envs.core import open_system
+from efficienttrack.envs.features import See, pd_pipeline
 from efficienttrack.envs.single import TrackingEnv
 from efficienttrack.learn.nets import resolve_device
 from efficienttrack.systems.spec import SystemSpec
@@ -68,7 +69,9 @@ def planner_config(settings: TDMPCSettings, step: int, action_dim: int) -> Plann
     )
 
 
-def evaluation_agent(model: TOLD, settings: TDMPCSettings, step: int, seed: int) -> Callable[[np.ndarray], np.ndarray]:
+def evaluation_agent(
+    model: TOLD, settings: TDMPCSettings, step: int, seed: int, see: See = np.asarray
+) -> Callable[[np.ndarray], np.ndarray]:
     """The deterministic agent the curve measures: π's mean action, or the planner without exploration noise.
 
     Args:
@@ -76,6 +79,7 @@ def evaluation_agent(model: TOLD, settings: TDMPCSettings, step: int, seed: int)
         settings: ``evaluate_with`` chooses; the planner's knobs as at ``step``.
         step: interaction steps trained so far (the schedules' position).
         seed: with ``step``, seeds the planner's own generator (training's generators are left alone).
+        see: flat observations (N, D_obs) → what the networks were trained on (the observation pipeline).
 
     Returns:
         ``act``: observations (N, D) float32 → actions (N, A) in [−1, 1]; N machines planned for in one batch.
@@ -85,7 +89,7 @@ def evaluation_agent(model: TOLD, settings: TDMPCSettings, step: int, seed: int)
 
         @torch.no_grad()
         def act_policy(obs: np.ndarray) -> np.ndarray:
-            return model.pi(model.encode(torch.as_tensor(obs, device=device))).cpu().numpy()
+            return model.pi(model.encode(torch.as_tensor(see(obs), device=device))).cpu().numpy()
 
         return act_policy
     config = planner_config(settings, step, model.action_dim)
@@ -94,7 +98,7 @@ def evaluation_agent(model: TOLD, settings: TDMPCSettings, step: int, seed: int)
 
     @torch.no_grad()
     def act_plan(obs: np.ndarray) -> np.ndarray:
-        z = model.encode(torch.as_tensor(obs, device=device))
+        z = model.encode(torch.as_tensor(see(obs), device=device))
         previous = warm.pop() if warm and warm[-1].shape[1] == len(z) else None
         result = plan(model, z, config, generator, previous, explore=False)
         warm[:] = [result.mean]
@@ -166,9 +170,10 @@ def train_tdmpc(
     with output_lock(folder / CURVE_FILE, "folder", folder=False):
         recorder = CurveRecorder(header, folder / CURVE_FILE, open_system(loop, system), test_refs, progress, budget)
         env = TrackingEnv(loop, system, train_refs)
+        see: See = pd_pipeline(loop, system, train_refs) if settings.inputs == "relative" else np.asarray
         try:
             resume = Resume(folder / STATE_FILE, run_id, save_every_seconds)
-            model = _run(env, settings, device, budget, seed, points, recorder, resume)
+            model = _run(env, see, settings, device, budget, seed, points, recorder, resume)
             atomic_write(folder / MODEL_FILE, lambda f: torch.save(model.state_dict(), f))
             resume.state_file.unlink(missing_ok=True)
         finally:
@@ -187,6 +192,7 @@ class Resume(NamedTuple):
 
 def _run(
     env: TrackingEnv,
+    see: See,
     settings: TDMPCSettings,
     device: torch.device,
     budget: int,
@@ -195,7 +201,7 @@ def _run(
     recorder: CurveRecorder,
     resume: Resume,
 ) -> TOLD:
-    obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
+    obs_dim, action_dim = see(env.observation_space.sample()[None]).shape[1], env.action_space.shape[0]
     rng = np.random.default_rng(seed)
     generator = torch.Generator(device=device).manual_seed(seed)
     with torch.random.fork_rng(devices=[]):
@@ -211,13 +217,13 @@ def _run(
         start, curve, wall = restore_state(resume.state_file, resume.run, learner, buffer, generators)
         recorder.resume(curve, wall)
     else:
-        obs = env.reset(seed=seed)[0]
+        obs = see(env.reset(seed=seed)[0][None])[0]
     generators = Generators(rng, generator, env.np_random)  # a seeded reset gives the environment a new generator
     points = [p for p in points if p > start]
     first, warm, saved = True, None, time.perf_counter()
     for count in range(start + 1, budget + 1):
         if obs is None:  # the next episode (after a resumed state, or when the last one ended)
-            obs = env.reset()[0]
+            obs = see(env.reset()[0][None])[0]
         # act: random while seeding, then planned with exploration noise
         if count <= settings.seed_steps:
             action = rng.uniform(-1.0, 1.0, action_dim).astype(np.float32)
@@ -227,7 +233,8 @@ def _run(
             config = planner_config(settings, count - 1, action_dim)
             result = plan(model, z, config, generator, None if first else warm, explore=True)
             warm, action = result.mean, result.action[0].cpu().numpy()
-        next_obs, reward, terminated, truncated, _ = env.step(action)
+        raw_next, reward, terminated, truncated, _ = env.step(action)
+        next_obs = see(raw_next[None])[0]
         buffer.add(obs, action, reward, next_obs, first)
         first = terminated or truncated
         obs = None if first else next_obs
@@ -240,7 +247,7 @@ def _run(
         # evaluate
         if points and count >= points[0]:
             points = [p for p in points if p > count]
-            recorder.measure(evaluation_agent(model, settings, count, seed), count)
+            recorder.measure(evaluation_agent(model, settings, count, seed, see), count)
         recorder.show(count)
         # save between episodes, when due
         if first and count < budget and time.perf_counter() - saved >= resume.every:
