@@ -155,7 +155,7 @@ class CrashAfter:
 
 def test_unbatched_machine_flushes_every_episode_and_resumes_mid_pass(tmp_path, refs):
     cfg = CollectConfig(noise_ratio=(1, 0), passes=1, seed=2)
-    with pytest.raises(ConnectionError):
+    with pytest.raises(EfficientTrackError, match=r"collect: pass 1 failed on episode\(s\) ref_02: ConnectionError"):
         collect(BatchedSystem(CrashAfter(resets=2)), refs, cfg, out=tmp_path, progress=False)
     partial = tmp_path / ".pass_000.partial"
     assert sorted(p.stem for p in partial.glob("*.npz")) == ["ref_00", "ref_01"]
@@ -213,3 +213,14 @@ def test_cli_collect_defaults_are_the_config_defaults(tmp_path):
     assert written == json.loads(json.dumps(asdict(CollectConfig())))
     result = CliRunner().invoke(app, [*args, "--noise-ratio", "9/2"])
     assert isinstance(result.exception, EfficientTrackError) and "--noise-ratio '9/2'" in str(result.exception)
+
+
+def test_a_system_that_cannot_be_built_is_one_error_naming_it():
+    with pytest.raises(EfficientTrackError, match="hydraulic simulator: option 'seed': a seed must be an integer"):
+        load_system("xe75", seed=-1)
+    with pytest.raises(EfficientTrackError, match=r"system 'test_collect:broken_machine': building it failed: RuntimeError"):
+        load_system("test_collect:broken_machine")
+
+
+def broken_machine():
+    raise RuntimeError("adapter cannot open /dev/can0")

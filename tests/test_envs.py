@@ -212,6 +212,8 @@ def test_bad_inputs_name_the_problem(tmp_path, short):
         TrackingEnv("half", refs=short)
     with pytest.raises(EfficientTrackError, match="no-such-folder"):
         TrackingEnv("closed", refs=str(tmp_path / "no-such-folder"))
+    with pytest.raises(EfficientTrackError, match="refs: expected a folder or a list of Reference, got int"):
+        TrackingEnv("closed", refs=42)
     with pytest.raises(EfficientTrackError, match="no PWM-level plant"):
         TrackingEnv("open", system="toy_system:make", refs=short)
     with pytest.raises(EfficientTrackError, match="no PWM-level plant"):

@@ -31,7 +31,7 @@ the adjustment in rad (closed loop: ``(a_t − a_{t−1}) · max_adjust``) or of
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -153,6 +153,8 @@ def resolve_references(refs: RefsArg) -> list[Reference]:
         return generate_references(DEFAULT_REFERENCES, seed=0)
     if isinstance(refs, str | Path):
         return load_references(refs)
+    if not isinstance(refs, Iterable):
+        raise EfficientTrackError(f"refs: expected a folder or a list of Reference, got {type(refs).__name__}")
     refs = list(refs)
     if not refs:
         raise EfficientTrackError("refs: no references given")

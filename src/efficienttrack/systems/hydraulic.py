@@ -47,6 +47,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from efficienttrack.core.angles import wrap
+from efficienttrack.core.configfile import check_seed
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.joints import DT, N_JOINTS, SWING
 from efficienttrack.systems.limits import DEFAULT_LIMITS, GuardLimits
@@ -489,6 +490,7 @@ class HydraulicExcavator:
     batched = True
 
     def __init__(self, params: HydraulicParams, sensor_noise: bool = False, seed: int = 0) -> None:
+        check_seed(seed, "hydraulic simulator: option 'seed'")
         self.params = params
         self.dt = params.dt
         self.sensor_noise = bool(sensor_noise)

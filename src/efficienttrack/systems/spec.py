@@ -93,8 +93,12 @@ def _build(spec: str, builtins: Mapping[str, str], what: str, options: Mapping[s
     factory = _resolve(spec, builtins, what)
     try:
         system = factory(**options)
+    except EfficientTrackError:
+        raise
     except TypeError as exc:
         raise EfficientTrackError(f"{what} '{spec}': cannot be built with options {dict(options)}: {exc}") from exc
+    except Exception as exc:  # a user's adapter that cannot open its machine, a bad option value
+        raise EfficientTrackError(f"{what} '{spec}': building it failed: {type(exc).__name__}: {exc}") from exc
     return BatchedSystem(system, name=f"{what} '{spec}'")
 
 

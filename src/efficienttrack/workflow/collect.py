@@ -248,7 +248,15 @@ def run_pass(
         for j, i in enumerate(indices):  # per-episode generators keep batching and resuming reproducible
             if noisy[i]:
                 sigmas[j], noise[: len(arrays[j]) - 1, j] = episode_noise(cfg, pass_index, i, len(arrays[j]) - 1)
-        records = rollout(system, arrays, NoiseDriver(noise, system.limits), 1, progress, f"pass {pass_index + 1}")
+        try:
+            records = rollout(system, arrays, NoiseDriver(noise, system.limits), 1, progress, f"pass {pass_index + 1}")
+        except EfficientTrackError:
+            raise
+        except Exception as exc:  # the machine failed mid-pass: the episodes flushed so far stay, a rerun resumes
+            names = ", ".join(references[i].name for i in indices)
+            raise EfficientTrackError(
+                f"collect: pass {pass_index + 1} failed on episode(s) {names}: {type(exc).__name__}: {exc}"
+            ) from exc
         for record, i, sigma in zip(records, indices, sigmas, strict=True):
             guard = record.meta.get("guard", {})  # the steps clamped into the joint limits
             record.meta = {"name": references[i].name, "sigma": float(sigma), "pass": pass_index, "noisy": bool(noisy[i])}

@@ -3,8 +3,8 @@
 As in the public TD-MPC code (state observations): h is Linear → ELU → Linear; d, R and π are two hidden layers with
 ELU; each Q is Linear → LayerNorm → tanh → Linear → ELU → Linear. Weights are orthogonal, biases zero, and the last
 layers of R and of the Qs start at zero, and so does π's (unlike the public code): the untrained π sends a = 0, the PD
-controller alone in the closed loop, as every learner here starts. Every network takes any leading batch shape (``(..., features)``), so the
-planner runs (N machines × K sequences) in one call.
+controller alone in the closed loop, as every learner here starts. Every network takes any leading batch shape
+(``(..., features)``), so the planner runs (N machines × K sequences) in one call.
 """
 
 from __future__ import annotations
