@@ -64,6 +64,8 @@ def test_a_config_built_in_code_refuses_an_infinite_grad_clip():
         ("policy:\n  horizon: 100000\n", f"PolicyConfig.horizon must be ≤ {MAX_HORIZON}"),
         ("model:\n  horizon: 100000\n", f"ModelConfig.horizon must be ≤ {MAX_HORIZON}"),
         ("model:\n  history: 100000\n", f"ModelConfig.history must be ≤ {MAX_HORIZON}"),
+        ("policy:\n  lr: 1.0e300\n", "PolicyConfig: lr must be in (0, 10]"),
+        ("model:\n  weight_decay: 1.0e300\n", "weight_decay in [0, 100]"),
         ("model:\n  hidden: 1000000000\n", f"ModelConfig.hidden must be ≤ {MAX_HIDDEN}"),
         ("model:\n  hidden: 1e9\n", "field 'hidden' must be an integer"),
         ("policy:\n  layers: 1000\n", f"PolicyConfig.layers must be ≤ {MAX_LAYERS}"),

@@ -38,6 +38,13 @@ MAX_EPOCHS = 100_000
 """Most passes over the training windows a config may ask for (the paper: 2000)."""
 
 
+MAX_LR = 10.0
+"""Largest learning rate a config may ask for: far above any useful one (the paper: 1e-3), low enough that a typo
+(``lr: 1e300``) is refused before collection instead of overflowing the optimizer's float32 step after it."""
+MAX_WEIGHT_DECAY = 100.0
+"""Largest decoupled weight decay a config may ask for (the paper: 0.003)."""
+
+
 @dataclass(frozen=True)
 class TrainingSchedule:
     """The optimizer and schedule settings that the model's and the policy's configs share (their base class).
@@ -84,8 +91,11 @@ class TrainingSchedule:
                 continue
             if not isinstance(value, int | float) or isinstance(value, bool) or not math.isfinite(value):
                 raise EfficientTrackError(f"{name}.{field} must be a finite number, got {value!r}")
-        if self.lr <= 0 or self.weight_decay < 0:
-            raise EfficientTrackError(f"{name}: lr must be > 0, weight_decay ≥ 0, got {self.lr} and {self.weight_decay}")
+        if not 0 < self.lr <= MAX_LR or not 0 <= self.weight_decay <= MAX_WEIGHT_DECAY:
+            raise EfficientTrackError(
+                f"{name}: lr must be in (0, {MAX_LR:g}] and weight_decay in [0, {MAX_WEIGHT_DECAY:g}], got {self.lr} and "
+                f"{self.weight_decay}"
+            )
         if self.grad_clip is not None and not self.grad_clip > 0:
             raise EfficientTrackError(f"{name}.grad_clip must be > 0 or None, got {self.grad_clip}")
 
