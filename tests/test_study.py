@@ -173,6 +173,8 @@ def test_report_is_rebuilt_from_the_folders(finished, tmp_path):
     (out / "jobs" / "efficienttrack-closed-s1" / "result.json").write_text(json.dumps(seed1))
     (out / "jobs" / "broken-closed-s0").mkdir()
     (out / "jobs" / "broken-closed-s0" / "error.json").write_text(json.dumps({"error": "ValueError: bad"}))
+    (out / "jobs" / "pd-closed-s1").mkdir()
+    (out / "jobs" / "pd-closed-s1" / "result.json").write_text('{"method": "pd", "lo')  # truncated by a crash
     rebuilt = report(out)
     assert all(path.is_file() for path in rebuilt.paths)
     et = rebuilt.entries[1]
@@ -180,7 +182,9 @@ def test_report_is_rebuilt_from_the_folders(finished, tmp_path):
     assert et["seeds"] == [0, 1] and et["mae_deg"] == pytest.approx(mae0 + 0.5)
     assert et["mae_deg_std"] == pytest.approx(np.std([mae0, mae0 + 1], ddof=1))
     assert et["curve"][0]["seeds"] == 2 and et["curve"][0]["mae_deg"] == pytest.approx(mae0 + 0.5)
-    assert rebuilt.failed == {"broken-closed-s0": "ValueError: bad"}
+    assert rebuilt.failed["broken-closed-s0"] == "ValueError: bad"
+    assert rebuilt.failed["pd-closed-s1"].startswith("unreadable result.json (damaged or truncated)")
+    assert "`pd-closed-s1`: unreadable result.json" in (out / "study.md").read_text()
     assert "`broken-closed-s0`: ValueError: bad" in (out / "study.md").read_text()
     assert json.loads((out / "study.json").read_text()) == json.loads(json.dumps(rebuilt.entries))
     with pytest.raises(EfficientTrackError, match="no study here"):

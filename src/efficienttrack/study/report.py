@@ -95,7 +95,7 @@ def read_jobs(out: Path) -> tuple[list[dict[str, Any]], dict[str, str]]:
 
     Returns:
         The results (:func:`read_result`), in the order of the folders' names, and job name → error of the jobs with an
-        ``error.json`` and no result.
+        ``error.json`` or an unreadable ``result.json``.
 
     Raises:
         EfficientTrackError: ``out`` holds no study (no ``jobs`` folder).
@@ -107,6 +107,8 @@ def read_jobs(out: Path) -> tuple[list[dict[str, Any]], dict[str, str]]:
         result = read_result(folder / RESULT)
         if result is not None:
             results.append(result)
+        elif (folder / RESULT).exists():  # named, never dropped: a report without it would look complete
+            failed[folder.name] = f"unreadable {RESULT} (damaged or truncated): a rerun of the study runs the job again"
         elif (folder / ERROR).exists():
             try:
                 failed[folder.name] = str(json.loads((folder / ERROR).read_text())["error"])
