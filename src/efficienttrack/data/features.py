@@ -43,11 +43,11 @@ def feature_width(history: int, targets: int) -> int:
 def relative_features(obs_hist: Any, qref_hist: Any, targets: Any, commands: bool = False) -> Any:
     """The network input: histories and targets as seen from the current position, so any machine's offsets drop out.
 
-    Features, in order: the current position ``q_t`` (4), past positions ``wrap(q_{t−k} − q_t)``
-    (h−1 × 4), velocities (h × 4), references ``wrap(q^r_{t−k} − q_t)`` (h × 4) and targets
-    ``wrap(target − q_t)`` (K × 4): :func:`feature_width` (h, K) = 12h + 4K values (callers scale them with a
-    :class:`Standardizer`). In the open loop (``commands``) the second history holds PWM commands, which are no
-    angles: they are taken as they are.
+    Features, in order: the current position ``q_t`` (4), past positions ``wrap(q_{t−k} − q_t)`` (h−1 × 4), velocities
+    (h × 4), references ``wrap(q^r_{t−k} − q_t)`` (h × 4) and targets ``wrap(target − q_t)`` (K × 4):
+    :func:`feature_width` (h, K) = 12h + 4K values (callers scale them with a
+    :class:`~efficienttrack.learn.nets.Standardizer`). In the open loop (``commands``) the second history holds PWM
+    commands, which are no angles: they are taken as they are.
 
     Args:
         obs_hist: (B, h, 8) [rad, rad/s], ``o_{t−h+1} … o_t``; a numpy array or a torch tensor (all three alike).

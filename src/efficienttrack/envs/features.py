@@ -56,6 +56,22 @@ def split_observation(flat: np.ndarray, history: int, future: int) -> tuple[np.n
     )
 
 
+def flat_features(flat: np.ndarray, loop: str, history: int, future: int) -> np.ndarray:
+    """The relative features of flat observations, before scaling.
+
+    Args:
+        flat: (N, D_obs) flat observations.
+        loop: ``"closed"`` or ``"open"`` (the second history holds actions, taken as they are).
+        history: h.
+        future: F.
+
+    Returns:
+        (N, D) float64, D = 12h + 4F.
+    """
+    obs_hist, second, targets = split_observation(flat, history, future)
+    return relative_features(obs_hist, second, targets, commands=loop == "open")
+
+
 class ObservationPipeline:
     """Flat observations → standardized relative features, float32: the input every learner sees.
 
@@ -79,16 +95,8 @@ class ObservationPipeline:
             raise EfficientTrackError(f"ObservationPipeline: statistics must be ({self.size},), got {self.mean.shape}")
 
     def features(self, flat: np.ndarray) -> np.ndarray:
-        """The relative features of flat observations, before scaling.
-
-        Args:
-            flat: (N, D_obs) flat observations.
-
-        Returns:
-            (N, D) float64.
-        """
-        obs_hist, second, future = split_observation(flat, self.history, self.future)
-        return relative_features(obs_hist, second, future, commands=self.loop == "open")
+        """The relative features of flat observations, before scaling: :func:`flat_features` (N, D_obs) → (N, D)."""
+        return flat_features(flat, self.loop, self.history, self.future)
 
     def __call__(self, flat: np.ndarray) -> np.ndarray:
         """Standardized features of flat observations (N, D_obs) → (N, D) float32."""
@@ -129,6 +137,5 @@ def pd_pipeline(
         return gains.command(e, e_prev) / PWM_SCALE
 
     evaluate(pd_agent, list(train_refs), loop, system, history, future)
-    pipeline = ObservationPipeline(loop, np.zeros(feature_width(history, future)), np.ones(feature_width(history, future)))
-    features = pipeline.features(np.concatenate(seen))
+    features = flat_features(np.concatenate(seen), loop, history, future)
     return ObservationPipeline(loop, features.mean(axis=0), features.std(axis=0), history, future)
