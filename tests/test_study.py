@@ -16,9 +16,9 @@ from efficienttrack.cli import app
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.data.cycles import generate_references
 from efficienttrack.data.references import Reference, save_references
+from efficienttrack.envs.core import LOOPS
 from efficienttrack.study import METHODS, Job, Study, available_methods, make_jobs, make_study, report, run_study
 from efficienttrack.study.executors import process_pool
-from efficienttrack.study.jobs import LOOPS
 from efficienttrack.study.methods import Method, point
 from efficienttrack.study.report import FIELDS, METRICS, log_mae_axis
 from efficienttrack.systems.spec import SystemSpec

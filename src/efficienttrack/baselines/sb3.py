@@ -36,9 +36,6 @@ from efficienttrack.envs.features import See, pd_pipeline
 from efficienttrack.envs.vector import TrackingVectorEnv
 from efficienttrack.systems.spec import SystemSpec
 
-LOOPS = ("closed", "open")
-"""The two settings a baseline trains in: adjusting the PD reference (closed) or sending PWM (open)."""
-
 MAX_SB3_SEED = 2**32 - 1025
 """Largest seed: SB3 seeds numpy's legacy generator (< 2^32) and gives environment i the seed + i."""
 

@@ -21,8 +21,6 @@ from efficienttrack.data.references import Reference
 from efficienttrack.systems.spec import SystemSpec
 from efficienttrack.workflow.config import PRESETS, RunConfig, from_dict, with_overrides
 
-LOOPS = ("closed", "open")
-"""Closed loop: the policy adjusts the PD controller's reference; open loop: the policy sends PWM to the plant."""
 STUDY_CONFIG = "study_config.json"
 """What a study folder is (system, references, budget, preset): a rerun must match it."""
 JOBS = "jobs"

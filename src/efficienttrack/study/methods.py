@@ -30,8 +30,9 @@ from efficienttrack.core.fileio import write_json
 from efficienttrack.core.progress import ProgressDisplay
 from efficienttrack.data.metrics import compute_metrics, rounded
 from efficienttrack.deploy.runtime import track
+from efficienttrack.envs.core import LOOPS
 from efficienttrack.study.ablations import run_variant
-from efficienttrack.study.jobs import LOOPS, STUDY_PRESETS, Job, Point, Study, check_seeds, point
+from efficienttrack.study.jobs import STUDY_PRESETS, Job, Point, Study, check_seeds, point
 from efficienttrack.workflow.collect import pass_counts
 from efficienttrack.workflow.pipeline import run_pipeline
 

@@ -25,7 +25,8 @@ import numpy as np
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import atomic_write, write_csv, write_json
 from efficienttrack.data.metrics import METRIC_KEYS, interaction_hours
-from efficienttrack.study.jobs import ERROR, JOBS, LOOPS, RESULT
+from efficienttrack.envs.core import LOOPS
+from efficienttrack.study.jobs import ERROR, JOBS, RESULT
 from efficienttrack.study.methods import METHODS
 
 METRICS = METRIC_KEYS[2:-1]
