@@ -17,6 +17,7 @@ from pathlib import Path
 import torch
 
 from efficienttrack.baselines import method_settings, train_baseline
+from efficienttrack.core.progress import ProgressDisplay
 from efficienttrack.data.references import load_references
 from efficienttrack.systems.spec import SystemSpec
 
@@ -38,12 +39,14 @@ def main() -> None:
     train, test = load_references(args.refs / "train"), load_references(args.refs / "test")
     points = [p for p in args.points if p <= args.steps]
     curves = {}
-    for inputs in ("relative", "raw"):
-        settings = dataclasses.replace(method_settings(args.method, args.preset), inputs=inputs, device="cpu")
-        system = SystemSpec(system=args.system)
-        curves[inputs] = train_baseline(
-            args.method, "closed", system, train, test, args.steps, args.seed, args.out / inputs, settings, points
-        )
+    with ProgressDisplay() as bar:
+        for inputs in ("relative", "raw"):
+            settings = dataclasses.replace(method_settings(args.method, args.preset), inputs=inputs, device="cpu")
+            system = SystemSpec(system=args.system)
+            folder = args.out / inputs
+            curves[inputs] = train_baseline(
+                args.method, "closed", system, train, test, args.steps, args.seed, folder, settings, points, progress=bar
+            )
     print(f"{args.method} ({args.preset}), closed loop on {args.system}, seed {args.seed}: test MAE °")
     print(f"{'steps':>8} {'relative':>9} {'raw':>9} {'wall s':>7}")
     for rel, raw in zip(curves["relative"], curves["raw"], strict=True):

@@ -32,7 +32,7 @@ from efficienttrack.core.fileio import atomic_write, output_lock
 from efficienttrack.core.progress import ProgressDisplay
 from efficienttrack.data.references import Reference
 from efficienttrack.envs.core import open_system
-from efficienttrack.envs.features import See, pd_pipeline
+from efficienttrack.envs.features import ObservationPipeline, See, learner_input
 from efficienttrack.envs.vector import TrackingVectorEnv
 from efficienttrack.systems.spec import SystemSpec
 
@@ -158,9 +158,8 @@ def train_baseline(
     with output_lock(folder / CURVE_FILE, "folder", folder=False):
         recorder = CurveRecorder(header, folder / CURVE_FILE, open_system(loop, system), test_refs, progress, budget)
         env: VecEnv = SB3VecEnv(TrackingVectorEnv(settings.n_envs, loop=loop, system=system, refs=train_refs))
-        see: See = np.asarray
-        if settings.inputs == "relative":  # the input every learner shares, from the training references only
-            see = pd_pipeline(loop, system, train_refs)
+        see = learner_input(settings.inputs, loop, system, train_refs)
+        if isinstance(see, ObservationPipeline):  # the input every learner shares, from the training references only
             env = FeatureVecEnv(env, see)
         try:
             model = settings.build(env, seed)

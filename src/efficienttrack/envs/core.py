@@ -138,6 +138,17 @@ def open_system(loop: str, spec: SystemSpec) -> BatchedSystem:
     return plant
 
 
+def check_lengths(history: int, future: int) -> None:
+    """Refuse an h or F outside 1 … :data:`~efficienttrack.core.joints.MAX_HORIZON`, before anything is allocated.
+
+    Args:
+        history: h.
+        future: F.
+    """
+    if not (1 <= history <= MAX_HORIZON and 1 <= future <= MAX_HORIZON):
+        raise EfficientTrackError(f"history and future must be 1 to {MAX_HORIZON} steps, got {history} and {future}")
+
+
 def resolve_references(refs: RefsArg) -> list[Reference]:
     """The references of an environment.
 
@@ -312,8 +323,7 @@ class Episodes:
     """
 
     def __init__(self, system: BatchedSystem, loop: str, refs: Sequence[Reference], history: int, future: int) -> None:
-        if not (1 <= history <= MAX_HORIZON and 1 <= future <= MAX_HORIZON):
-            raise EfficientTrackError(f"history and future must be 1 to {MAX_HORIZON} steps, got {history} and {future}")
+        check_lengths(history, future)
         self.system = system
         self.actions = ActionMap(loop, system)
         self.refs = list(refs)

@@ -14,7 +14,6 @@ from collections.abc import Callable
 
 import numpy as np
 
-from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.data.windows import History, push_observation, push_reference
 from efficienttrack.deploy.episodes import STEP_TIMEOUT, Sent, batches, rollout
@@ -24,6 +23,7 @@ from efficienttrack.envs.core import (
     ActionMap,
     RefsArg,
     check_actions,
+    check_lengths,
     observe,
     open_system,
     resolve_references,
@@ -86,8 +86,7 @@ def evaluate(
     """
     refs = resolve_references(refs)
     system = open_system(loop, SystemSpec() if system is None else system) if not isinstance(system, BatchedSystem) else system
-    if history < 1 or future < 1:
-        raise EfficientTrackError(f"history and future must be ≥ 1, got {history} and {future}")
+    check_lengths(history, future)
     actions = ActionMap(loop, system)
     if actions.loop == "closed":
         for ref in refs:

@@ -19,7 +19,6 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from efficienttrack.core.angles import wrap
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.joints import N_JOINTS, OBS_DIM, PWM_SCALE
 from efficienttrack.data.features import STD_FLOOR, feature_width, relative_features
@@ -124,18 +123,33 @@ def pd_pipeline(
     """
     gains = PDGains.load(system.pd_name)
     seen: list[np.ndarray] = []
-    previous: list[np.ndarray] = []
+    previous: list[np.ndarray] = []  # the PD law's last error, for its difference term
 
     def pd_agent(flat: np.ndarray) -> np.ndarray:
         seen.append(np.asarray(flat, dtype=np.float64))
         if loop == "closed":
             return np.zeros((len(flat), N_JOINTS))
         obs_hist, _, q_des = split_observation(flat, history, future)
-        e = wrap(q_des[:, 0] - obs_hist[:, -1, :N_JOINTS])
-        e_prev = previous[-1] if previous and previous[-1].shape == e.shape else e
+        e_prev = previous.pop() if previous and len(previous[-1]) == len(flat) else None
+        u, e = gains.step(q_des[:, 0], obs_hist[:, -1, :N_JOINTS], e_prev)
         previous.append(e)
-        return gains.command(e, e_prev) / PWM_SCALE
+        return u / PWM_SCALE
 
     evaluate(pd_agent, list(train_refs), loop, system, history, future)
     features = flat_features(np.concatenate(seen), loop, history, future)
     return ObservationPipeline(loop, features.mean(axis=0), features.std(axis=0), history, future)
+
+
+def learner_input(inputs: str, loop: str, system: SystemSpec, train_refs: Sequence[Reference]) -> See:
+    """What a baseline sees: the shared pipeline (``"relative"``, :func:`pd_pipeline`) or the raw observation (``"raw"``).
+
+    Args:
+        inputs: ``"relative"`` or ``"raw"`` (a baseline's ``inputs`` setting, checked there).
+        loop: ``"closed"`` or ``"open"``.
+        system: the system the learner trains on.
+        train_refs: the training references.
+
+    Returns:
+        Flat observations (N, D_obs) → the learner's input.
+    """
+    return pd_pipeline(loop, system, train_refs) if inputs == "relative" else np.asarray

@@ -30,7 +30,7 @@ from efficienttrack.core.fileio import atomic_write, output_lock
 from efficienttrack.core.progress import ProgressDisplay
 from efficienttrack.data.references import Reference
 from efficienttrack.envs.core import open_system
-from efficienttrack.envs.features import See, pd_pipeline
+from efficienttrack.envs.features import See, learner_input
 from efficienttrack.envs.single import TrackingEnv
 from efficienttrack.learn.nets import resolve_device
 from efficienttrack.systems.spec import SystemSpec
@@ -170,7 +170,7 @@ def train_tdmpc(
     with output_lock(folder / CURVE_FILE, "folder", folder=False):
         recorder = CurveRecorder(header, folder / CURVE_FILE, open_system(loop, system), test_refs, progress, budget)
         env = TrackingEnv(loop, system, train_refs)
-        see: See = pd_pipeline(loop, system, train_refs) if settings.inputs == "relative" else np.asarray
+        see = learner_input(settings.inputs, loop, system, train_refs)
         try:
             resume = Resume(folder / STATE_FILE, run_id, save_every_seconds)
             model = _run(env, see, settings, device, budget, seed, points, recorder, resume)
