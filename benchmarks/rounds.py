@@ -28,7 +28,7 @@ from rich.table import Table
 from efficienttrack.core.fileio import write_json
 from efficienttrack.data.cycles import generate_references
 from efficienttrack.systems.spec import SystemSpec
-from efficienttrack.workflow.config import PRESETS, RunConfig, with_overrides
+from efficienttrack.workflow.config import PRESETS, RunConfig, amend
 from efficienttrack.workflow.pipeline import DEMO_REFERENCES, DEMO_SEED, DEMO_TRAIN, run_pipeline
 
 COLUMNS = (
@@ -86,7 +86,8 @@ def main() -> None:
         base: RunConfig = PRESETS[name]
         runs, walls = [], []
         for seed in args.seeds:
-            cfg = with_overrides(base, seed=seed, device=args.device, rounds=args.rounds, time_budget=args.time_budget)
+            options = {"seed": seed, "device": args.device, "rounds": args.rounds, "time_budget": args.time_budget}
+            cfg = amend(base, {name: value for name, value in options.items() if value is not None}, "benchmarks/rounds.py")
             start = time.perf_counter()
             runs.append(run_pipeline(SystemSpec(), train, test, args.out / name / f"seed_{seed}", cfg, console).metrics)
             walls.append(time.perf_counter() - start)

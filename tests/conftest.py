@@ -41,3 +41,36 @@ def default_stop_signals():
     yield
     for s, action in previous.items():
         signal.signal(s, action)
+
+
+@pytest.fixture(scope="session")
+def toy_refs():
+    """The toy runs' four training and two test references (``toy_system.toy_split``)."""
+    from toy_system import toy_split
+
+    return toy_split()
+
+
+@pytest.fixture(scope="session")
+def toy_run(tmp_path_factory, toy_refs):
+    """One finished toy run (the toy system, ``TOY_CFG``, one round), shared by the session: ``(folder, RunResult)``.
+
+    Its folder is for reading: a test that runs the pipeline in it again (resume, more rounds, ``--force``) copies it
+    first (``shutil.copytree``).
+    """
+    from efficienttrack.workflow.pipeline import run_pipeline
+    from toy_system import TOY, TOY_CFG
+
+    out = tmp_path_factory.mktemp("toy_run")
+    return out, run_pipeline(TOY, *toy_refs, out, TOY_CFG)
+
+
+@pytest.fixture(scope="session")
+def lag_model():
+    """The tiny dynamics model trained on ``test_dynamics.lag_records()`` (its ``ModelTrainResult``), shared by the session.
+
+    A test module that hands the model to code which changes it (``train_policy`` freezes it) takes a deep copy.
+    """
+    from test_dynamics import lag_records, train_tiny_model
+
+    return train_tiny_model(lag_records())

@@ -91,6 +91,7 @@ def test_k_smooth_and_history_variants(refs):
         tiny_ablation(refs, passes=0)
 
 
+@pytest.mark.slow
 def test_ablation_writes_table_json_and_figure(finished):
     out, study, result, lines = finished
     names = [f"efficienttrack-k_smooth-{k}-s{s}" for k in (0, 2) for s in (0, 1)]
@@ -120,6 +121,7 @@ def test_ablation_writes_table_json_and_figure(finished):
     assert (out / "ablation.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+@pytest.mark.slow
 def test_rerun_skips_finished_jobs_and_a_folder_refuses_other_work(finished, refs):
     out, study, _, _ = finished
     results = sorted((out / "jobs").glob("*/result.json"))
@@ -139,7 +141,9 @@ def test_rerun_skips_finished_jobs_and_a_folder_refuses_other_work(finished, ref
         run_study(plain, make_jobs(plain, ["pd"]), out)
 
 
-def test_cli_ablate(refs, tmp_path):
+def test_cli_ablate(refs, tmp_path, monkeypatch):
+    # the quick preset's run settings (tiny) with FAST's short trainings: nothing below depends on how well a job tracks
+    monkeypatch.setitem(PRESETS, "tiny", replace(TINY, model=FAST.model, policy=FAST.policy))
     save_references(refs[0], tmp_path / "train")
     save_references(refs[1], tmp_path / "test")
     out = tmp_path / "ablation"
@@ -161,6 +165,7 @@ def test_cli_ablate(refs, tmp_path):
         assert isinstance(refused.exception, EfficientTrackError) and message in str(refused.exception), refused.output
 
 
+@pytest.mark.slow
 def test_ray_runs_an_ablation_job(refs, tmp_path):
     ray = pytest.importorskip("ray")
     study = tiny_ablation(refs)

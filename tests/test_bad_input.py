@@ -72,6 +72,11 @@ COMMANDS: dict[str, str] = {
     "import-rosbag": "import-rosbag {bag} --reference /cmd --out {out_folder}",
     "deploy": "deploy --refs {refs} --out {out_folder} --policy {policy} --limits {limits} --arm --shadow --fast "
     "--plant xe75 --pd {pd} --device cpu",
+    "limits": "limits --from-logs {records} --out {out_json}",
+    "study": "study --train-refs {refs} --test-refs {refs2} --out {out_folder} --limits {limits} --preset quick "
+    "--methods pd --budget 10",
+    "ablate": "ablate history --train-refs {refs} --test-refs {refs2} --out {out_folder} --preset quick --values 1 --passes 1",
+    "config show": "config show tiny --config {config}",
 }
 """Each command's arguments, a ``{slot}`` for every file or folder (a slot's kind: :data:`SLOTS`)."""
 
@@ -478,6 +483,10 @@ OPTIONS = [
     ("refs generate", "--preset", "nosuch"),
     ("metrics", "--pool", "--per-episode"),
     ("convert", "--format", "xls"),
+    ("convert", "--max-gap", "0.01"),
+    ("convert", "--time-unit", "min"),
+    ("convert", "--angle-unit", "grad"),
+    ("convert", "--column", "q.elbow=X"),
     ("collect", "--passes", "0"),
     ("collect", "--sigma-max", "nan"),
     ("collect", "--sigma-max", "-1"),
@@ -506,6 +515,16 @@ OPTIONS = [
     ("train-policy", "--seed", "-1"),
     ("round", "--warm-budget", "nan"),
     ("round", "--warm-budget", "0"),
+    ("run", "--set", "model.history=0"),
+    ("demo", "--set", "seed=-1"),
+    ("train-model", "--set", "model.lr=1e300"),
+    ("train-model", "--set", "model.hidden"),
+    ("train-policy", "--set", "policy.nosuch=1"),
+    ("round", "--set", "warm_budget=[1"),
+    ("study", "--set", "collect.passes=0"),
+    ("study", "--preset", "huge"),
+    ("ablate", "--set", "device=tpu"),
+    ("config show", "--set", "rounds=0"),
     ("sim calibrate", "--delays", "-1"),
     ("sim calibrate", "--delays", "a,b"),
     ("sim calibrate", "--max-windows", "0"),
@@ -515,8 +534,30 @@ OPTIONS = [
     ("sim fidelity", "--episodes", "-1"),
     ("sim fidelity", "--min-ref-jitter", "nan"),
     ("sim fidelity", "--max-ref-jitter", "-1"),
+    ("limits", "--margin", "-1"),
+    ("limits", "--margin", "nan"),
+    ("limits", "--speed-factor", "0.5"),
 ]
 """Out-of-range and malformed option values, each added to a command's good arguments (the last value given counts)."""
+
+
+FILE_OPTIONS_ONLY = {"refs plot", "export", "import-rosbag", "deploy"}
+"""Commands with no case in :data:`OPTIONS`: their value options are swept as files above or have their own tests
+(``import-rosbag --max-gap`` in test_rosbag, ``deploy``'s rates and modes in test_loop)."""
+
+
+def test_every_registered_command_is_in_the_sweep():
+    def names(command, prefix=""):
+        if hasattr(command, "commands"):  # a group: its subcommands
+            for name, sub in command.commands.items():
+                yield from names(sub, f"{prefix}{name} ")
+        else:
+            yield prefix.strip()
+
+    registered = set(names(click_command()))
+    assert len(registered) >= 20 and "config show" in registered
+    assert registered == set(COMMANDS), f"missing from COMMANDS: {registered - set(COMMANDS)}"
+    assert {command for command, *_ in OPTIONS} == set(COMMANDS) - FILE_OPTIONS_ONLY
 
 
 @pytest.mark.parametrize(("command", "option", "value"), [pytest.param(*case, id=" ".join(case)) for case in OPTIONS])

@@ -1,32 +1,79 @@
 """The benchmark scripts (benchmarks/*.py) run: the cheap ones at their smallest size, the long ones as far as --help.
 
 They are measured by hand, not by tests, so a change that breaks one would otherwise go unnoticed until a measurement.
+Each script runs in this process as ``python benchmarks/<script> …`` would run it (``runpy`` as ``__main__``), without
+the second or two a fresh interpreter spends importing torch.
 """
 
-import subprocess
+import os
+import re
+import runpy
+import shlex
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+import torch
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
 SMALL_RUNS = {
-    "train_throughput.py": (["--sizes", "tiny", "--steps", "3", "--devices", "cpu"], "window-steps/s"),
-    "policy_latency.py": (["--calls", "5", "--sizes", "tiny"], "p99"),
-    "onnx_latency.py": (["--calls", "5", "--sizes", "tiny"], "guarded step"),
-    "sim_throughput.py": (["--seconds", "0.05"], "closed loop steps/s"),
-    "loop_jitter.py": (["--minutes", "0.01", "--size", "tiny"], "missed ticks"),
+    "train_throughput.py": (
+        ["--sizes", "tiny", "--steps", "3", "--devices", "cpu"],
+        "window-steps/s",
+        r"tiny .* on cpu: ([\d,.]+) window-steps/s",
+    ),
+    "policy_latency.py": (["--calls", "5", "--sizes", "tiny"], "p99", r"tiny .*: wall p50 [\d.]+ ms, p99 ([\d.]+) ms"),
+    "onnx_latency.py": (
+        ["--calls", "5", "--sizes", "tiny"],
+        "guarded step",
+        r"guarded step *: wall p50 [\d.]+ ms, p99 ([\d.]+) ms",
+    ),
+    "sim_throughput.py": (["--seconds", "0.05"], "closed loop steps/s", r"\n *4096 \| *[\d,]+ \| *([\d,]+)\n"),
+    "loop_jitter.py": (["--minutes", "0.01", "--size", "tiny"], "missed ticks", r"(\d+) ticks at 20 Hz"),
 }
-"""Benchmarks cheap enough to run here: their smallest arguments and a phrase of the report they must print."""
-HELP_ONLY = ["baseline_inputs.py", "baseline_throughput.py", "precision.py", "rounds.py", "tdmpc_throughput.py", "tracking.py"]
-"""Benchmarks that take minutes even at their smallest size: their imports and argument parsing are checked."""
+"""Benchmarks cheap enough to run here: their smallest arguments, a phrase of the report they must print, and a pattern
+of the report whose group is a figure that must be > 0 (a rate, a p99 latency, the ticks run)."""
+HELP_ONLY = {
+    "baseline_inputs.py": "--method",
+    "baseline_throughput.py": "--steps",
+    "precision.py": "--held-speed",
+    "rounds.py": "--presets",
+    "tdmpc_throughput.py": "--steps",
+    "tracking.py": "--seeds",
+}
+"""Benchmarks that take minutes even at their smallest size: their imports and argument parsing are checked, and their
+--help must list this option."""
 
 
-def run(script: str, *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, str(BENCHMARKS / script), *args], capture_output=True, text=True, timeout=120, check=False
-    )
+@pytest.fixture
+def run(monkeypatch, capsys):
+    """``run(script, *args)`` runs ``benchmarks/<script>`` with ``args`` as its command line, in this process.
+
+    Returns (exit code, stdout, stderr). What a script changes in the process (environment variables such as
+    ``OMP_NUM_THREADS``, torch's threads, the global random generators) is restored after the test.
+    """
+    environ, threads = dict(os.environ), torch.get_num_threads()
+    torch_state, numpy_state = torch.get_rng_state(), np.random.get_state()
+    monkeypatch.syspath_prepend(str(BENCHMARKS))  # as for `python benchmarks/<script>`: its folder first on sys.path
+
+    def run_script(script: str, *args: str) -> tuple[int, str, str]:
+        monkeypatch.setattr(sys, "argv", [str(BENCHMARKS / script), *args])
+        code = 0
+        try:
+            runpy.run_path(str(BENCHMARKS / script), run_name="__main__")
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else int(exc.code is not None)
+        out, err = capsys.readouterr()
+        return code, out, err
+
+    yield run_script
+    os.environ.clear()
+    os.environ.update(environ)
+    torch.set_num_threads(threads)
+    torch.set_rng_state(torch_state)
+    np.random.set_state(numpy_state)
 
 
 def test_every_benchmark_is_covered():
@@ -34,23 +81,34 @@ def test_every_benchmark_is_covered():
 
 
 @pytest.mark.parametrize("script", sorted(SMALL_RUNS))
-def test_benchmark_runs_small(script, tmp_path):
-    args, phrase = SMALL_RUNS[script]
+def test_benchmark_runs_small(script, tmp_path, run):
+    args, phrase, pattern = SMALL_RUNS[script]
     if script == "loop_jitter.py":
         args = [*args, "--out", str(tmp_path)]
-    result = run(script, *args)
-    assert result.returncode == 0, result.stderr[-2000:]
-    assert phrase in result.stdout
+    code, out, err = run(script, *args)
+    assert code == 0, err[-2000:]
+    assert phrase in out
+    figure = re.search(pattern, out)
+    assert figure, f"no match for {pattern!r} in:\n{out}"
+    assert float(figure.group(1).replace(",", "")) > 0, figure.group(0)
+    assert f"{script} {shlex.join(args)}" in out  # the command line it was run with, for the record
+    if script == "loop_jitter.py":  # the per-tick logs: one record per reference deployed
+        references = int(re.search(r"min, (\d+) references", out).group(1))
+        assert len(list((tmp_path / "records").glob("*.npz"))) == references >= 1
 
 
-@pytest.mark.parametrize("script", HELP_ONLY)
-def test_benchmark_parses_its_arguments(script):
-    result = run(script, "--help")
-    assert result.returncode == 0, result.stderr[-2000:]
-    assert result.stdout.startswith("usage:")
+@pytest.mark.parametrize("script", sorted(HELP_ONLY))
+def test_benchmark_parses_its_arguments(script, run):
+    code, out, err = run(script, "--help")
+    assert code == 0, err[-2000:]
+    assert out.startswith(f"usage: {script}")
+    description = (BENCHMARKS / script).read_text().split('"""')[1].splitlines()[0]  # argparse's description
+    assert " ".join(description.split()) in " ".join(out.split())
+    assert "-h, --help" in out and HELP_ONLY[script] in out
 
 
-def test_baseline_throughput_refuses_steps_within_the_warm_up():
-    result = run("baseline_throughput.py", "--steps", "50")
-    assert result.returncode == 2
-    assert "--steps must exceed SAC's 100 warm-up steps" in result.stderr
+def test_baseline_throughput_refuses_steps_within_the_warm_up(run):
+    code, out, err = run("baseline_throughput.py", "--steps", "50")
+    assert code == 2
+    assert "--steps must exceed SAC's 100 warm-up steps" in err
+    assert out == ""  # refused before any measurement

@@ -77,6 +77,7 @@ def synthetic_records(params, episodes=6, steps=240, seed=0):
     ]
 
 
+@pytest.mark.slow
 def test_calibrate_recovers_a_known_simulator():
     records = synthetic_records(TRUE)
     start = TRUE.replace(

@@ -16,7 +16,7 @@ from efficienttrack.data.metrics import METRIC_KEYS, compute_metrics
 from efficienttrack.data.records import load_records, save_records
 from efficienttrack.data.references import save_references
 from efficienttrack.workflow import pipeline
-from efficienttrack.workflow.config import PRESETS, load_config, with_overrides
+from efficienttrack.workflow.config import PRESETS, amend, load_config
 from test_dynamics import lag_records
 from test_records import make_record
 from toy_system import sine_refs
@@ -126,7 +126,7 @@ def test_evaluate_force(tmp_path):
     save_references(refs, tmp_path / "refs3")
     save_references(refs[:2], tmp_path / "refs2")
     out = tmp_path / "eval"
-    args = ["evaluate", "--system", "toy_system:make", "--out", out]
+    args = ["evaluate", "--system", "toy_system:make", "--out", out, "--plots", "0"]  # the plots are test_pipeline's
     assert invoke(*args, "--refs", tmp_path / "refs3").exit_code == 0
     (out / "notes.txt").write_text("mine")
     refused(invoke(*args, "--refs", tmp_path / "refs2"), "folder is not empty")
@@ -197,6 +197,6 @@ def test_demo_options_build_the_run_config(tmp_path, monkeypatch):
         "demo", "--out", out, "--preset", "tiny", "--config", tmp_path / "tiny.yaml", "--seed", "7", "--device", "cpu"
     )
     assert result.exit_code == 0, result.output
-    expected = with_overrides(load_config(tmp_path / "tiny.yaml", PRESETS["tiny"]), seed=7, device="cpu")
+    expected = amend(load_config(tmp_path / "tiny.yaml", PRESETS["tiny"]), {"seed": 7, "device": "cpu"}, "test")
     assert calls == [(out, expected)]
     assert expected.model.lr == 1e-05 and expected.collect.seed == 7 and expected.policy == PRESETS["tiny"].policy

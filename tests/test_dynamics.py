@@ -53,8 +53,9 @@ def train_tiny_model(records, seed: int = 0, **changes):
 
 
 @pytest.fixture(scope="module")
-def trained():
-    return train_tiny_model(lag_records())
+def trained(lag_model):
+    """``train_tiny_model(lag_records())``: the session's ``lag_model`` (conftest.py), trained once for three modules."""
+    return lag_model
 
 
 @pytest.mark.parametrize("history", [None, 2])
@@ -98,7 +99,7 @@ def test_training_is_deterministic_and_seeded():
     assert not np.array_equal(a.losses, c.losses)
 
 
-def test_interrupted_training_resumes_to_the_same_model(tmp_path, monkeypatch):
+def test_interrupted_training_resumes_to_the_same_model(tmp_path, monkeypatch, capsys):
     records = lag_records(n=2, T=40)
     cfg = dataclasses.replace(MODEL_PRESETS["tiny"], steps=30, save_every=10)
     full = dynamics.train_model(cfg, records, device="cpu", progress=False)
@@ -114,12 +115,14 @@ def test_interrupted_training_resumes_to_the_same_model(tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         dynamics.train_model(cfg, records, device="cpu", progress=False, checkpoint=ckpt)
     monkeypatch.setattr(dynamics.TrainLoop, "record", original)
-    resumed = dynamics.train_model(cfg, records, device="cpu", progress=False, checkpoint=ckpt)
+    capsys.readouterr()
+    resumed = dynamics.train_model(cfg, records, device="cpu", progress=True, checkpoint=ckpt)
+    assert f"train model (resumed at step 20 from {ckpt})" in capsys.readouterr().out
     np.testing.assert_array_equal(resumed.losses, full.losses)
     for pa, pb in zip(full.model.state_dict().values(), resumed.model.state_dict().values(), strict=True):
         assert torch.equal(pa, pb)
     other = dataclasses.replace(cfg, lr=1e-4)
-    with pytest.raises(EfficientTrackError, match="another run"):
+    with pytest.raises(EfficientTrackError, match=r"another run \(config lr: 0.003 here, 0.0001 now\)"):
         dynamics.train_model(other, records, device="cpu", progress=False, checkpoint=ckpt)
     # the finished state is not silently reused for other data or another seed
     with pytest.raises(EfficientTrackError, match="another run"):
@@ -176,7 +179,7 @@ def test_config_validation():
     assert MODEL_PRESETS["paper"].total_steps(176_720 - 400 * 20) == 2000 * math.ceil((176_720 - 8000) / 2048)
     with pytest.raises(EfficientTrackError, match="unknown ModelConfig field"):
         ModelConfig.from_dict({"hiden": 64}, "x.json")
-    with pytest.raises(EfficientTrackError, match="'hidden' must be an integer"):
+    with pytest.raises(EfficientTrackError, match="x.json: hidden must be an integer in \\[1, 8192\\], got '64'"):
         ModelConfig.from_dict({"hidden": "64"}, "x.json")
     with pytest.raises(EfficientTrackError, match="exactly one of steps and epochs"):
         ModelConfig(steps=None, epochs=None)

@@ -60,8 +60,18 @@ def test_both_ids_pass_gymnasiums_check_env(env_id, short):
 
 
 def test_sb3_check_env_passes_on_the_single_env(short):
-    sb3_check_env(TrackingEnv("closed", refs=short), warn=False)
-    sb3_check_env(TrackingEnv("open", refs=short), warn=False)
+    for loop in ("closed", "open"):
+        env = TrackingEnv(loop, refs=short)
+        sb3_check_env(env, warn=False)
+        # what SB3's algorithms take from it: a flat float32 observation, a float32 action box normalized to [-1, 1]
+        assert env.observation_space.shape == (observation_size(),) and env.observation_space.dtype == np.float32
+        assert env.action_space.shape == (4,) and env.action_space.dtype == np.float32
+        assert np.all(env.action_space.low == -1.0) and np.all(env.action_space.high == 1.0)
+        obs, info = env.reset(seed=0)
+        assert obs.shape == (observation_size(),) and obs.dtype == np.float32 and np.all(np.isfinite(obs))
+        assert info["reference"] in {ref.name for ref in short}
+        obs, r, terminated, truncated, _ = env.step(np.zeros(4, dtype=np.float32))
+        assert obs.dtype == np.float32 and np.isfinite(r) and not terminated and not truncated
 
 
 def test_make_with_a_reference_folder_after_importing_the_package(tmp_path, short):

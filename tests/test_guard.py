@@ -156,10 +156,10 @@ def test_limits_file_amends_the_systems_and_is_validated(tmp_path):
     assert spec.to_dict()["limits"] == str(path) and "limits" not in SystemSpec().to_dict()
     bad = {
         "q_min: [1, 0, 0, 0]\nq_max: [0.5, 1, 1, 1]\n": "boom needs",
-        "q_max: high\n": "'q_max' must be a list of finite numbers",
+        "q_max: high\n": "q_max must be a list of finite numbers",
         "max_adjust: [0.1, -1, 0.2, 0.2]\n": "'max_adjust'",
         "max_speed: [1, 2, 3]\n": "'max_speed'",
-        "max_adjust_rate: [0.1, .nan, 0.1, 0.1]\n": "'max_adjust_rate'",
+        "max_adjust_rate: [0.1, .nan, 0.1, 0.1]\n": "max_adjust_rate must be a list of finite numbers",
         "stale_steps: 1\n": "'stale_steps'",
         "speed: 3\n": "unknown GuardLimits field",
         "- 1\n": "expected a mapping",
@@ -332,5 +332,5 @@ def test_cli_limits_file_refuses_references_outside_before_any_work(tmp_path):
     assert not (tmp_path / "run" / "run.json").exists() and not (tmp_path / "run" / "collect").exists()
     refused(invoke("evaluate", *system, "--refs", refs, "--out", tmp_path / "eval"), "outside the joint limits [-0.1, 6.283]")
     (tmp_path / "limits.yaml").write_text("max_adjust: 0.1\n")
-    message = "'max_adjust' must be a list of finite numbers"
+    message = "max_adjust must be a list of finite numbers"
     refused(invoke("evaluate", *system, "--refs", refs, "--out", tmp_path / "eval"), message)

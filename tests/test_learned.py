@@ -13,12 +13,13 @@ from efficienttrack.learn.dynamics import MODEL_PRESETS, ClosedLoopModel, rollou
 from efficienttrack.learn.learned_system import LearnedSystem
 from efficienttrack.systems import check_system, load_system
 from efficienttrack.systems.fit import fidelity
-from test_dynamics import lag_records, train_tiny_model
+from test_dynamics import lag_records
 
 
 @pytest.fixture(scope="module")
-def trained():
-    return train_tiny_model(lag_records()).model
+def trained(lag_model):
+    """``train_tiny_model(lag_records()).model``: the session's ``lag_model`` (conftest.py)."""
+    return lag_model.model
 
 
 def random_model(history: int | None = 3) -> ClosedLoopModel:

@@ -18,7 +18,7 @@ def test_feature_width_is_the_width_of_relative_features(h, K):
 def test_model_lengths_are_derived_from_the_stored_fields():
     cfg = ModelConfig.from_dict({"horizon": 6, "history": 2}, "model.json")
     assert (cfg.history_length, cfg.rollout_length, cfg.in_dim) == (2, 6, feature_width(2, 1))
-    assert ModelConfig(horizon=6).history_length == 6
+    assert ModelConfig(horizon=6, history=None).history_length == 6
     assert ClosedLoopModel(cfg).g_theta.body[0].in_features == cfg.in_dim
     stored = dataclasses.asdict(cfg)  # what model.json holds: the inputs, never the derived lengths
     assert stored["horizon"] == 6 and stored["history"] == 2
@@ -36,7 +36,7 @@ def test_policy_lengths_and_what_a_rollout_needs():
 
 
 def test_policy_rollout_reads_exactly_the_desired_length():
-    model = ClosedLoopModel(ModelConfig(hidden=8, layers=1, horizon=3))
+    model = ClosedLoopModel(ModelConfig(hidden=8, layers=1, horizon=3, history=None))
     policy = AdjustmentPolicy(PolicyConfig(hidden=8, layers=1, horizon=3))
     obs_hist, qref_hist = torch.zeros(2, 3, 8), torch.zeros(2, 3, 4)
     need = desired_length(policy.cfg, 4)

@@ -124,6 +124,7 @@ def test_next_round_library_reports_and_refuses_no_data(model, policy, records):
         next_round(model, policy, [], records, device="cpu", progress=False)
 
 
+@pytest.mark.slow
 def test_round_on_a_toy_system_lowers_its_tracking_error(tmp_path):
     system = BatchedSystem(make())
     train_refs, test_refs = sine_refs([100] * 6, seed=0), sine_refs([100] * 4, seed=1)
@@ -198,4 +199,4 @@ def test_round_trains_the_warm_budget_of_the_preset_by_default(model, policy, re
     assert report["model_steps"] == round(0.1 * MODEL_PRESETS["tiny"].steps)
     assert report["policy_steps"] == round(0.1 * POLICY_PRESETS["tiny"].steps)
     refused = invoke(*args, "--out", tmp_path / "r0", "--warm-budget", "0")
-    assert "--warm-budget 0.0: must be a share > 0" in str(refused.exception)  # main() prints it on one line
+    assert "--warm-budget 0.0: warm_budget must be a finite number > 0" in str(refused.exception)  # one line in main()

@@ -107,20 +107,49 @@ def test_pwm_policy_cannot_drive_the_closed_loop_model():
 REFS = short_refs(6, 80)
 TRAIN, TEST = REFS[:4], REFS[4:]
 """Four short training references (316 steps a pass) and two test ones."""
+SUPERTRACK_SETTINGS = dataclasses.replace(SUPERTRACK_PRESETS["quick"], steps_per_iteration=300)
+"""SuperTrack's quick settings, 300 interaction steps an iteration."""
 
 
-def test_open_loop_efficienttrack_quick_curve_and_determinism(tmp_path):
+@pytest.fixture(scope="module")
+def open_run(tmp_path_factory):
+    """Open-loop EfficientTrack, quick, seed 0, 1,000 steps (two pass counts), uninterrupted: ``(curve, folder)``."""
+    folder = tmp_path_factory.mktemp("open") / "a"
+    return train_efficienttrack_open("open", SystemSpec(), TRAIN, TEST, 1000, 0, folder, preset="quick"), folder
+
+
+@pytest.fixture(scope="module")
+def supertrack_run(tmp_path_factory):
+    """``supertrack_run(loop)``: SuperTrack (``SUPERTRACK_SETTINGS``), seed 3, 700 steps measured at 300 and 700,
+    uninterrupted, run once per loop for the module: ``(curve, folder)``."""
+    runs = {}
+
+    def run(loop):
+        if loop not in runs:
+            folder = tmp_path_factory.mktemp(f"supertrack_{loop}") / "a"
+            curve = train_supertrack(loop, SystemSpec(), TRAIN, TEST, 700, 3, folder, preset=SUPERTRACK_SETTINGS,
+                                     eval_at=[300, 700])  # fmt: skip
+            runs[loop] = curve, folder
+        return runs[loop]
+
+    return run
+
+
+def test_open_loop_efficienttrack_quick_curve_and_determinism(tmp_path, open_run):
     assert pass_counts(1000, 316) == [1, 2]
-    curve = train_efficienttrack_open("open", SystemSpec(), TRAIN, TEST, 1000, 0, tmp_path / "a", preset="quick")
+    curve, folder = open_run
     assert [p["passes"] for p in curve] == [1, 2] and [p["interaction_steps"] for p in curve] == [316, 632]
     assert all(np.isfinite(p["metrics"]["mae_deg"]) and p["wall_seconds"] > 0 for p in curve)
-    saved = json.loads((tmp_path / "a" / CURVE_FILE).read_text())
+    saved = json.loads((folder / CURVE_FILE).read_text())
     assert saved["method"] == "efficienttrack" and saved["loop"] == "open" and len(saved["curve"]) == 2
     again = train_efficienttrack_open("open", SystemSpec(), TRAIN, TEST, 400, 0, tmp_path / "b", preset="quick")
     assert again[0]["metrics"] == curve[0]["metrics"]
 
 
-def test_an_interrupted_open_loop_efficienttrack_run_keeps_its_finished_pass_counts(tmp_path, monkeypatch, interrupt_at):
+@pytest.mark.slow
+def test_an_interrupted_open_loop_efficienttrack_run_keeps_its_finished_pass_counts(
+    tmp_path, monkeypatch, interrupt_at, open_run
+):
     def run(folder, seed=0, budget=1000):
         return train_efficienttrack_open("open", SystemSpec(), TRAIN, TEST, budget, seed, folder, preset="quick")
 
@@ -132,30 +161,27 @@ def test_an_interrupted_open_loop_efficienttrack_run_keeps_its_finished_pass_cou
     assert [p["passes"] for p in before] == [1]
     resumed = run(tmp_path)
     assert [p["passes"] for p in resumed] == [1, 2] and resumed[0] == before[0]  # one pass kept, not trained again
-    assert resumed[1]["metrics"] == run(tmp_path / "uninterrupted")[1]["metrics"]
+    assert resumed[1]["metrics"] == open_run[0][1]["metrics"]  # as the uninterrupted run (the same seed and budget)
     assert run(tmp_path, seed=1, budget=400)[0]["metrics"] != resumed[0]["metrics"]  # another run starts over
 
 
 @pytest.mark.parametrize("loop", ["closed", "open"])
-def test_supertrack_quick_curve_and_determinism(tmp_path, loop):
-    settings = dataclasses.replace(SUPERTRACK_PRESETS["quick"], steps_per_iteration=300)
-    curve = train_supertrack(loop, SystemSpec(), TRAIN, TEST, 700, 3, tmp_path / "a", preset=settings, eval_at=[300, 700])
+def test_supertrack_quick_curve_and_determinism(tmp_path, loop, supertrack_run):
+    curve, folder = supertrack_run(loop)
     assert [p["iterations"] for p in curve] == [1, 3] and curve[-1]["interaction_steps"] >= 700
     assert all(np.isfinite(p["metrics"]["mae_deg"]) for p in curve)
-    saved = json.loads((tmp_path / "a" / CURVE_FILE).read_text())
+    saved = json.loads((folder / CURVE_FILE).read_text())
     assert saved["method"] == "supertrack" and saved["loop"] == loop and len(saved["curve"]) == 2
-    again = train_supertrack(loop, SystemSpec(), TRAIN, TEST, 300, 3, tmp_path / "b", preset=settings)
+    again = train_supertrack(loop, SystemSpec(), TRAIN, TEST, 300, 3, tmp_path / "b", preset=SUPERTRACK_SETTINGS)
     assert again[0]["metrics"] == curve[0]["metrics"]
 
 
-def test_an_interrupted_supertrack_run_resumes_as_if_uninterrupted(tmp_path, monkeypatch, interrupt_at):
-    settings = dataclasses.replace(SUPERTRACK_PRESETS["quick"], steps_per_iteration=300)
-
+def test_an_interrupted_supertrack_run_resumes_as_if_uninterrupted(tmp_path, monkeypatch, interrupt_at, supertrack_run):
     def run(folder, seed=3):
-        return train_supertrack("closed", SystemSpec(), TRAIN, TEST, 700, seed, folder, settings, [300, 700],
+        return train_supertrack("closed", SystemSpec(), TRAIN, TEST, 700, seed, folder, SUPERTRACK_SETTINGS, [300, 700],
                                 save_every_seconds=0)  # fmt: skip
 
-    uninterrupted = run(tmp_path / "a")
+    uninterrupted, _ = supertrack_run("closed")  # saved its state less often; seeded, the same curve
     interrupt_at(700)
     with pytest.raises(KeyboardInterrupt):
         run(tmp_path / "b")

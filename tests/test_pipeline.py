@@ -11,24 +11,23 @@ from efficienttrack import __version__, cli
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.provenance import PROVENANCE_KEYS
 from efficienttrack.data.metrics import METRIC_KEYS
-from efficienttrack.data.references import save_references
+from efficienttrack.data.references import Reference, save_references
 from efficienttrack.learn import dynamics, policy
 from efficienttrack.learn.training import read_scalars
 from efficienttrack.workflow.config import PRESETS, RunConfig, from_dict, load_config
 from efficienttrack.workflow.pipeline import evaluate, run_pipeline
-from toy_system import TOY, TOY_CFG, toy_split
+from toy_system import TOY, TOY_CFG
 
 
 @pytest.fixture(scope="module")
-def refs():
-    return toy_split()
+def refs(toy_refs):
+    return toy_refs
 
 
 @pytest.fixture(scope="module")
-def finished_run(tmp_path_factory, refs):
-    out = tmp_path_factory.mktemp("run")
-    result = run_pipeline(TOY, *refs, out, TOY_CFG)
-    return out, result
+def finished_run(toy_run):
+    """The session's finished toy run (conftest.py): ``(folder, result)``; a test that runs in the folder copies it."""
+    return toy_run
 
 
 def cli_main(monkeypatch, capsys, *args):
@@ -52,6 +51,7 @@ RESULT_KEYS = {
     "model",
     "fallbacks",
     "fallback_share",
+    "worse_than_pd",
     "warning",
     "references",
     "policy",
@@ -64,6 +64,7 @@ RESULT_KEYS = {
 """Top-level keys of metrics.json, the same for run and evaluate."""
 
 
+@pytest.mark.slow
 def test_run_writes_everything_and_beats_pd(finished_run):
     out, result = finished_run
     metrics = json.loads((out / "metrics.json").read_text())
@@ -108,8 +109,10 @@ def test_run_writes_everything_and_beats_pd(finished_run):
     }
 
 
-def test_rerun_skips_finished_stages(finished_run, refs):
-    out, first = finished_run
+@pytest.mark.slow
+def test_rerun_skips_finished_stages(finished_run, refs, tmp_path):
+    out, first = tmp_path / "run", finished_run[1]
+    shutil.copytree(finished_run[0], out)
     stamp = {p: p.stat().st_mtime_ns for p in (out / "records").rglob("*.npz")}
     log = (out / "run.log").read_text()
     run_json = (out / "run.json").read_text()
@@ -121,11 +124,18 @@ def test_rerun_skips_finished_stages(finished_run, refs):
     appended = (out / "run.log").read_text()
     assert appended.startswith(log) and appended.count("\n=== ") == log.count("\n=== ") + 1
     assert "model trained (" in appended[len(log) :] and "earlier run" in appended[len(log) :]
-    with pytest.raises(EfficientTrackError, match="other settings"):
+    with pytest.raises(
+        EfficientTrackError, match=r"other settings.*\(config.collect.seed: 0 here, 1 now; config.seed: 0 here, 1 now\)"
+    ):
         run_pipeline(TOY, *refs, out, replace(TOY_CFG, seed=1))
+    train, test = refs
+    moved = [Reference(train[0].name, train[0].q + 0.01), *train[1:]]  # the same names, other positions
+    with pytest.raises(EfficientTrackError, match=r"\(references_sha256: "):
+        run_pipeline(TOY, moved, test, out, TOY_CFG)
 
 
-def test_interrupted_run_resumes(tmp_path, refs, monkeypatch):
+@pytest.mark.slow
+def test_interrupted_run_resumes(tmp_path, refs, finished_run, monkeypatch):
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
@@ -136,21 +146,26 @@ def test_interrupted_run_resumes(tmp_path, refs, monkeypatch):
     stamp = {p: p.stat().st_mtime_ns for p in (tmp_path / "records" / "train").rglob("*.npz")}
     assert len(stamp) == 6 * 4
     monkeypatch.undo()
-    result = run_pipeline(TOY, *refs, tmp_path, TOY_CFG)
+    result = run_pipeline(TOY, *refs, tmp_path, TOY_CFG, max_plots=0)  # the plots are the finished run's test's
     assert result.skipped == ("collect", "evaluate_pd")
     assert {p: p.stat().st_mtime_ns for p in stamp} == stamp
     assert result.metrics["efficienttrack"]["mae_deg"] < result.metrics["pd"]["mae_deg"]
+    # seeded: the resumed run ends where the uninterrupted one (the same settings and references) ended
+    assert result.metrics["efficienttrack"] == finished_run[1].metrics["efficienttrack"]
 
 
+@pytest.mark.slow
 def test_cli_run_resumes_evaluate_and_collect(tmp_path, refs, finished_run, monkeypatch, capsys):
     train, test = refs
     save_references(train, tmp_path / "train")
     save_references(test, tmp_path / "test")
     TOY_CFG.save(tmp_path / "cfg.yaml")
     shutil.copytree(finished_run[0], tmp_path / "out")
+    # --plots 0: the run's tracking plots are test_run_writes_everything_and_beats_pd's; the evaluation's are checked below
     code, out, err = cli_main(
         monkeypatch, capsys, "run", "--system", "toy_system:make", "--train-refs", tmp_path / "train",
         "--test-refs", tmp_path / "test", "--out", tmp_path / "out", "--preset", "tiny", "--config", tmp_path / "cfg.yaml",
+        "--plots", "0",
     )  # fmt: skip
     assert code == 0, err
     assert "EfficientTrack" in out and "train model" not in out + err  # everything resumed, nothing retrained
@@ -230,7 +245,7 @@ def test_config_roundtrip_and_validation(tmp_path):
     assert partial.seed == 3 and partial.collect.passes == 2 and partial.model == PRESETS["tiny"].model
     assert isinstance(from_dict({}), RunConfig)
     bad = [
-        ({"colect": {}}, "unknown field"),
+        ({"colect": {}}, "unknown RunConfig field"),
         ({"collect": {"passes": "ten"}}, "passes"),
         ({"model": {"hidden": 1.5}}, "hidden"),
         ({"seed": True}, "seed"),

@@ -1,3 +1,4 @@
+import copy
 import dataclasses
 import json
 
@@ -18,12 +19,14 @@ from efficienttrack.learn.policy import (
     seen_lengths,
     train_policy,
 )
-from test_dynamics import LAG_GAIN, lag_records, train_tiny_model
+from test_dynamics import LAG_GAIN, lag_records
 
 
 @pytest.fixture(scope="module")
-def model():
-    return train_tiny_model(lag_records()).model
+def model(lag_model):
+    """``train_tiny_model(lag_records()).model``: a copy of the session's ``lag_model`` (conftest.py), which
+    ``train_policy`` freezes."""
+    return copy.deepcopy(lag_model.model)
 
 
 @pytest.fixture(scope="module")
@@ -118,9 +121,9 @@ def test_policy_training_is_deterministic(model):
 
 def test_config_validation():
     assert PolicyConfig.from_dict({"max_adjust": [0.1, 0.1, 0.1, 0.1]}).max_adjust == (0.1, 0.1, 0.1, 0.1)
-    with pytest.raises(EfficientTrackError, match="4 positive bounds"):
+    with pytest.raises(EfficientTrackError, match=r"PolicyConfig.max_adjust must be a list of 4 finite numbers > 0"):
         PolicyConfig(max_adjust=(0.1, 0.1))
-    with pytest.raises(EfficientTrackError, match="must be a list of finite numbers"):
+    with pytest.raises(EfficientTrackError, match="max_adjust must be a list of 4 finite numbers"):
         PolicyConfig.from_dict({"max_adjust": "0.1"})
 
 

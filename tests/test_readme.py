@@ -32,6 +32,7 @@ def test_the_example_uses_the_console_script_and_the_plug_in():
 
 
 @pytest.mark.skipif(not CONSOLE_SCRIPT.exists(), reason=f"console script not installed at {CONSOLE_SCRIPT}")
+@pytest.mark.slow
 def test_plug_in_example_runs_as_written(tmp_path):
     module, lines = plug_in_example()
     (tmp_path / "mymachines.py").write_text(module)
@@ -50,6 +51,7 @@ def python_quick_start() -> str:
     return block.group(1)
 
 
+@pytest.mark.slow
 def test_the_python_quick_start_runs_as_written_and_beats_pd(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(ROOT / "src"), "COLUMNS": "160"}
     done = subprocess.run([sys.executable, "-c", python_quick_start()], cwd=tmp_path, env=env, capture_output=True, text=True)

@@ -1,7 +1,6 @@
 import json
 import os
 import re
-import subprocess
 import sys
 import warnings
 from pathlib import Path
@@ -12,6 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 from efficienttrack.cli import app
+from efficienttrack.cli import main as cli_main
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.data.records import (
     EpisodeRecord,
@@ -296,17 +296,29 @@ def test_malicious_pickle_is_refused_and_never_executed(tmp_path):
     assert (tmp_path / "live_marker").exists()
 
 
-def test_cli_refuses_malicious_pickle_without_traceback(tmp_path):
+def run_main(monkeypatch, capsys, *args):
+    """Run the ``efficienttrack`` entry point (``cli.main``) in this process, as the console script would.
+
+    Returns:
+        (exit code, stdout, stderr); an exception ``main`` lets through fails the test with its traceback.
+    """
+    monkeypatch.setattr(sys, "argv", ["efficienttrack", *args])
+    monkeypatch.setattr(warnings, "formatwarning", warnings.formatwarning)  # main() sets its one-line format
+    code = 0
+    try:
+        cli_main()
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else int(exc.code is not None)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_cli_refuses_malicious_pickle_without_traceback(tmp_path, monkeypatch, capsys):
     evil = write_evil_npy(tmp_path / "evil.npy", tmp_path / "pwned")
-    proc = subprocess.run(
-        [sys.executable, "-c", "from efficienttrack.cli import main; main()", "metrics", str(evil)],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert proc.returncode == 2
-    assert "Traceback" not in proc.stderr + proc.stdout
-    lines = proc.stderr.strip().splitlines()
+    code, out, err = run_main(monkeypatch, capsys, "metrics", str(evil))
+    assert code == 2
+    assert "Traceback" not in err + out
+    lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and "evil.npy: refused to unpickle" in lines[0]
     assert not (tmp_path / "pwned").exists()
 
@@ -354,18 +366,13 @@ def test_convert_never_writes_outside_out(tmp_path, name):
     assert written == ["a/sibling/victim.npz", "in/ep.npz"]
 
 
-def test_cli_convert_traversal_is_one_line_exit_2(tmp_path):
+def test_cli_convert_traversal_is_one_line_exit_2(tmp_path, monkeypatch, capsys):
     (tmp_path / "in").mkdir()
     write_npz(tmp_path / "in" / "ep.npz", meta_json=np.array(json.dumps({"name": "../../x"})))
-    proc = subprocess.run(
-        [sys.executable, "-c", "from efficienttrack.cli import main; main()", "convert", "in", "--out", "out"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        cwd=tmp_path,
-    )
-    assert proc.returncode == 2 and proc.stdout == "", proc.stderr
-    lines = proc.stderr.strip().splitlines()
+    monkeypatch.chdir(tmp_path)
+    code, out, err = run_main(monkeypatch, capsys, "convert", "in", "--out", "out")
+    assert code == 2 and out == "", err
+    lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and "ep.npz: field 'meta_json' key 'name'" in lines[0]
     assert not (tmp_path.parent / "x.npz").exists() and not (tmp_path / "out").exists()
 

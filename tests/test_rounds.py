@@ -8,27 +8,39 @@ from typer.testing import CliRunner
 
 from efficienttrack.cli import app
 from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.learn import dynamics, policy
 from efficienttrack.learn.training import read_scalars
 from efficienttrack.workflow.config import RunConfig, from_dict, preset
 from efficienttrack.workflow.pipeline import evaluate, run_pipeline
 from efficienttrack.workflow.rounds import rounds_rows, write_rounds
-from toy_system import TOY, TOY_CFG, toy_split
+from toy_system import TOY, TOY_CFG
 
 
 @pytest.fixture(scope="module")
-def refs():
-    return toy_split()
+def refs(toy_refs):
+    return toy_refs
 
 
 @pytest.fixture(scope="module")
-def two_rounds(tmp_path_factory, refs):
-    out = tmp_path_factory.mktemp("rounds")
-    return out, run_pipeline(TOY, *refs, out, replace(TOY_CFG, rounds=2))
+def two_rounds(tmp_path_factory, refs, toy_run):
+    """A two-round toy run: a copy of the session's one-round run (conftest.py) extended by a second round.
+
+    Seeded, it is what a fresh two-round run gives, wall times aside: round 1 is not trained again (a fresh two-round
+    run is checked in test_round_data_new_trains_on_the_deployment_pass_only). Tests that run in it copy it.
+    """
+    out = tmp_path_factory.mktemp("rounds") / "run"
+    shutil.copytree(toy_run[0], out)
+    return out, run_pipeline(TOY, *refs, out, replace(TOY_CFG, rounds=2), max_plots=0)  # tracking plots: test_pipeline's
 
 
-def test_rounds_add_a_deployment_pass_and_report_every_round(two_rounds, refs):
-    out, result = two_rounds
-    train, _ = refs
+def check_two_round_outputs(out, result, train):
+    """Assert what a finished two-round run reports and writes.
+
+    Args:
+        out: the run folder.
+        result: its ``RunResult``.
+        train: its training references.
+    """
     rounds = result.metrics["rounds"]
     assert [entry["round"] for entry in rounds] == [1, 2]
     deployed = sum(len(ref.q) - 1 for ref in train)  # one pass over the training references, no noise
@@ -44,12 +56,21 @@ def test_rounds_add_a_deployment_pass_and_report_every_round(two_rounds, refs):
     assert "| Round 2 |" in (out / "rounds.md").read_text()
 
 
+@pytest.mark.slow
+def test_rounds_add_a_deployment_pass_and_report_every_round(two_rounds, refs, toy_run):
+    out, result = two_rounds
+    check_two_round_outputs(out, result, refs[0])
+    assert result.metrics["rounds"][0]["efficienttrack"] == toy_run[1].metrics["efficienttrack"]  # round 1 as it was
+
+
+@pytest.mark.slow
 def test_evaluate_reads_the_training_interactions_of_a_later_round(two_rounds, refs, tmp_path):
     out, result = two_rounds
-    metrics = evaluate(TOY, refs[1], tmp_path / "eval", out / "rounds" / "2" / "policy.pt", device="cpu")
+    metrics = evaluate(TOY, refs[1], tmp_path / "eval", out / "rounds" / "2" / "policy.pt", device="cpu", max_plots=0)
     assert metrics["interaction_steps"] == result.metrics["rounds"][1]["interaction_steps"]
 
 
+@pytest.mark.slow
 def test_a_later_round_starts_from_the_previous_weights_and_trains_the_warm_budget(two_rounds):
     out, _ = two_rounds
     first = read_scalars(out / "logs" / "model")["train/loss"]
@@ -60,35 +81,55 @@ def test_a_later_round_starts_from_the_previous_weights_and_trains_the_warm_budg
     assert len(warm_policy[0]) == round(TOY_CFG.warm_budget * TOY_CFG.policy.steps)
 
 
-def test_rerun_resumes_every_round(two_rounds, refs):
-    out, result = two_rounds
-    again = run_pipeline(TOY, *refs, out, replace(TOY_CFG, rounds=2))
+@pytest.mark.slow
+def test_rerun_resumes_every_round(two_rounds, refs, tmp_path):
+    out, result = tmp_path / "run", two_rounds[1]
+    shutil.copytree(two_rounds[0], out)
+    again = run_pipeline(TOY, *refs, out, replace(TOY_CFG, rounds=2), max_plots=0)  # plots: the first test's
     assert again.metrics["rounds"] == result.metrics["rounds"]
     assert set(again.skipped) >= {"collect", "model", "policy", "evaluate_efficienttrack"}
 
 
+@pytest.mark.slow
 def test_more_rounds_extend_a_finished_run(two_rounds, refs, tmp_path):
     out, result = two_rounds
     extended = tmp_path / "extended"
     shutil.copytree(out, extended)
-    three = run_pipeline(TOY, *refs, extended, replace(TOY_CFG, rounds=3))
+    three = run_pipeline(TOY, *refs, extended, replace(TOY_CFG, rounds=3), max_plots=0)
     assert three.metrics["rounds"][:2] == result.metrics["rounds"] and three.metrics["rounds"][2]["round"] == 3
     assert set(three.skipped) >= {"collect", "model", "policy"}
 
 
-def test_round_data_new_trains_on_the_deployment_pass_only(tmp_path, refs):
-    result = run_pipeline(TOY, *refs, tmp_path, replace(TOY_CFG, rounds=2, round_data="new"))
+def test_round_data_new_trains_on_the_deployment_pass_only(tmp_path, refs, monkeypatch):
+    trained_on = []  # the episodes each training (model, then policy; round 1, then round 2) is given
+
+    def counting(train, records_at):
+        def wrapper(*args, **kwargs):
+            trained_on.append(len(args[records_at]))
+            return train(*args, **kwargs)
+
+        return wrapper
+
+    monkeypatch.setattr(dynamics, "train_model", counting(dynamics.train_model, 1))  # (cfg, records, …)
+    monkeypatch.setattr(policy, "train_policy", counting(policy.train_policy, 2))  # (cfg, g_theta, records, …)
+    # a fresh two-round run, small: one collection pass and short trainings (nothing here depends on how well it tracks)
+    small = replace(TOY_CFG, collect=replace(TOY_CFG.collect, passes=1), model=replace(TOY_CFG.model, steps=30),
+                    policy=replace(TOY_CFG.policy, steps=30))  # fmt: skip
+    result = run_pipeline(TOY, *refs, tmp_path, replace(small, rounds=2, round_data="new"), max_plots=0)
     all_data = result.metrics["config"]["round_data"]
     assert all_data == "new" and len(result.metrics["rounds"]) == 2
+    train = refs[0]
+    assert trained_on == [len(train)] * 4  # round 1: the one collection pass; round 2: its deployment pass, not both
+    check_two_round_outputs(tmp_path, result, train)
 
 
 def test_round_settings_are_validated():
-    with pytest.raises(EfficientTrackError, match="rounds must be an integer ≥ 1"):
+    with pytest.raises(EfficientTrackError, match=r"rounds must be an integer in \[1, 100\]"):
         RunConfig(rounds=0)
-    with pytest.raises(EfficientTrackError, match="cfg.yaml: RunConfig.round_data must be one of all, new"):
+    with pytest.raises(EfficientTrackError, match="cfg.yaml: round_data must be one of all, new"):
         from_dict({"round_data": "old"}, "cfg.yaml")
     for budget in (0, -0.5, float("nan"), "half", True):
-        with pytest.raises(EfficientTrackError, match="cfg.yaml: RunConfig.warm_budget must be a number > 0"):
+        with pytest.raises(EfficientTrackError, match="cfg.yaml: warm_budget must be a finite number > 0"):
             from_dict({"warm_budget": budget}, "cfg.yaml")
 
 
@@ -127,7 +168,7 @@ def test_rounds_table_rows_and_files(tmp_path):
 def test_cli_round_options_name_themselves_in_errors(tmp_path):
     runner = CliRunner()
     result = runner.invoke(app, ["demo", "--out", str(tmp_path / "d"), "--round-data", "old"])
-    assert result.exit_code != 0 and "--round-data 'old': expected one of all, new" in str(result.exception)
+    assert result.exit_code != 0 and "--round-data old: round_data must be one of all, new" in str(result.exception)
     result = runner.invoke(app, ["demo", "--out", str(tmp_path / "d"), "--rounds", "0"])
     assert result.exit_code == 2 and "--rounds" in result.output
     assert not (tmp_path / "d").exists()

@@ -50,3 +50,21 @@ def test_outside_the_main_thread_nothing_changes(default_stop_signals):
 
 def test_ctrl_c_is_named_as_such():
     assert interrupt_name(KeyboardInterrupt()) == "Ctrl-C"
+
+
+@pytest.mark.parametrize(("interrupt", "name"), [(KeyboardInterrupt(), "Ctrl-C"), (Terminated(signal.SIGTERM), "SIGTERM")])
+def test_a_command_stopped_says_what_it_kept_and_how_to_go_on(interrupt, name, tmp_path, monkeypatch, capsys):
+    import sys
+
+    from efficienttrack import cli
+    from efficienttrack.workflow import pipeline
+
+    def stopped(*args, **kwargs):
+        raise interrupt
+
+    monkeypatch.setattr(pipeline, "demo", stopped)
+    monkeypatch.setattr(sys, "argv", ["efficienttrack", "demo", "--out", str(tmp_path / "d"), "--preset", "tiny"])
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main()
+    assert exit_info.value.code == 130
+    assert f"{name}: stopped; what finished is kept in {tmp_path / 'd'}: rerun the same command" in capsys.readouterr().err

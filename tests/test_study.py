@@ -107,6 +107,7 @@ def test_sb3_methods_are_registered_with_both_loops():
     assert METHODS["ilc"].loops == ("closed",) and not METHODS["ilc"].seeded
 
 
+@pytest.mark.slow
 def test_study_writes_table_json_and_figure(finished):
     out, study, result, lines = finished
     names = ("pd-closed-s0", "efficienttrack-closed-s0", "efficienttrack-open-s0", "ppo-closed-s0", "ppo-open-s0")
@@ -148,6 +149,7 @@ def test_study_writes_table_json_and_figure(finished):
     assert (out / "study.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+@pytest.mark.slow
 def test_rerun_skips_finished_jobs_and_refuses_another_study(finished, refs):
     out, study, _, _ = finished
     results = sorted((out / "jobs").glob("*/result.json"))
@@ -160,6 +162,7 @@ def test_rerun_skips_finished_jobs_and_refuses_another_study(finished, refs):
         run_study(other, make_jobs(other, ["pd"]), out)
 
 
+@pytest.mark.slow
 def test_report_is_rebuilt_from_the_folders(finished, tmp_path):
     out = tmp_path / "copy"
     shutil.copytree(finished[0], out)
@@ -224,6 +227,7 @@ def test_a_failing_job_is_reported_and_the_others_finish(refs, tmp_path, monkeyp
     assert rerun.skipped == ("pd-closed-s0",) and list(rerun.failed) == ["boom-closed-s0"]
 
 
+@pytest.mark.slow
 def test_process_pool_runs_jobs_in_spawned_workers(refs, tmp_path):
     study = tiny_study(refs)
     jobs = [Job("pd", "closed", seed, study) for seed in (0, 1)]
@@ -252,6 +256,7 @@ def test_a_stop_signal_to_a_local_study_stops_its_workers_instead_of_waiting_for
     assert futures[2].cancelled() or futures[2].exception() is not None  # the queued job never ran
 
 
+@pytest.mark.slow
 def test_ray_executor_on_a_local_instance(finished, refs, tmp_path):
     ray = pytest.importorskip("ray")
     study = tiny_study(refs)

@@ -55,14 +55,14 @@ def split_observation(obs: np.ndarray, history: int = HISTORY, future: int = FUT
     Returns:
         The three parts.
     """
-    obs = torch.as_tensor(np.asarray(obs, dtype=np.float32))
-    n, a, b = len(obs), history * OBS_DIM, history * (OBS_DIM + N_JOINTS)
-    if obs.shape[1:] != (b + future * N_JOINTS,):
-        raise EfficientTrackError(f"observation: expected (N, {b + future * N_JOINTS}) values, got {tuple(obs.shape)}")
+    flat = torch.as_tensor(np.asarray(obs, dtype=np.float32))
+    n, a, b = len(flat), history * OBS_DIM, history * (OBS_DIM + N_JOINTS)
+    if flat.shape[1:] != (b + future * N_JOINTS,):
+        raise EfficientTrackError(f"observation: expected (N, {b + future * N_JOINTS}) values, got {tuple(flat.shape)}")
     return Observation(
-        obs[:, :a].reshape(n, history, OBS_DIM),
-        obs[:, a:b].reshape(n, history, N_JOINTS),
-        obs[:, b:].reshape(n, future, N_JOINTS),
+        flat[:, :a].reshape(n, history, OBS_DIM),
+        flat[:, a:b].reshape(n, history, N_JOINTS),
+        flat[:, b:].reshape(n, future, N_JOINTS),
     )
 
 

@@ -241,7 +241,7 @@ def trial_steps(test_refs: Sequence[Reference]) -> int:
     Returns:
         The steps.
     """
-    return sum(len(ref) - 1 for ref in test_refs)
+    return sum(ref.steps for ref in test_refs)
 
 
 def train_ilc(

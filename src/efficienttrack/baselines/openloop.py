@@ -26,7 +26,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import torch
 
@@ -84,7 +84,7 @@ class OpenLoopSettings:
 OPEN_PRESETS: dict[str, OpenLoopSettings] = {
     "full": OpenLoopSettings(),
     "quick": OpenLoopSettings(
-        model=ModelConfig(hidden=32, layers=2, horizon=4, batch_size=64, lr=3e-3, steps=100),
+        model=ModelConfig(hidden=32, layers=2, horizon=4, history=None, batch_size=64, lr=3e-3, steps=100),
         policy=PolicyConfig(hidden=32, layers=2, horizon=4, batch_size=64, lr=3e-3, steps=60, k_smooth=0.01),
         imitation_steps=60,
     ),
@@ -186,7 +186,7 @@ def train_efficienttrack_open(
     if loop != "open":
         raise EfficientTrackError(f"loop '{loop}': open-loop EfficientTrack runs in the open loop only ('open')")
     run = check_run(loop, system, train_refs, test_refs, budget, seed, folder, eval_at)
-    steps_per_pass = sum(len(ref) - 1 for ref in run.train_refs)
+    steps_per_pass = sum(ref.steps for ref in run.train_refs)
     counts = pass_counts(run.budget, steps_per_pass)
     if not counts:
         raise EfficientTrackError(
@@ -238,4 +238,4 @@ def train_open_loop(settings: OpenLoopSettings, records: Sequence[EpisodeRecord]
     policy = train_policy(
         settings.policy, g_theta, records, settings.device, seed, progress=False, init=init, network=PWMPolicy
     )
-    return policy.policy.cpu().eval()
+    return cast(PWMPolicy, policy.policy.cpu().eval())  # train_policy built a network=PWMPolicy

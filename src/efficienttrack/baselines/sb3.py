@@ -174,7 +174,8 @@ def train_baseline(
 
             callback = _Curve(todo, budget, recorder, save, save_every_seconds, see)
             model.learn(total_timesteps=budget - done, callback=callback, reset_num_timesteps=done == 0)
-            atomic_write(folder / MODEL_FILE, model.save)
+            # SB3 annotates a BufferedIOBase: the binary file atomic_write opens is one.
+            atomic_write(folder / MODEL_FILE, model.save)  # type: ignore[arg-type]
             state_file.unlink(missing_ok=True)
         finally:
             env.close()

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -53,6 +53,7 @@ def save_state(model: BaseAlgorithm, path: Path, run: str, curve: list[dict[str,
     }
     if isinstance(model, OffPolicyAlgorithm):
         buffer = model.replay_buffer
+        assert buffer is not None  # SB3 builds the buffer with the model
         filled = buffer.buffer_size if buffer.full else buffer.pos
         state["buffer"] = {
             field: torch.from_numpy(np.ascontiguousarray(getattr(buffer, field)[:filled]))
@@ -86,6 +87,7 @@ def restore_state(model: BaseAlgorithm, path: Path, run: str) -> tuple[list[dict
             recursive_getattr(model, name).data.copy_(tensor)
         if isinstance(model, OffPolicyAlgorithm):
             buffer = model.replay_buffer
+            assert buffer is not None  # SB3 builds the buffer with the model
             for field, rows in state["buffer"].items():
                 getattr(buffer, field)[: len(rows)] = rows.numpy()
             buffer.pos, buffer.full = int(state["buffer_pos"]), bool(state["buffer_full"])
@@ -100,7 +102,8 @@ def restore_state(model: BaseAlgorithm, path: Path, run: str) -> tuple[list[dict
 def _numpy_state(saved: dict[str, Any] | None = None) -> Any:
     """Numpy's global (legacy) random state as tensors and numbers, or back (``saved`` given): SB3 samples with it."""
     if saved is None:
-        kind, keys, pos, has_gauss, cached = np.random.get_state()
+        # The global generator is an MT19937, whose legacy state is this tuple (numpy's stubs give a union with a dict).
+        kind, keys, pos, has_gauss, cached = cast("tuple[str, np.ndarray, int, int, float]", np.random.get_state())
         return {"kind": kind, "keys": torch.from_numpy(keys.astype(np.int64)), "pos": int(pos),
                 "has_gauss": int(has_gauss), "cached": float(cached)}  # fmt: skip
     keys = saved["keys"].numpy().astype(np.uint32)

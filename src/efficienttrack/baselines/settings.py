@@ -60,15 +60,16 @@ def _check_common(settings: PPOSettings | SACSettings, name: str) -> None:
         raise EfficientTrackError(f"{name}.inputs: must be one of {', '.join(INPUTS)}, got {settings.inputs!r}")
 
 
-def start_at_pd(head: nn.Linear) -> None:
+def start_at_pd(head: nn.Module) -> None:
     """Zero the layer that outputs the action mean: the untrained policy's deterministic action is a = 0 (PD alone).
 
     Its gradient is not zero (it is the layer's input), so learning starts at once, as EfficientTrack's policy, whose
     last layer also starts at zero.
 
     Args:
-        head: the action-mean layer (SB3's ``actor.mu`` for SAC, ``policy.action_net`` for PPO).
+        head: the action-mean layer (SB3's ``actor.mu`` for SAC, ``policy.action_net`` for PPO), an ``nn.Linear``.
     """
+    assert isinstance(head, nn.Linear), f"the action mean is a Linear layer in SB3 2.x, got {type(head).__name__}"
     with torch.no_grad():
         head.weight.zero_()
         head.bias.zero_()

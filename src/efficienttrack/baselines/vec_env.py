@@ -13,7 +13,7 @@ the last one is in ``infos["final_obs"]`` and becomes SB3's ``infos[i]["terminal
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, cast
 
 import gymnasium as gym
 import numpy as np
@@ -73,7 +73,8 @@ class SB3VecEnv(VecEnv):
                 f"{type(venv).__name__}: SB3VecEnv needs a vector environment with autoreset mode SAME_STEP, got {mode}"
             )
         self.venv = venv
-        self.actions = np.zeros((venv.num_envs, *venv.single_action_space.shape), dtype=venv.single_action_space.dtype)
+        space = venv.single_action_space
+        self.actions = np.zeros((venv.num_envs, *space.shape), dtype=space.dtype)  # type: ignore[misc]  # a Box: shape is set
         super().__init__(venv.num_envs, venv.single_observation_space, venv.single_action_space)
 
     def reset(self) -> VecEnvObs:
@@ -85,7 +86,8 @@ class SB3VecEnv(VecEnv):
         seeds = None if all(seed is None for seed in self._seeds) else self._seeds
         if any(options != self._options[0] for options in self._options):
             raise EfficientTrackError("SB3VecEnv: reset options must be the same for all environments")
-        obs, infos = self.venv.reset(seed=seeds, options=self._options[0] or None)
+        # Gymnasium's base class annotates one int seed; vector environments take one per environment (a list).
+        obs, infos = self.venv.reset(seed=seeds, options=self._options[0] or None)  # type: ignore[arg-type]
         self.reset_infos = [env_info(infos, i) for i in range(self.num_envs)]
         self._reset_seeds()
         self._reset_options()
@@ -210,7 +212,7 @@ class FeatureVecEnv(VecEnvWrapper):
 
     def reset(self) -> VecEnvObs:
         """Reset every environment; return the first features (N, D)."""
-        return self.pipeline(self.venv.reset())
+        return self.pipeline(cast(np.ndarray, self.venv.reset()))  # Box observations: an array
 
     def step_wait(self) -> VecEnvStepReturn:
         """Step every environment; return features (N, D), rewards, dones and infos (terminal observations as features)."""
@@ -218,4 +220,4 @@ class FeatureVecEnv(VecEnvWrapper):
         for info in infos:
             if "terminal_observation" in info:
                 info["terminal_observation"] = self.pipeline(info["terminal_observation"][None])[0]
-        return self.pipeline(obs), rewards, dones, infos
+        return self.pipeline(cast(np.ndarray, obs)), rewards, dones, infos

@@ -2,10 +2,11 @@
 
 One module per command group: :mod:`~efficienttrack.cli.data` (references, metrics, conversion, collection),
 :mod:`~efficienttrack.cli.runs` (run, demo, evaluate), :mod:`~efficienttrack.cli.learning` (training, model error,
-rounds), :mod:`~efficienttrack.cli.deployment` (export, deploy), :mod:`~efficienttrack.cli.sim` (the simulator's fit),
-:mod:`~efficienttrack.cli.study` (the comparative study), :mod:`~efficienttrack.cli.ablate` (the ablations);
-:mod:`~efficienttrack.cli.common` holds the app and what several commands share. Importing a module registers its
-commands, in the order ``--help`` lists them.
+rounds), :mod:`~efficienttrack.cli.deployment` (export, deploy), :mod:`~efficienttrack.cli.limits` (a machine's guard
+limits from its logs, checked), :mod:`~efficienttrack.cli.sim` (the simulator's fit), :mod:`~efficienttrack.cli.study`
+(the comparative study), :mod:`~efficienttrack.cli.ablate` (the ablations), :mod:`~efficienttrack.cli.config` (the
+settings tree); :mod:`~efficienttrack.cli.common` holds the app and what several commands share. Importing a module
+registers its commands, in the order ``--help`` lists them.
 """
 
 from __future__ import annotations
@@ -22,10 +23,11 @@ from efficienttrack.core.fileio import os_error_text
 
 # isort: split
 # Importing a command module registers its commands, and in this order ``efficienttrack --help`` lists them.
-from efficienttrack.cli import data, runs, learning, deployment, sim, study, ablate  # noqa: F401, I001
+from efficienttrack.cli import data, runs, learning, deployment, limits, sim, study, ablate, config  # noqa: F401, I001
 
 # isort: split
 from efficienttrack.cli.common import app, parse_options, wide_console
+from efficienttrack.cli.config import config_app
 from efficienttrack.cli.data import refs_app
 from efficienttrack.cli.sim import parse_ints, sim_app
 
@@ -33,6 +35,7 @@ __all__ = ["app", "main", "parse_ints", "parse_options", "refs_app", "sim_app", 
 
 app.add_typer(refs_app, name="refs")
 app.add_typer(sim_app, name="sim")
+app.add_typer(config_app, name="config")
 
 
 def _print_version(value: bool) -> None:

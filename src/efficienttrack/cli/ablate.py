@@ -15,8 +15,10 @@ from efficienttrack.cli.study import (
     JobsOpt,
     JobThreadsOpt,
     StudyPresetOpt,
+    StudySetOpt,
     TestRefsOpt,
     TrainRefsOpt,
+    _study_settings,
     comma_names,
 )
 from efficienttrack.core.errors import EfficientTrackError
@@ -48,6 +50,7 @@ def ablate_command(
         int | None, typer.Option("--passes", help="Collection passes of every variant (default: the preset's, full 10).")
     ] = None,
     preset_name: StudyPresetOpt = "full",
+    overrides: StudySetOpt = None,
     executor: ExecutorOpt = "local",
     jobs: JobsOpt = 1,
     address: AddressOpt = None,
@@ -85,7 +88,9 @@ def ablate_command(
         raise EfficientTrackError(f"{'--train-refs' if train_refs is None else '--test-refs'}: needed to run an ablation")
     check_output_folder(out)
     spec = _system_spec(system, plant, pd, system_opt, limits)
-    study = make_ablation_study(spec, load_references(train_refs), load_references(test_refs), preset_name, passes)
+    spec.open()  # a bad system spec or limits file is refused here, not by every job
+    train, test, settings = load_references(train_refs), load_references(test_refs), _study_settings(preset_name, overrides)
+    study = make_ablation_study(spec, train, test, preset_name, passes, settings)
     job_list = ablation_jobs(
         ablation, study, parse_ints(seeds, "--seeds"), None if values is None else comma_names(values, "--values")
     )

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated
 
@@ -48,10 +50,33 @@ SystemOpts = Annotated[list[str] | None, typer.Option("--system-opt", help="key=
 
 LimitsOpt = Annotated[
     Path | None,
-    typer.Option("--limits", help="YAML/JSON of the guard's joint limits and adjustment bounds (amends the system's)."),
+    typer.Option(
+        "--limits",
+        help="The guard's joint limits and adjustment bounds: xe75 (shipped) or a YAML/JSON file (amends the system's; "
+        "`efficienttrack limits` proposes one from logs).",
+    ),
 ]
 
 DeviceOpt = Annotated[str, typer.Option("--device", help="auto, cpu or cuda.")]
+
+PresetOpt = Annotated[
+    str, typer.Option("--preset", help="Settings preset: paper, cpu, fastset or tiny (config show lists them).")
+]
+
+ConfigOpt = Annotated[Path | None, typer.Option("--config", help="YAML/JSON of settings changing the preset's.")]
+
+SetOpt = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--set",
+        help="Change one setting, after --config: section.field=value, e.g. model.history=5 (repeatable; "
+        "`efficienttrack config show` lists them).",
+    ),
+]
+
+RunSeedOpt = Annotated[int | None, typer.Option("--seed", help="Seed of collection noise and training.")]
+
+RunDeviceOpt = Annotated[str | None, typer.Option("--device", help="auto, cpu or cuda.")]
 
 ThreadsOpt = Annotated[
     int,
@@ -104,9 +129,52 @@ def _system_spec(system: str | None, plant: str | None, pd: str | None, options:
     )
 
 
-def _lock(ctx: typer.Context, out: Path, folder: bool = True) -> None:
-    """Hold the lock of output ``out`` (a folder, else a checkpoint) until the command ``ctx`` ends, however it ends."""
+def _settings(preset_name: str, config: Path | None, overrides: list[str] | None, **options: object):
+    """The settings tree of a command: preset, ``--config``, ``--set``, then the command's own options (None: not given).
+
+    Args:
+        preset_name: the ``--preset``.
+        config: the ``--config`` file, or None.
+        overrides: the ``--set`` strings.
+        **options: top-level fields given by their own options (``seed``, ``device``, ``rounds``…), applied last.
+
+    Returns:
+        The :class:`~efficienttrack.workflow.config.RunConfig`.
+    """
+    from efficienttrack.workflow.config import amend, resolve_settings
+
+    cfg = resolve_settings(preset_name, config, overrides)
+    for name, value in options.items():
+        if value is not None:
+            cfg = amend(cfg, {name: value}, f"--{name.replace('_', '-')} {value}")
+    return cfg
+
+
+def _lock(ctx: typer.Context, out: Path, folder: bool = True, resumable: bool = True) -> None:
+    """Hold the lock of output ``out`` (a folder, else a checkpoint) until the command ``ctx`` ends, however it ends.
+
+    A resumable command stopped by Ctrl-C (or SIGTERM, SIGHUP) says what was kept and how to go on.
+    """
     ctx.with_resource(output_lock(out, folder=folder))
+    if resumable:
+        ctx.with_resource(_on_interrupt(out))
+
+
+@contextmanager
+def _on_interrupt(out: Path) -> Iterator[None]:
+    """Within the block, an interrupt is followed by one line naming what was kept and how to resume (exit code 130)."""
+    try:
+        yield
+    except KeyboardInterrupt as exc:
+        from efficienttrack.core.stop_signals import interrupt_name
+
+        typer.secho(
+            f"{interrupt_name(exc)}: stopped; what finished is kept in {out}: rerun the same command to go on from "
+            "there, or add --force to start afresh",
+            fg=typer.colors.YELLOW,
+            err=True,
+        )
+        raise
 
 
 def _set_threads(threads: int) -> None:

@@ -22,7 +22,8 @@ from efficienttrack.cli.common import (
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import check_output_file, check_output_folder, finite_json, prepare_output_folder
 from efficienttrack.data.metrics import metrics_by_path, metrics_table, rounded, write_metrics_csv
-from efficienttrack.data.records import RECORD_SUFFIXES, load_records, record_files, save_records
+from efficienttrack.data.records import RECORD_SUFFIXES, find_record_files, load_record, record_files, save_records
+from efficienttrack.data.tabular import MAX_GAP, TABLE_SUFFIXES, check_options, needs_import, read_table
 from efficienttrack.workflow.collect import CollectConfig
 
 refs_app = typer.Typer(help="Reference trajectories: generate and plot.", no_args_is_help=True)
@@ -107,7 +108,10 @@ def convert_command(
     ctx: typer.Context,
     paths: Annotated[
         list[Path],
-        typer.Argument(help="Episode files or folders (.npz, our .csv, upstream .npy/.csv), or deploy tick logs (.jsonl)."),
+        typer.Argument(
+            help="Episode files or folders (.npz, our .csv, upstream .npy/.csv), deploy tick logs (.jsonl), or tables "
+            "with a time column (.csv, .parquet) to resample onto the 20 Hz grid (docs/your-logs.md)."
+        ),
     ],
     out: Annotated[Path, typer.Option("--out", help="Destination folder; files are named after the episodes.")],
     fmt: Annotated[str, typer.Option("--format", help="Output format: npz or csv.")] = "npz",
@@ -120,13 +124,46 @@ def convert_command(
             "along with the new ones; other files are kept.",
         ),
     ] = False,
+    column: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--column",
+            help="Table column of a channel, FIELD.JOINT=COLUMN (q.boom=BoomAngle) or a field's four, FIELD=C1,C2,C3,C4 "
+            "in joint order; FIELD: q, qd, q_ref, q_des, u (repeatable; default names q_boom, ...). Imports every "
+            ".csv/.parquet.",
+        ),
+    ] = None,
+    time_column: Annotated[
+        str | None, typer.Option("--time-column", help="Table column of the sample times (default t). Imports every table.")
+    ] = None,
+    time_unit: Annotated[
+        str | None, typer.Option("--time-unit", help="Unit of the time column: s (default), ms, us, ns. Imports every table.")
+    ] = None,
+    angle_unit: Annotated[
+        str | None,
+        typer.Option(
+            "--angle-unit", help="Unit of the table's angles: rad (default) or deg (qd in °/s). Imports every table."
+        ),
+    ] = None,
+    max_gap: Annotated[
+        float | None,
+        typer.Option("--max-gap", help=f"Longest gap between two samples of a table, s (default {MAX_GAP})."),
+    ] = None,
 ) -> None:
-    """Convert episode records between formats (upstream .npy/.csv → .npz, .npz ↔ .csv; a deploy log .jsonl → records)."""
+    """Convert episode records between formats (upstream .npy/.csv → .npz, .npz ↔ .csv; a deploy log .jsonl → records).
+
+    A table (.parquet, or a .csv that is not one of our records) is imported: its columns mapped to the channels, resampled
+    onto the 20 Hz grid, velocities estimated when it has none (docs/your-logs.md). --column, --time-column, --time-unit
+    or --angle-unit import every .csv given, ours too.
+    """
     from efficienttrack.deploy.deployment import records_from_log
 
     check_output_folder(out)
+    gap = MAX_GAP if max_gap is None else max_gap
+    check_options(column, time_unit or "s", angle_unit or "rad", gap)  # before any file is read, tables or not
+    import_all = bool(column) or any(option is not None for option in (time_column, time_unit, angle_unit))
     logs = [path for path in paths if path.suffix == ".jsonl" and path.is_file()]
-    files = [file for path in paths if path not in logs for file in record_files(path, recursive)]
+    files = [file for path in paths if path not in logs for file in _convert_inputs(path, recursive)]
     inside = [file for file in files if file.resolve().parent == out.resolve()]
     if inside:
         raise EfficientTrackError(f"--out {out}: holds the input {inside[0].name}; write the converted episodes elsewhere")
@@ -136,11 +173,24 @@ def convert_command(
         if not found:
             raise EfficientTrackError(f"{log}: no episode records in this tick log (no two usable ticks in a row)")
         records += found
-    records += load_records(files) if files else []
-    _lock(ctx, out)  # after the inputs were read: a refused conversion leaves no folder behind
+    for file in files:
+        table = file.suffix in TABLE_SUFFIXES and (import_all or needs_import(file))
+        if table:
+            records.append(read_table(file, column, time_column or "t", time_unit or "s", angle_unit or "rad", gap))
+        else:
+            records.append(load_record(file))
+    _lock(ctx, out, resumable=False)  # after the inputs were read: a refused conversion leaves no folder behind
     prepare_output_folder(out, tuple(f"*{suffix}" for suffix in RECORD_SUFFIXES), force)
     written = save_records(records, out, fmt)
     typer.echo(f"wrote {len(written)} episode(s) to {out}")
+
+
+def _convert_inputs(path: Path, recursive: bool) -> list[Path]:
+    """The files ``convert`` reads for ``path``: itself, or a folder's episode files (:func:`record_files`) and tables."""
+    if not path.is_dir():
+        return record_files(path, recursive)
+    tables = sorted(p for p in (path.rglob("*.parquet") if recursive else path.glob("*.parquet")) if p.is_file())
+    return sorted([*find_record_files(path, recursive), *tables]) or record_files(path, recursive)
 
 
 @app.command("import-rosbag")
@@ -171,9 +221,8 @@ def import_rosbag_command(
     from efficienttrack.data.rosbag import read_rosbag
 
     check_output_folder(out)
-    options = {"desired": desired, "joint_states": joint_states, "joints": joint, "clock": clock, "max_gap": max_gap}
-    records = [read_rosbag(bag, reference, **options) for bag in bags]
-    _lock(ctx, out)  # after the bags were read: a refused import leaves no folder behind
+    records = [read_rosbag(bag, reference, desired, joint_states, joint, clock, max_gap) for bag in bags]
+    _lock(ctx, out, resumable=False)  # after the bags were read: a refused import leaves no folder behind
     prepare_output_folder(out, tuple(f"*{suffix}" for suffix in RECORD_SUFFIXES), force)
     written = save_records(records, out, fmt)
     typer.echo(f"wrote {len(written)} episode(s), {sum(map(len, records))} steps at 20 Hz, to {out}")

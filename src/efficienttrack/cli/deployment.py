@@ -40,7 +40,7 @@ def export_command(
 
     check_output_folder(out)
     pi_phi = load_policy(policy, "cpu")
-    _lock(ctx, out)
+    _lock(ctx, out, resumable=False)
     prepare_output_folder(out, (ONNX_FILE, CONTRACT_FILE), force)
     export_policy(pi_phi, out, checkpoint_source(policy))
     typer.echo(f"exported {policy} to {out / ONNX_FILE} with its contract {out / CONTRACT_FILE}")
@@ -97,7 +97,7 @@ def deploy_command(
     written as episode records in OUT/records/, the data of the next round (efficienttrack round --data OUT/records).
     """
     from efficienttrack.data.references import load_references
-    from efficienttrack.deploy.deployment import DEPLOY_OUTPUTS, deploy, deployment_parts
+    from efficienttrack.deploy.deployment import DEPLOY_OUTPUTS, deploy, deployment_parts, recorded_verdict
 
     if not arm:
         raise EfficientTrackError(
@@ -111,7 +111,10 @@ def deploy_command(
     runtime, make_machine, machine_limits, clock = deployment_parts(
         spec, machine, parse_options(machine_opt, "--machine-opt"), policy, device, fast
     )
-    _lock(ctx, out)
+    verdict = recorded_verdict(policy)
+    if verdict is not None:
+        typer.secho(f"warning: {policy}: {verdict}", fg=typer.colors.RED, err=True)
+    _lock(ctx, out, resumable=False)  # the loop stops the machine and says what it wrote
     prepare_output_folder(out, DEPLOY_OUTPUTS, force)
     settings = {"policy": None if policy is None else str(policy), "machine": machine, "system": spec.to_dict(), "fast": fast}
 

@@ -8,13 +8,24 @@ from typing import Annotated
 
 import typer
 
-from efficienttrack.cli.common import DeviceOpt, RecursiveOpt, ThreadsOpt, _lock, _set_threads, app
+from efficienttrack.cli.common import (
+    ConfigOpt,
+    DeviceOpt,
+    PresetOpt,
+    RecursiveOpt,
+    RunDeviceOpt,
+    RunSeedOpt,
+    SetOpt,
+    ThreadsOpt,
+    _lock,
+    _set_threads,
+    _settings,
+    app,
+)
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import check_output_file, check_output_folder, finite_json, prepare_output_folder
 from efficienttrack.data.records import load_records
-from efficienttrack.workflow.config import RunConfig
-
-TrainSeedOpt = Annotated[int, typer.Option("--seed", help="Seed of initialization and window sampling.")]
+from efficienttrack.learn.dynamics import MPE_STEPS
 
 DataOpt = Annotated[
     list[Path], typer.Option("--data", help="Episode files or folders (repeatable; a folder's own episodes, see --recursive).")
@@ -23,8 +34,6 @@ DataOpt = Annotated[
 TrainForceOpt = Annotated[
     bool, typer.Option("--force", help="Start afresh: delete the training state (OUT with .state.pt) instead of resuming it.")
 ]
-
-LearnPresetOpt = Annotated[str, typer.Option("--preset", help="Training preset: paper (GPU), cpu or tiny.")]
 
 StepsOpt = Annotated[int | None, typer.Option("--steps", help="Override the preset's number of optimizer steps.")]
 
@@ -67,13 +76,11 @@ def _training_state(out: Path, force: bool) -> Path:
     return state
 
 
-def _learn_preset(presets: dict, name: str, steps: int | None, share: float = 1.0):
-    """The preset's config, with ``steps`` optimizer steps when given, else its own scaled by ``share``."""
+def _schedule(cfg, steps: int | None, share: float = 1.0):
+    """A model or policy config with ``steps`` optimizer steps when given (``--steps``), else scaled by ``share``."""
     import dataclasses
 
-    if name not in presets:
-        raise EfficientTrackError(f"--preset '{name}': expected one of {', '.join(presets)}")
-    return presets[name].scaled(share) if steps is None else dataclasses.replace(presets[name], steps=steps, epochs=None)
+    return cfg.scaled(share) if steps is None else dataclasses.replace(cfg, steps=steps, epochs=None)
 
 
 def _warm_start(option: str, path: Path | None, load, cfg, device: str):
@@ -100,26 +107,33 @@ def train_model_command(
     out: Annotated[
         Path, typer.Option("--out", help="Model checkpoint (model.pt; config to model.json, scalar logs to model.logs/).")
     ],
-    preset_name: LearnPresetOpt = "cpu",
+    preset_name: PresetOpt = "cpu",
+    config: ConfigOpt = None,
+    overrides: SetOpt = None,
     steps: StepsOpt = None,
     held_out: HeldOutOpt = None,
     init_model: InitModelOpt = None,
-    device: DeviceOpt = "auto",
-    seed: TrainSeedOpt = 0,
+    device: RunDeviceOpt = None,
+    seed: RunSeedOpt = None,
     threads: ThreadsOpt = 1,
     recursive: RecursiveOpt = False,
     force: TrainForceOpt = False,
 ) -> None:
-    """Train the closed-loop dynamics model on records (multi-step BPTT); an interrupted run resumes."""
-    from efficienttrack.learn.dynamics import MODEL_PRESETS, load_model, save_model, train_model
+    """Train the closed-loop dynamics model on records (multi-step BPTT); an interrupted run resumes.
+
+    The settings are the tree's ``model`` section, ``seed`` and ``device`` (``efficienttrack config show``).
+    """
+    from efficienttrack.learn.dynamics import load_model, save_model, train_model
 
     _check_checkpoint(out)
     _set_threads(threads)
-    init, cfg = _warm_start("--init-model", init_model, load_model, _learn_preset(MODEL_PRESETS, preset_name, steps), device)
+    settings = _settings(preset_name, config, overrides, seed=seed, device=device)
+    init, cfg = _warm_start("--init-model", init_model, load_model, _schedule(settings.model, steps), settings.device)
     records, held = load_records(data, recursive), load_records(held_out, recursive) if held_out else []
     logs = out.with_suffix(".logs")
     _lock(ctx, out, folder=False)
-    result = train_model(cfg, records, device, seed, True, _training_state(out, force), logs, held, init)
+    state = _training_state(out, force)
+    result = train_model(cfg, records, settings.device, settings.seed, True, state, logs, held, init)
     save_model(result.model, out, result.fingerprint)
     typer.echo(
         f"trained model on {result.windows} windows ({sum(map(len, records))} steps), {result.steps} steps in "
@@ -131,7 +145,7 @@ def train_model_command(
 def model_error_command(
     model: Annotated[Path, typer.Option("--model", help="Model checkpoint (model.pt).")],
     data: DataOpt,
-    steps: Annotated[int, typer.Option("--steps", help="Prediction horizon.")] = 20,
+    steps: Annotated[int, typer.Option("--steps", help="Prediction horizon (default: the paper's 20 steps).")] = MPE_STEPS,
     device: DeviceOpt = "auto",
     json_output: Annotated[bool, typer.Option("--json", help="Print one JSON line.")] = False,
     threads: ThreadsOpt = 1,
@@ -157,28 +171,35 @@ def train_policy_command(
     out: Annotated[
         Path, typer.Option("--out", help="Policy checkpoint (policy.pt; config to policy.json, scalar logs to policy.logs/).")
     ],
-    preset_name: LearnPresetOpt = "cpu",
+    preset_name: PresetOpt = "cpu",
+    config: ConfigOpt = None,
+    overrides: SetOpt = None,
     steps: StepsOpt = None,
     held_out: HeldOutOpt = None,
     init_policy: InitPolicyOpt = None,
-    device: DeviceOpt = "auto",
-    seed: TrainSeedOpt = 0,
+    device: RunDeviceOpt = None,
+    seed: RunSeedOpt = None,
     threads: ThreadsOpt = 1,
     recursive: RecursiveOpt = False,
     force: TrainForceOpt = False,
 ) -> None:
-    """Train the adjustment policy through the frozen model (multi-step BPTT); an interrupted run resumes."""
+    """Train the adjustment policy through the frozen model (multi-step BPTT); an interrupted run resumes.
+
+    The settings are the tree's ``policy`` section, ``seed`` and ``device`` (``efficienttrack config show``).
+    """
     from efficienttrack.learn.dynamics import load_model
-    from efficienttrack.learn.policy import POLICY_PRESETS, load_policy, predicted_tracking_error, save_policy, train_policy
+    from efficienttrack.learn.policy import load_policy, predicted_tracking_error, save_policy, train_policy
 
     _check_checkpoint(out)
     _set_threads(threads)
-    preset_cfg = _learn_preset(POLICY_PRESETS, preset_name, steps)
-    init, cfg = _warm_start("--init-policy", init_policy, load_policy, preset_cfg, device)
+    settings = _settings(preset_name, config, overrides, seed=seed, device=device)
+    device = settings.device
+    init, cfg = _warm_start("--init-policy", init_policy, load_policy, _schedule(settings.policy, steps), device)
     g_theta, records = load_model(model, device), load_records(data, recursive)
     held, logs = load_records(held_out, recursive) if held_out else [], out.with_suffix(".logs")
     _lock(ctx, out, folder=False)
-    result = train_policy(cfg, g_theta, records, device, seed, True, _training_state(out, force), logs, held, init)
+    state = _training_state(out, force)
+    result = train_policy(cfg, g_theta, records, device, settings.seed, True, state, logs, held, init)
     save_policy(result.policy, out, result.fingerprint)
     before = predicted_tracking_error(g_theta, records, None, cfg.rollout_length)
     after = predicted_tracking_error(g_theta, records, result.policy, cfg.rollout_length)
@@ -204,17 +225,19 @@ def round_command(
         list[Path] | None, typer.Option("--old-data", help="Earlier episodes to train on as well (repeatable).")
     ] = None,
     held_out: HeldOutOpt = None,
-    preset_name: Annotated[
-        str, typer.Option("--preset", help="Training schedule preset: paper, cpu or tiny (sizes: the checkpoints').")
-    ] = "cpu",
+    preset_name: PresetOpt = "cpu",
+    config: ConfigOpt = None,
+    overrides: SetOpt = None,
     steps_model: Annotated[int | None, typer.Option("--steps-model", help="Override the model's optimizer steps.")] = None,
     steps_policy: Annotated[int | None, typer.Option("--steps-policy", help="Override the policy's optimizer steps.")] = None,
     warm_budget: Annotated[
-        float,
-        typer.Option("--warm-budget", help="Share of the preset's optimizer steps a warm round trains (as run --rounds)."),
-    ] = RunConfig.warm_budget,
-    device: DeviceOpt = "auto",
-    seed: TrainSeedOpt = 0,
+        float | None,
+        typer.Option(
+            "--warm-budget", help="Share of the settings' optimizer steps a warm round trains (as run --rounds; default 0.5)."
+        ),
+    ] = None,
+    device: RunDeviceOpt = None,
+    seed: RunSeedOpt = None,
     threads: ThreadsOpt = 1,
     recursive: RecursiveOpt = False,
     force: Annotated[
@@ -227,20 +250,21 @@ def round_command(
 ) -> None:
     """One round of continual learning: model and policy of round k from round k−1's and the newly recorded episodes.
 
-    Both start from the given checkpoints (warm start). Prints and writes OUT/round.json: the model's 20-step error
+    Both start from the given checkpoints (warm start): their sizes, the settings' schedules scaled by
+    ``warm_budget``. Prints and writes OUT/round.json: the model's 20-step error
     on the new episodes (and on --held-out) before and after, and the tracking error recorded and model-predicted.
     An interrupted round resumes (rerun the same command); a finished one is refused without --force.
     """
-    from efficienttrack.learn.dynamics import MODEL_PRESETS, load_model
-    from efficienttrack.learn.policy import POLICY_PRESETS, load_policy
+    from efficienttrack.learn.dynamics import load_model
+    from efficienttrack.learn.policy import load_policy
     from efficienttrack.workflow.next_round import ROUND_JSON, ROUND_OUTPUTS, next_round
 
     check_output_folder(out)
     _set_threads(threads)
-    if not warm_budget > 0:
-        raise EfficientTrackError(f"--warm-budget {warm_budget}: must be a share > 0 of the preset's steps")
-    model_schedule = _learn_preset(MODEL_PRESETS, preset_name, steps_model, warm_budget)
-    policy_schedule = _learn_preset(POLICY_PRESETS, preset_name, steps_policy, warm_budget)
+    settings = _settings(preset_name, config, overrides, seed=seed, device=device, warm_budget=warm_budget)
+    seed, device = settings.seed, settings.device
+    model_schedule = _schedule(settings.model, steps_model, settings.warm_budget)
+    policy_schedule = _schedule(settings.policy, steps_policy, settings.warm_budget)
     g_theta, _ = _warm_start("--model", model, load_model, model_schedule, device)
     pi_phi, _ = _warm_start("--policy", policy, load_policy, policy_schedule, device)
     new, old = load_records(data, recursive), load_records(old_data, recursive) if old_data else []

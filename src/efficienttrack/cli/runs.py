@@ -2,29 +2,32 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
 from efficienttrack.cli.common import (
+    ConfigOpt,
     DeviceOpt,
     LimitsOpt,
     PdOpt,
     PlantOpt,
+    PresetOpt,
+    RunDeviceOpt,
+    RunSeedOpt,
+    SetOpt,
     SystemOpt,
     SystemOpts,
     ThreadsOpt,
     _lock,
     _set_threads,
+    _settings,
     _system_spec,
     app,
     wide_console,
 )
-from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import check_output_folder, prepare_output_folder
-from efficienttrack.workflow.config import ROUND_DATA
 
 RunForceOpt = Annotated[
     bool,
@@ -34,14 +37,6 @@ RunForceOpt = Annotated[
         "policy, metrics, plots; other files are kept) instead of resuming it or refusing other settings.",
     ),
 ]
-
-PresetOpt = Annotated[str, typer.Option("--preset", help="Settings preset: paper, cpu, fastset or tiny.")]
-
-ConfigOpt = Annotated[Path | None, typer.Option("--config", help="YAML/JSON overriding preset fields.")]
-
-RunSeedOpt = Annotated[int | None, typer.Option("--seed", help="Seed of collection noise and training.")]
-
-RunDeviceOpt = Annotated[str | None, typer.Option("--device", help="auto, cpu or cuda.")]
 
 RoundsOpt = Annotated[
     int | None,
@@ -70,26 +65,6 @@ TimeBudgetOpt = Annotated[
 PlotsOpt = Annotated[
     int | None, typer.Option("--plots", help="Draw tracking plots of the first N test references (default: every one).")
 ]
-
-
-def _run_config(
-    config: Path | None,
-    preset_name: str,
-    seed: int | None,
-    device: str | None,
-    rounds: int | None = None,
-    round_data: str | None = None,
-    time_budget: float | None = None,
-):
-    """The run's settings: the preset, amended by the ``--config`` file, then by the command's own options."""
-    from efficienttrack.workflow.config import load_config, preset, with_overrides
-
-    if round_data is not None and round_data not in ROUND_DATA:
-        raise EfficientTrackError(f"--round-data '{round_data}': expected one of {', '.join(ROUND_DATA)}")
-    if time_budget is not None and not (math.isfinite(time_budget) and time_budget > 0):
-        raise EfficientTrackError(f"--time-budget {time_budget}: expected minutes, a number > 0")
-    base = load_config(config, preset(preset_name)) if config is not None else preset(preset_name)
-    return with_overrides(base, seed=seed, device=device, rounds=rounds, round_data=round_data, time_budget=time_budget)
 
 
 def _prepare_run_folder(out: Path, outputs: tuple[str, ...], force: bool) -> None:
@@ -148,6 +123,7 @@ def run_command(
     limits: LimitsOpt = None,
     preset_name: PresetOpt = "cpu",
     config: ConfigOpt = None,
+    overrides: SetOpt = None,
     seed: RunSeedOpt = None,
     device: RunDeviceOpt = None,
     rounds: RoundsOpt = None,
@@ -164,7 +140,9 @@ def run_command(
     check_output_folder(out)
     _set_threads(threads)
     spec = _system_spec(system, plant, pd, system_opt, limits)
-    cfg = _run_config(config, preset_name, seed, device, rounds, round_data, time_budget)
+    cfg = _settings(
+        preset_name, config, overrides, seed=seed, device=device, rounds=rounds, round_data=round_data, time_budget=time_budget
+    )
     train, test = load_references(train_refs), load_references(test_refs)
     _lock(ctx, out)
     _prepare_run_folder(out, RUN_OUTPUTS, force)
@@ -177,6 +155,7 @@ def demo_command(
     out: Annotated[Path, typer.Option("--out", help="Output folder; rerunning resumes where it stopped.")] = Path("runs/demo"),
     preset_name: PresetOpt = "cpu",
     config: ConfigOpt = None,
+    overrides: SetOpt = None,
     seed: RunSeedOpt = None,
     device: RunDeviceOpt = None,
     rounds: RoundsOpt = None,
@@ -191,7 +170,9 @@ def demo_command(
 
     check_output_folder(out)
     _set_threads(threads)
-    cfg = _run_config(config, preset_name, seed, device, rounds, round_data, time_budget)
+    cfg = _settings(
+        preset_name, config, overrides, seed=seed, device=device, rounds=rounds, round_data=round_data, time_budget=time_budget
+    )
     _lock(ctx, out)
     _prepare_run_folder(out, DEMO_OUTPUTS, force)
     demo(out, cfg, console=wide_console(), max_plots=plots)

@@ -29,6 +29,21 @@ def comma_names(text: str, flag: str) -> list[str]:
     return names
 
 
+def _study_settings(preset_name: str, overrides: list[str] | None):
+    """EfficientTrack's settings in a study: its preset's run settings with the ``--set`` overrides (None without any).
+
+    Each job's seed replaces ``seed`` (``--seeds``); an ablation's variant changes its one setting on top.
+    """
+    from efficienttrack.study.jobs import STUDY_PRESETS
+    from efficienttrack.workflow.config import apply_overrides, preset
+
+    if not overrides:
+        return None
+    if preset_name not in STUDY_PRESETS:
+        raise EfficientTrackError(f"--preset '{preset_name}': unknown, choose one of {', '.join(STUDY_PRESETS)}")
+    return apply_overrides(preset(STUDY_PRESETS[preset_name].run), overrides)
+
+
 def _method_budgets(items: list[str]) -> dict[str, int]:
     """``["sac=50000", ...]`` → ``{"sac": 50000}``; a malformed item is an error naming ``--method-budget``."""
     budgets = {}
@@ -41,6 +56,14 @@ def _method_budgets(items: list[str]) -> dict[str, int]:
 
 
 StudyPresetOpt = Annotated[str, typer.Option("--preset", help="quick (tiny networks, minutes) or full.")]
+StudySetOpt = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--set",
+        help="Change one of EfficientTrack's settings: section.field=value, e.g. model.history=5 (repeatable; "
+        "`efficienttrack config show` lists them; the seed is each job's).",
+    ),
+]
 ExecutorOpt = Annotated[str, typer.Option("--executor", help="local (this machine) or ray.")]
 JobsOpt = Annotated[int, typer.Option("--jobs", help="Jobs at once (local processes, or CPUs of a local Ray instance).")]
 AddressOpt = Annotated[
@@ -79,6 +102,7 @@ def study_command(
         typer.Option("--method-budget", help="METHOD=N: that method's interaction steps instead of --budget (repeatable)."),
     ] = None,
     preset_name: StudyPresetOpt = "full",
+    overrides: StudySetOpt = None,
     executor: ExecutorOpt = "local",
     jobs: JobsOpt = 1,
     address: AddressOpt = None,
@@ -109,8 +133,10 @@ def study_command(
         raise EfficientTrackError(f"{'--train-refs' if train_refs is None else '--test-refs'}: needed to run a study")
     check_output_folder(out)
     spec = _system_spec(system, plant, pd, system_opt, limits)
+    spec.open()  # a bad system spec or limits file is refused here, not by every job
     budgets = _method_budgets(method_budget or [])
-    study = make_study(spec, load_references(train_refs), load_references(test_refs), budget, preset_name, None, budgets)
+    settings = _study_settings(preset_name, overrides)
+    study = make_study(spec, load_references(train_refs), load_references(test_refs), budget, preset_name, settings, budgets)
     names = None if methods is None else comma_names(methods, "--methods")
     job_list = make_jobs(study, names, comma_names(loops, "--loops"), parse_ints(seeds, "--seeds"))
     _lock(ctx, out)

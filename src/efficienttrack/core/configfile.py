@@ -1,20 +1,16 @@
-"""Frozen config dataclasses from JSON/YAML files and mappings, validated field by field (no code execution)."""
+"""Config files read without code execution (YAML through a safe loader, or JSON), and the checks of single values."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import re
-import types
 from pathlib import Path
-from typing import Any, TypeVar, Union, get_args, get_origin, get_type_hints
+from typing import Any
 
 import yaml
 
 from efficienttrack.core.errors import EfficientTrackError
-
-ConfigT = TypeVar("ConfigT")
 
 
 class ConfigLoader(yaml.SafeLoader):
@@ -100,65 +96,6 @@ def check_seed(seed: object, source: str) -> int:
     if not isinstance(seed, int) or isinstance(seed, bool) or not 0 <= seed <= MAX_SEED:
         raise EfficientTrackError(f"{source}: a seed must be an integer in [0, 2^63 − 1], got {seed!r}")
     return seed
-
-
-def config_from_dict(cls: type[ConfigT], data: dict[str, Any], source: str) -> ConfigT:
-    """Build the frozen config dataclass ``cls`` from JSON/YAML ``data``, validating names and types field by field.
-
-    Args:
-        cls: the config class (a dataclass whose fields have int, float, bool, str, tuple or ``X | None`` types).
-        data: the loaded mapping; missing fields keep their defaults.
-        source: the file or option the data came from, for messages.
-
-    Returns:
-        The config.
-    """
-    if not isinstance(data, dict):
-        raise EfficientTrackError(f"{source}: expected a mapping of {cls.__name__} fields, got {type(data).__name__}")
-    hints = get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
-    unknown = sorted(set(data) - names)
-    if unknown:
-        raise EfficientTrackError(
-            f"{source}: unknown {cls.__name__} field(s) {', '.join(unknown)}; known: {', '.join(sorted(names))}"
-        )
-    values = {name: _coerce(hints[name], value, f"{source}: field '{name}'") for name, value in data.items()}
-    try:
-        return cls(**values)
-    except (TypeError, ValueError, EfficientTrackError) as exc:  # the class's own checks name the field; add the file
-        raise EfficientTrackError(f"{source}: {exc}") from exc
-
-
-def _coerce(hint: Any, value: Any, where: str) -> Any:
-    """Check ``value`` against the type ``hint`` (int, float, bool, str, tuple[float, ...], X | None) and convert."""
-    origin = get_origin(hint)
-    if origin in (Union, types.UnionType):
-        options = get_args(hint)
-        if value is None and type(None) in options:
-            return None
-        (inner,) = [option for option in options if option is not type(None)]
-        return _coerce(inner, value, where)
-    if origin is tuple:
-        if not isinstance(value, list | tuple) or not all(map(is_finite_number, value)):
-            raise EfficientTrackError(f"{where} must be a list of finite numbers, got {value!r}")
-        return tuple(float(v) for v in value)
-    if hint is bool:
-        if not isinstance(value, bool):
-            raise EfficientTrackError(f"{where} must be true or false, got {value!r}")
-        return value
-    if hint is int:
-        if not isinstance(value, int) or isinstance(value, bool):
-            raise EfficientTrackError(f"{where} must be an integer, got {value!r}")
-        return value
-    if hint is float:
-        if not is_finite_number(value):
-            raise EfficientTrackError(f"{where} must be a finite number, got {value!r}")
-        return float(value)
-    if hint is str:
-        if not isinstance(value, str):
-            raise EfficientTrackError(f"{where} must be a string, got {value!r}")
-        return value
-    raise EfficientTrackError(f"{where}: unsupported config type {hint}")
 
 
 def is_finite_number(value: Any) -> bool:

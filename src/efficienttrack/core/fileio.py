@@ -29,7 +29,7 @@ from efficienttrack.core.errors import EfficientTrackError
 try:
     import fcntl
 except ImportError:  # Windows: no flock
-    fcntl = None
+    fcntl = None  # type: ignore[assignment]  # the module or None, checked before each use
 
 
 def current_umask() -> int:

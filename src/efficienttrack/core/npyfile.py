@@ -15,8 +15,9 @@ import pickle
 import struct
 import zipfile
 import zlib
+from collections.abc import Callable
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, ClassVar, cast
 
 import numpy as np
 import numpy.lib.format as npy_format
@@ -171,7 +172,7 @@ def _first_line(exc: BaseException) -> str:
 # ------------------------------------------------------------------------------------- pickled object arrays
 
 
-_RECONSTRUCT = np.ndarray.__reduce__(np.empty(0))[0]
+_RECONSTRUCT = cast(Callable[..., np.ndarray], np.ndarray.__reduce__(np.empty(0))[0])
 """numpy's array reconstructor (``numpy._core.multiarray._reconstruct``, ``numpy.core`` before numpy 2)."""
 _NDARRAY = object()
 """What the name ``numpy.ndarray`` unpickles to: a marker only :func:`_RECONSTRUCT` accepts, never the callable class."""
@@ -185,7 +186,9 @@ class _NumpyOnlyUnpickler(pickle._Unpickler):
     not add fields or sub-arrays.
     """
 
-    dispatch = dict(pickle._Unpickler.dispatch)
+    dispatch: ClassVar[dict[int, Callable[[Any], None]]] = dict(pickle._Unpickler.dispatch)
+    stack: list[Any]
+    """The pure-Python unpickler's value stack (undocumented, so typeshed leaves it out)."""
 
     def __init__(self, file: IO[bytes], source: Path) -> None:
         super().__init__(file)
@@ -210,7 +213,7 @@ class _NumpyOnlyUnpickler(pickle._Unpickler):
             raise self._refuse("refused an array reconstruction other than numpy's own (an empty ndarray to fill)")
         return _RECONSTRUCT(np.ndarray, shape, dtype)
 
-    def _dtype(self, spec: object, *args: object) -> np.dtype:
+    def _dtype(self, spec: object, *args: Any) -> np.dtype:
         if not isinstance(spec, str):
             raise self._refuse(f"refused a structured dtype {spec!r}")
         return np.dtype(spec, *args)

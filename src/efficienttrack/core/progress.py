@@ -124,7 +124,8 @@ class ProgressDisplay:
             **fields: extra values shown after the count (``loss=0.1``), updated with :meth:`update`.
         """
         if self._bar is not None:
-            return int(self._bar.add_task(description, total=total, completed=completed, **fields))
+            # rich annotates ``completed`` as int but keeps it as a float, as it does ``total``.
+            return int(self._bar.add_task(description, total=total, completed=completed, **fields))  # type: ignore[arg-type]
         task_id, self._next_id = self._next_id, self._next_id + 1
         self._tasks[task_id] = _PlainTask(description, total, completed, dict(fields), self.clock(), completed)
         return task_id

@@ -1,4 +1,4 @@
-"""Where a result came from: package version, git commit, torch, device, date and wall time.
+"""Where a result came from: package, git commit and clean tree, command line, versions, device, date, wall time.
 
 Every file that records settings or results (``config.json``, ``run.json``, ``metrics.json``, the
 checkpoint configs ``model.json`` / ``policy.json``) carries a ``"provenance"`` entry built here, so any
@@ -8,11 +8,15 @@ figure can be traced to the code and the machine that made it.
 from __future__ import annotations
 
 import json
+import platform
+import shlex
 import subprocess
+import sys
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 import efficienttrack
@@ -23,8 +27,21 @@ PACKAGE_DIR = Path(__file__).resolve().parent
 """The package's source folder: its git commit is the one recorded."""
 GIT_TIMEOUT_S = 2.0
 """Longest wait for a ``git`` call before the commit is recorded as unknown."""
-PROVENANCE_KEYS = ("version", "git_commit", "torch", "device", "created", "wall_seconds")
+PROVENANCE_KEYS = (
+    "version", "git_commit", "git_dirty", "command", "python", "numpy", "torch", "device", "created", "wall_seconds",
+)  # fmt: skip
 """Keys of :func:`provenance`'s dict, in order."""
+
+
+def _git(folder: Path, *args: str) -> str | None:
+    """``git -C folder ARGS``'s output, or None without git, on failure or after :data:`GIT_TIMEOUT_S`."""
+    try:
+        done = subprocess.run(
+            ["git", "-C", str(folder), *args], capture_output=True, text=True, timeout=GIT_TIMEOUT_S, check=False
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return done.stdout.strip() if done.returncode == 0 else None
 
 
 def git_commit(folder: str | Path | None = None) -> str | None:
@@ -40,22 +57,28 @@ def git_commit(folder: str | Path | None = None) -> str | None:
         The 40-hex commit, or None outside a git checkout, without a ``git`` binary, or when git fails or hangs.
     """
     folder = Path(PACKAGE_DIR if folder is None else folder)
-
-    def git(*args: str) -> str | None:
-        try:
-            done = subprocess.run(
-                ["git", "-C", str(folder), *args], capture_output=True, text=True, timeout=GIT_TIMEOUT_S, check=False
-            )
-        except (OSError, subprocess.SubprocessError):
-            return None
-        return done.stdout.strip() if done.returncode == 0 else None
-
     if not folder.is_dir():
         return None
-    commit = git("rev-parse", "HEAD")
-    if not commit or not git("ls-files", "--", "."):
+    commit = _git(folder, "rev-parse", "HEAD")
+    if not commit or not _git(folder, "ls-files", "--", "."):
         return None
     return commit
+
+
+def git_dirty(folder: str | Path | None = None) -> bool | None:
+    """Whether the package's tracked sources differ from the commit :func:`git_commit` records.
+
+    Args:
+        folder: a folder of sources; the package's own (:data:`PACKAGE_DIR`) when None.
+
+    Returns:
+        True when a tracked file under ``folder`` is modified, staged or deleted; None where the commit is None.
+    """
+    folder = Path(PACKAGE_DIR if folder is None else folder)
+    if git_commit(folder) is None:
+        return None
+    status = _git(folder, "status", "--porcelain", "--untracked-files=no", "--", ".")
+    return None if status is None else bool(status)
 
 
 def describe_device(device: str | torch.device | None) -> str | None:
@@ -84,12 +107,17 @@ def provenance(device: str | torch.device | None = None, wall_seconds: float | N
         wall_seconds: wall-clock seconds of the work that produced the file (None when not measured).
 
     Returns:
-        ``{"version": package version, "git_commit": str | None, "torch": torch version, "device": str | None,
-        "created": ISO 8601 UTC time to the second, "wall_seconds": float | None}``.
+        ``{"version": package version, "git_commit": str | None, "git_dirty": bool | None (sources changed since
+        that commit), "command": the command line (``sys.argv``), "python", "numpy", "torch": versions,
+        "device": str | None, "created": ISO 8601 UTC time to the second, "wall_seconds": float | None}``.
     """
     return {
         "version": efficienttrack.__version__,
         "git_commit": git_commit(),
+        "git_dirty": git_dirty(),
+        "command": shlex.join(sys.argv),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
         "torch": torch.__version__,
         "device": describe_device(device),
         "created": datetime.now(UTC).isoformat(timespec="seconds"),
@@ -128,5 +156,43 @@ def claim_folder(path: str | Path, identity: dict[str, Any], refusal: str) -> No
         raise EfficientTrackError(f"{path}: unreadable, truncated or corrupted ({exc}){damaged}") from exc
     if not isinstance(found, dict):
         raise EfficientTrackError(f"{path}: holds a {type(found).__name__}, not a mapping of facts: corrupted{damaged}")
-    if {key: value for key, value in found.items() if key != "provenance"} != identity:
-        raise EfficientTrackError(f"{path}: {refusal}")
+    found = {key: value for key, value in found.items() if key != "provenance"}
+    if found != identity:
+        changes = differences(found, identity)
+        shown = "; ".join(changes[:MAX_SHOWN]) + (f"; and {len(changes) - MAX_SHOWN} more" if len(changes) > MAX_SHOWN else "")
+        raise EfficientTrackError(f"{path}: {refusal} ({shown})")
+
+
+MAX_SHOWN = 4
+"""Differing fields a refusal names before it counts the rest."""
+_ABSENT = object()
+"""Stands for a field one side of :func:`differences` does not have."""
+
+
+def differences(found: Any, expected: Any, path: str = "") -> list[str]:
+    """Where two JSON values differ, as ``"config.model.history: 5 here, 10 now"``, mappings compared field by field.
+
+    Args:
+        found: the value in the folder.
+        expected: the value of this invocation.
+        path: the dotted path of the values (``""`` at the top).
+
+    Returns:
+        One line per differing leaf, in the order of ``expected`` (then fields only ``found`` has).
+    """
+    if isinstance(found, dict) and isinstance(expected, dict):
+        keys = [*expected, *(key for key in found if key not in expected)]
+        return [
+            line
+            for key in keys
+            for line in differences(found.get(key, _ABSENT), expected.get(key, _ABSENT), f"{path}.{key}" if path else key)
+        ]
+    if found == expected:
+        return []
+    return [f"{path or 'the whole file'}: {_short(found)} here, {_short(expected)} now"]
+
+
+def _short(value: Any) -> str:
+    """A JSON value for a message, cut to 60 characters."""
+    text = "absent" if value is _ABSENT else json.dumps(value)
+    return text if len(text) <= 60 else text[:57] + "..."

@@ -100,7 +100,11 @@ class Sequences:
             T = len(o)
             obs.append(np.concatenate([np.repeat(o[:1], front, 0), o, np.repeat(o[-1:], future, 0)]))
             # q^r_t / q*_t for t = 0 … T (t = 0 is q_0), then padding: row front + t holds time t
-            start, channel_values = (q0, record.q_ref) if channel == "q_ref" else (np.zeros((1, 4)), record.u / PWM_SCALE)
+            if channel == "q_ref":
+                start, channel_values = q0, record.q_ref
+            else:
+                assert record.u is not None  # the "u" channel was checked above: every record has its PWM
+                start, channel_values = np.zeros((1, 4)), record.u / PWM_SCALE
             q_ref.append(
                 np.concatenate([np.repeat(start, front + 1, 0), channel_values, np.repeat(channel_values[-1:], future - 1, 0)])
             )

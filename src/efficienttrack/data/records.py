@@ -24,14 +24,13 @@ Binary formats are read by :mod:`efficienttrack.core.npyfile`: no file may expan
 from __future__ import annotations
 
 import csv
-import io
 import json
 import warnings
 from collections import Counter
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 
@@ -263,7 +262,7 @@ def save_csv(record: EpisodeRecord, path: str | Path) -> Path:
     columns = ["t", *(f"{name}_{joint}" for name in names for joint in JOINT_NAMES)]
     table = np.column_stack([record.t, *(getattr(record, name) for name in names)])
 
-    def write(f: io.TextIOBase) -> None:
+    def write(f: IO[str]) -> None:
         f.write(f"# meta: {json.dumps(record.meta)}\n")
         f.write(",".join(columns) + "\n")
         np.savetxt(f, table, delimiter=",", fmt="%.17g")

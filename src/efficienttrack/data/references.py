@@ -7,9 +7,11 @@ lives in :mod:`efficienttrack.data.cycles`.
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import IO, Any
 
 import numpy as np
 
@@ -56,9 +58,29 @@ class Reference:
         return np.arange(len(self.q)) * DT
 
     @property
+    def steps(self) -> int:
+        """Control steps of one episode tracking it, T − 1: step t sends the target q*_{t+1}."""
+        return len(self.q) - 1
+
+    @property
     def duration(self) -> float:
         """Time from the first to the last sample, (T − 1)·dt (s)."""
-        return (len(self.q) - 1) * DT
+        return self.steps * DT
+
+
+def references_sha256(refs: Iterable[Reference]) -> str:
+    """SHA-256 of references' names and positions, in order: what a resumed run or study checks it is given again.
+
+    Args:
+        refs: the references, each q (L_i, 4) rad.
+
+    Returns:
+        The hex digest.
+    """
+    digest = hashlib.sha256()
+    for ref in refs:
+        digest.update(ref.name.encode() + b"\0" + np.ascontiguousarray(ref.q).tobytes())
+    return digest.hexdigest()
 
 
 def check_reference(q: object, source: str) -> np.ndarray:
@@ -91,10 +113,10 @@ def check_reference(q: object, source: str) -> np.ndarray:
         raise EfficientTrackError(f"{source}: |angle| reaches {peak:.3g} > 2π; looks like degrees, references are in rad")
     steps = np.abs(wrap(np.diff(arr, axis=0)))
     if steps.size and steps.max() > MAX_STEP:
-        row, joint = np.unravel_index(int(steps.argmax()), steps.shape)
+        sample, joint = np.unravel_index(int(steps.argmax()), steps.shape)
         raise EfficientTrackError(
-            f"{source}: {JOINT_NAMES[joint]} jumps {steps[row, joint]:.3g} rad between samples "
-            f"{row} and {row + 1} (limit {MAX_STEP} rad per {DT * 1000:.0f} ms step); physically impossible"
+            f"{source}: {JOINT_NAMES[joint]} jumps {steps[sample, joint]:.3g} rad between samples "
+            f"{sample} and {sample + 1} (limit {MAX_STEP} rad per {DT * 1000:.0f} ms step); physically impossible"
         )
     return arr
 
@@ -180,5 +202,9 @@ def save_references(refs: Iterable[Reference], folder: str | Path) -> list[Path]
         path = folder / f"{check_file_name(ref.name, f'{folder}: reference name')}.npy"
         if path in paths:
             raise EfficientTrackError(f"two references are named '{ref.name}'")
-        paths.append(atomic_write(path, lambda f, q=ref.q: np.save(f, q, allow_pickle=False)))
+
+        def write(f: IO[Any], q: np.ndarray = ref.q) -> None:
+            np.save(f, q, allow_pickle=False)
+
+        paths.append(atomic_write(path, write))
     return paths

@@ -17,7 +17,8 @@ Resampling: the grid is ``t_k = t_0 + k·dt`` over the time all topics cover. Th
 linearly at ``t_k`` (the swing through its wrap at ±π). A reference is a command the controller holds until the
 next one: ``q_ref[k]`` is the last reference published before ``t_{k+1}``, the one the machine moved towards
 between steps k and k+1 (the records' time alignment, :mod:`efficienttrack.data.records`); ``q_des`` likewise. The
-swing is wrapped to (−π, π]. ``u`` is None (a ROS log holds no valve commands).
+swing is wrapped to (−π, π]. ``u`` is None (a ROS log holds no valve commands). The grid, the interpolation and the hold
+are :mod:`efficienttrack.data.tabular`'s, shared with the import of CSV and Parquet tables.
 
 Stamps: ``header.stamp`` of the joint states with ``clock="header"`` (the default; the time the sensor was read), or
 the bag's receive time of every message with ``clock="bag"`` (for drivers that leave the stamp at zero, or when the
@@ -28,7 +29,6 @@ type, joint names the map does not find, too few messages, stamps that do not in
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -43,6 +43,7 @@ from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import check_file_name
 from efficienttrack.core.joints import DT, JOINT_NAMES, MAX_ABS_ANGLE, N_JOINTS, SWING
 from efficienttrack.data.records import EpisodeRecord
+from efficienttrack.data.tabular import MAX_GAP, check_max_gap, control_grid, hold, interpolate
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
 """The joint states' message type (and one of the reference's)."""
@@ -52,9 +53,6 @@ REFERENCE_TYPES = (FLOAT_ARRAY, JOINT_STATE)
 """Message types a reference or desired-position topic may have."""
 JOINT_STATES_TOPIC = "/joint_states"
 """The joint states' topic by default (the ROS convention)."""
-MAX_GAP = 0.25
-"""Longest gap between two messages of a topic, s (5 control periods) accepted by default; a longer one is a
-dropout that interpolation would paper over."""
 CLOCKS = ("header", "bag")
 """Where the joint states' stamps come from: their ``header.stamp``, or the bag's receive time."""
 
@@ -143,8 +141,7 @@ def read_rosbag(
     bag = Path(bag)
     if clock not in CLOCKS:
         raise EfficientTrackError(f"--clock '{clock}': expected one of {', '.join(CLOCKS)}")
-    if not (math.isfinite(max_gap) and max_gap >= DT):
-        raise EfficientTrackError(f"--max-gap {max_gap}: expected a number of seconds ≥ one control period ({DT})")
+    check_max_gap(max_gap)
     if not bag.is_dir():
         problem = "no such folder" if not bag.exists() else "not a folder"
         raise EfficientTrackError(
@@ -164,8 +161,8 @@ def read_rosbag(
 
     start = max(float(topic.stamps[0]) for topic in topics.values())
     end = min(float(topic.stamps[-1]) for topic in topics.values())
-    steps = math.floor((end - start) / DT + 1e-9) + 1 if end >= start else 0
-    if steps < 2:
+    grid = control_grid(start, end)
+    if len(grid) < 2:
         spans = ", ".join(f"{wanted[r]} {t.stamps[0]:.3f}…{t.stamps[-1]:.3f} s" for r, t in topics.items())
         raise EfficientTrackError(
             f"{bag}: the topics overlap for fewer than 2 control steps of {DT} s ({spans})"
@@ -175,12 +172,13 @@ def read_rosbag(
                 else ""
             )
         )
-    grid = start + DT * np.arange(steps)
     states = topics["joint_states"]
-    q = _interpolate(states.stamps, states.positions, grid, unwrap_swing=True)
-    qd = _interpolate(states.stamps, states.velocities, grid, unwrap_swing=False)
-    q_ref = _hold(topics["reference"], grid)
-    q_des = _hold(topics["desired"], grid) if desired else q_ref.copy()
+    assert states.velocities is not None  # _read_topic keeps the velocities of the joint states' topic
+    q = interpolate(states.stamps, states.positions, grid, unwrap_swing=True)
+    qd = interpolate(states.stamps, states.velocities, grid, unwrap_swing=False)
+    # a reference is held from its publication on: the last one strictly before t_k + dt is the one of step k → k+1
+    q_ref = hold(topics["reference"].stamps, topics["reference"].positions, grid + DT, strict=True)
+    q_des = hold(topics["desired"].stamps, topics["desired"].positions, grid + DT, strict=True) if desired else q_ref.copy()
     for angles in (q, q_ref, q_des):
         angles[:, SWING] = wrap(angles[:, SWING])
     meta: dict[str, Any] = {
@@ -212,7 +210,7 @@ def _read_topic(reader: AnyReader, bag: Path, topic: str, role: str, names: dict
     velocities: list[np.ndarray] | None = [] if role == "joint_states" else None
     columns: dict[tuple[str, ...], list[int]] = {}  # the joints' indices, per list of names seen
     for index, (connection, received, raw) in enumerate(reader.messages(connections=connections)):
-        msg = reader.deserialize(raw, connection.msgtype)
+        msg: Any = reader.deserialize(raw, connection.msgtype)  # a message class the bag's type store builds
         where = f"{bag}: topic {topic}, message {index}"
         if kind == FLOAT_ARRAY:
             data = np.asarray(msg.data, dtype=np.float64)
@@ -289,17 +287,3 @@ def _check_angles(topic: _Topic, bag: Path, name: str) -> None:
             f"{bag}: topic {name}: field '{topic.field}' reaches {peak[joint]:.3g} at the {JOINT_NAMES[joint]}, beyond "
             "±2π rad: degrees? (the records hold radians; a swing past a full turn must be wrapped to ±π)"
         )
-
-
-def _interpolate(stamps: np.ndarray, values: np.ndarray, grid: np.ndarray, unwrap_swing: bool) -> np.ndarray:
-    """(T, 4) ``values`` (M, 4) interpolated linearly at ``grid`` (T,) s; the swing unwrapped first when an angle."""
-    values = values.copy()
-    if unwrap_swing:
-        values[:, SWING] = np.unwrap(values[:, SWING])
-    return np.stack([np.interp(grid, stamps, values[:, j]) for j in range(N_JOINTS)], axis=1)
-
-
-def _hold(topic: _Topic, grid: np.ndarray) -> np.ndarray:
-    """(T, 4) the last message before ``t_k + dt`` at each grid time ``t_k``: the command held during step k → k+1."""
-    index = np.searchsorted(topic.stamps, grid + DT, side="left") - 1
-    return topic.positions[index].copy()

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, NamedTuple, TypeVar
+from typing import TYPE_CHECKING, NamedTuple, TypeVar, cast
 
 import numpy as np
 
@@ -115,7 +115,8 @@ def push(history: ArrayT, new: ArrayT) -> ArrayT:
     torch = sys.modules.get("torch")
     if torch is not None and isinstance(history, torch.Tensor):
         return torch.cat([history[:, 1:], new[:, None]], dim=1)
-    return np.concatenate([history[:, 1:], np.asarray(new)[:, None]], axis=1)
+    # Not a tensor (a tensor means torch is imported), so a numpy array, as ArrayT is here.
+    return cast(ArrayT, np.concatenate([history[:, 1:], np.asarray(new)[:, None]], axis=1))
 
 
 def initial_history(obs0: np.ndarray, h: int) -> History:

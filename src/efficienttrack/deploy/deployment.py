@@ -219,7 +219,8 @@ def records_from_log(path: str | Path, shadow: bool | None = None) -> list[Episo
             continue
         ticks.append(_checked_tick(entry, f"{path}: line {number}"))
     name = path.stem
-    stretches, current = [], []
+    stretches: list[list[dict[str, Any]]] = []
+    current: list[dict[str, Any]] = []
     for entry in ticks:
         if current and entry["tick"] != current[-1]["tick"] + 1:  # whole periods were skipped
             stretches.append(current)
@@ -230,7 +231,7 @@ def records_from_log(path: str | Path, shadow: bool | None = None) -> list[Episo
             continue
         current.append(entry)
     stretches.append(current)
-    records = []
+    records: list[EpisodeRecord] = []
     for stretch in (part for part in stretches if len(part) >= 2):
         label = name if not records else f"{name}-{len(records) + 1}"
         obs = np.array([entry["obs"] for entry in stretch], dtype=np.float64)
@@ -287,6 +288,34 @@ def _save_run_records(log: Path, folder: Path, shadow: bool) -> None:
         record.save(folder / f"{record.meta['name']}.npz")
 
 
+def recorded_verdict(policy: str | Path | None) -> str | None:
+    """The ``worse_than_pd`` warning of the run that tested ``policy``, when its ``metrics.json`` says it tracked worse.
+
+    A run writes ``metrics.json`` with the path of the policy it evaluated (its own folder, or two levels up for a
+    later round's policy in ``OUT/rounds/<k>/``).
+
+    Args:
+        policy: the policy deployed (a ``policy.pt`` or an export folder), or None.
+
+    Returns:
+        The warning, or None when the policy tracked as well as PD or better, or no run that tested it is found.
+    """
+    if policy is None:
+        return None
+    path = Path(policy).resolve()
+    for folder in list(path.parents)[:3]:
+        try:
+            metrics = json.loads((folder / "metrics.json").read_text())
+        except (OSError, ValueError):
+            continue
+        tested = metrics.get("policy") if isinstance(metrics, dict) else None
+        inside = (folder.name, *path.relative_to(folder).parts)  # the run wrote the path as given: compare from OUT on
+        if isinstance(tested, str) and Path(tested).parts[-len(inside) :] == inside:
+            verdict = metrics.get("worse_than_pd")
+            return verdict if isinstance(verdict, str) else None
+    return None
+
+
 def deployment_parts(
     spec: SystemSpec,
     machine: str | None,
@@ -310,6 +339,7 @@ def deployment_parts(
     Returns:
         The runtime, reference → machine adapter, the machine's limits, and the clock.
     """
+    clock: Clock
     if machine is not None:
         if fast:
             raise EfficientTrackError(

@@ -223,20 +223,21 @@ def rollout(
         for t in range(steps):
             sent = driver.step(obs, q_des[t + 1 : t + 1 + horizon].transpose(1, 0, 2))
             q[t], qd[t], q_ref[t], fallback[t] = obs[:, :4], obs[:, 4:], sent.q_ref, sent.fallback
-            has_guard = has_guard and sent.guard is not None
-            if has_guard:
+            if sent.guard is None:
+                has_guard = False
+            elif has_guard:
                 guard[t] = sent.guard
             obs = _call(watchdog, system.step, sent.q_ref, system, f"step {t}")
             command = system.last_command
             has_u = has_u and command is not None
             if has_u:
                 u[t] = command
-            if task is not None:
+            if progress is not None and task is not None:
                 progress.advance(task)
     finally:
         if watchdog is not None:
             watchdog.close()
-    if task is not None:
+    if progress is not None and task is not None:
         progress.remove_task(task)
     t_axis = np.arange(steps) * system.dt
     records = []

@@ -175,10 +175,11 @@ def export_policy(policy: AdjustmentPolicy, out: str | Path, source: dict[str, A
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation notices
+            # torch annotates f as a path; the TorchScript exporter (dynamo=False) writes to a file object too.
             torch.onnx.export(
                 cpu,
                 example,
-                buffer,
+                buffer,  # type: ignore[arg-type]
                 input_names=list(INPUT_NAMES),
                 output_names=[OUTPUT_NAME],
                 dynamic_axes={name: {0: "batch"} for name in (*INPUT_NAMES, OUTPUT_NAME)},

@@ -204,6 +204,7 @@ class GuardedRuntime:
 
     def _check_inputs(self, obs: np.ndarray, q_des_seen: np.ndarray) -> np.ndarray:
         """(N,) uint16 Guard bits of the inputs: non-finite, jumping or stale observations, desired positions outside."""
+        assert self._history is not None  # step checks that the runtime was started
         last = self._history.obs[:, -1]
         finite = np.all(np.isfinite(obs), axis=1)
         with np.errstate(invalid="ignore"):
@@ -222,6 +223,7 @@ class GuardedRuntime:
 
     def _act(self, history: History, q_des_future: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The policy's adjustment (N, 4) rad (0 where it fell back) and its (N,) uint16 Guard bits."""
+        assert self._policy_call is not None  # step asks for an adjustment only with a policy
         n = len(q_des_future)
         everyone = np.ones(n, dtype=bool)
         try:

@@ -246,6 +246,7 @@ class TickLog:
             self._sync()
 
     def _sync(self) -> None:
+        assert self._file is not None  # called while the log is open
         self._file.flush()
         os.fsync(self._file.fileno())
         self._unsynced = 0
@@ -442,6 +443,7 @@ class Loop:
             events.append("nonfinite")
         else:
             obs, self._good = reading.obs, reading
+        assert self._good is not None  # run reads the first good reading before the first tick
         age = start - self._good.stamp
         if age > cfg.stop_stale_ticks * cfg.dt:
             stop = stop or _Stop("stale_sensor", f"last good reading {age * 1e3:.0f} ms old")

@@ -28,6 +28,7 @@ intervention is a :class:`~efficienttrack.deploy.episodes.Guard` bit in :attr:`S
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import cast
 
 import numpy as np
 import torch
@@ -40,7 +41,7 @@ from efficienttrack.data.references import Reference
 from efficienttrack.deploy.episodes import STEP_TIMEOUT, batches, rollout
 from efficienttrack.deploy.guard import GuardedRuntime
 from efficienttrack.learn.nets import resolve_device
-from efficienttrack.learn.policy import seen_lengths
+from efficienttrack.learn.policy import PolicyConfig, seen_lengths
 from efficienttrack.systems.limits import GuardLimits
 from efficienttrack.systems.protocol import BatchedSystem
 
@@ -70,7 +71,7 @@ class Runtime(GuardedRuntime):
         limits: GuardLimits | None,
         dt: float = DT,
     ) -> None:
-        cfg = policy.cfg if policy is not None else None
+        cfg = cast(PolicyConfig, policy.cfg) if policy is not None else None  # a policy module carries its PolicyConfig
         act = None if policy is None else self._evaluate
         super().__init__(act, seen_lengths(cfg), None if cfg is None else cfg.max_adjust, limits, dt)
         self.policy = policy
@@ -82,6 +83,7 @@ class Runtime(GuardedRuntime):
 
     def _evaluate(self, obs_hist: np.ndarray, qref_hist: np.ndarray, q_des_future: np.ndarray) -> np.ndarray:
         """The policy on the histories (:data:`~efficienttrack.deploy.guard.PolicyCall`), in float32 on its device."""
+        assert self.policy is not None  # the guard's policy call only when there is a policy
         with torch.no_grad():
             out = self.policy(
                 torch.as_tensor(obs_hist, dtype=torch.float32, device=self.device),

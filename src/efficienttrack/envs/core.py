@@ -50,7 +50,9 @@ from efficienttrack.systems.spec import SystemSpec
 LOOPS = ("closed", "open")
 """The two loops: ``closed`` (the policy adjusts the PD controller's reference) and ``open`` (the policy sends PWM)."""
 HISTORY = 21
-"""h, the observations and references (or actions) the agent sees, as in the paper."""
+"""h of the baselines' observation, the past observations and references (or actions) the agent sees: 21, as in the
+research code's comparison (its 332-value observation). EfficientTrack's own networks see ``PolicyConfig.horizon`` (the
+paper's h = 20) and ``ModelConfig.history_length``."""
 FUTURE = 20
 """F, the desired positions ahead the agent sees, as in the paper."""
 REWARD_WEIGHT = 5.0
@@ -333,7 +335,7 @@ class Episodes:
         self.history_length, self.future_length = history, future
         self.table = pad_time_major([ref.q for ref in self.refs], future + 1)
         """(L_max + F + 1, R, 4) rad, every reference time-major, padded with its last desired position."""
-        self.steps = np.array([len(ref) - 1 for ref in self.refs], dtype=np.int64)
+        self.steps = np.array([ref.steps for ref in self.refs], dtype=np.int64)
         """(R,) steps of each reference's episode, L − 1."""
         self.k = np.zeros(0, dtype=np.int64)
         """(N,) the reference of each episode."""
@@ -354,10 +356,12 @@ class Episodes:
 
     def error(self) -> np.ndarray:
         """(N, 4) rad, each episode's tracking error now, ``wrap(q_t − q*_t)``."""
+        assert self.history is not None, "error called before start"
         return wrap(self.history.obs[:, -1, :N_JOINTS] - self.table[self.t, self.k])
 
     def observation(self) -> np.ndarray:
         """(N, D) float32, the current observations."""
+        assert self.history is not None, "observation called before start"
         return observe(self.history, self.future())
 
     def start(self, k: np.ndarray) -> np.ndarray:
@@ -391,6 +395,7 @@ class Episodes:
         self.k, self.t = self.k.copy(), self.t.copy()
         self.k[index], self.t[index] = k, 0
         fresh = self.actions.start_history(obs0, self.history_length)
+        assert self.history is not None, "restart called before start"
         obs_hist, q_hist = self.history.obs.copy(), self.history.q_ref.copy()
         obs_hist[index], q_hist[index] = fresh.obs, fresh.q_ref
         self.history = History(obs=obs_hist, q_ref=q_hist)

@@ -48,6 +48,7 @@ class _AgentDriver:
         self._history = self._actions.start_history(obs0, self._h)
 
     def step(self, obs: np.ndarray, q_des_future: np.ndarray) -> Sent:
+        assert self._history is not None  # rollout calls start first
         history = push_observation(self._history, obs)
         n = len(obs)
         a = check_actions(self._act(observe(history, q_des_future[:, : self._f])), n)

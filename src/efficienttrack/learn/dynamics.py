@@ -38,6 +38,7 @@ from torch import nn
 from efficienttrack.core.angles import wrap
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.joints import MAX_HORIZON
+from efficienttrack.core.settings import inherit, setting
 from efficienttrack.data.dataset import Sequences
 from efficienttrack.data.features import feature_width, relative_features
 from efficienttrack.data.metrics import position_error
@@ -71,29 +72,20 @@ LOSS_LABEL = "multi-step loss (1/h) Σᵢ ‖(ô − o)/σ_Δ‖²"
 class ModelConfig(TrainingSchedule):
     """Size and training settings of the closed-loop dynamics model (the schedule's fields: :class:`TrainingSchedule`)."""
 
-    hidden: int = 128
+    hidden: int = setting(128, ge=1, le=MAX_HIDDEN)
     """Units per hidden layer (paper 512)."""
-    layers: int = 3
+    layers: int = setting(3, ge=1, le=MAX_LAYERS)
     """Hidden Linear → LayerNorm → ELU blocks (paper 6)."""
-    horizon: int = 20
+    horizon: int = setting(20, ge=1, le=MAX_HORIZON)
     """h: multi-step training horizon (:attr:`rollout_length`), and the history length unless ``history`` is set
     (paper 20)."""
-    history: int | None = None
+    history: int | None = setting(5, ge=1, le=MAX_HORIZON)
     """Length of the histories o_H, q^r_H the model sees (:attr:`history_length`); None: h (the paper). Shorter
     generalizes better on the XE75."""
-    weight_decay: float = 0.003
+    weight_decay: float = inherit(TrainingSchedule, "weight_decay", 0.003)
     """w: decoupled weight decay (paper 0.003)."""
-    steps: int | None = 4000
+    steps: int | None = inherit(TrainingSchedule, "steps", 4000)
     """Optimizer steps; None to use ``epochs``."""
-
-    def __post_init__(self) -> None:
-        """Validate the fields."""
-        super().__post_init__()
-        check_size("ModelConfig", "hidden", self.hidden, 1, MAX_HIDDEN)
-        check_size("ModelConfig", "layers", self.layers, 1, MAX_LAYERS)
-        check_size("ModelConfig", "horizon", self.horizon, 1, MAX_HORIZON)
-        if self.history is not None:
-            check_size("ModelConfig", "history", self.history, 1, MAX_HORIZON)
 
     @property
     def history_length(self) -> int:
@@ -113,11 +105,11 @@ class ModelConfig(TrainingSchedule):
 
 MODEL_PRESETS: dict[str, ModelConfig] = {
     "paper": ModelConfig(
-        hidden=512, layers=6, horizon=20, batch_size=2048, lr=1e-5, weight_decay=0.003,
+        hidden=512, layers=6, horizon=20, history=None, batch_size=2048, lr=1e-5, weight_decay=0.003,
         steps=None, epochs=2000, cosine_decay=False, grad_clip=None, save_every=1000,
     ),
-    "cpu": ModelConfig(history=5, steps=4000),
-    "tiny": ModelConfig(hidden=32, layers=2, horizon=4, batch_size=64, lr=3e-3, steps=300, save_every=100),
+    "cpu": ModelConfig(),
+    "tiny": ModelConfig(hidden=32, layers=2, horizon=4, history=None, batch_size=64, lr=3e-3, steps=300, save_every=100),
 }  # fmt: skip
 """Named model configs: the paper's (a GPU job), ``cpu`` (minutes on 2 cores), ``tiny`` (tests, seconds)."""
 
@@ -133,6 +125,8 @@ class ClosedLoopModel(nn.Module):
     """What the model is driven by (:data:`~efficienttrack.data.dataset.CHANNELS`): the references sent."""
     kind = "closed_loop_model"
     """Its checkpoint kind (:func:`save_model`)."""
+    delta_scale: torch.Tensor
+    """(8,) σ_Δ: scale of the one-step change of each observation channel [rad, rad/s] (a buffer)."""
 
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
@@ -140,7 +134,6 @@ class ClosedLoopModel(nn.Module):
         self.features = Standardizer(cfg.in_dim)
         self.g_theta = MLP(cfg.in_dim, 8, cfg.hidden, cfg.layers)
         self.register_buffer("delta_scale", torch.ones(8))
-        """(8,) σ_Δ: scale of the one-step change of each observation channel [rad, rad/s]."""
 
     @torch.no_grad()
     def fit_scaling(
@@ -350,9 +343,13 @@ class MPE(NamedTuple):
     windows: int
 
 
+MPE_STEPS = 20
+"""Prediction horizon of the model's multi-step error (the paper's Tr./Te.MPE: 20 steps, 1 s)."""
+
+
 @torch.inference_mode()
 def model_error(
-    model: ClosedLoopModel, records: Sequence[EpisodeRecord], steps: int = 20, device: str | torch.device | None = None
+    model: ClosedLoopModel, records: Sequence[EpisodeRecord], steps: int = MPE_STEPS, device: str | torch.device | None = None
 ) -> MPE:
     """Multi-step prediction error (MPE) of the model on recorded episodes, in degrees.
 

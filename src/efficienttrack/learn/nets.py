@@ -31,6 +31,8 @@ class MLP(nn.Module):
         out_scale: bound of the output, a float or an (out_dim,) tensor; the output lies in (−out_scale, out_scale).
     """
 
+    out_scale: torch.Tensor
+
     def __init__(self, in_dim: int, out_dim: int, hidden: int, layers: int, out_scale: float | torch.Tensor = 1.0) -> None:
         super().__init__()
         if min(in_dim, out_dim, hidden, layers) < 1:
@@ -57,6 +59,9 @@ class Standardizer(nn.Module):
     Args:
         dim: number of features.
     """
+
+    mean: torch.Tensor
+    std: torch.Tensor
 
     def __init__(self, dim: int) -> None:
         super().__init__()

@@ -21,7 +21,6 @@ smoothness term weighs the change of the command (PWM / 1000)². The loss and th
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -35,6 +34,7 @@ from torch import nn
 from efficienttrack.core.angles import wrap
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.joints import MAX_HORIZON
+from efficienttrack.core.settings import setting
 from efficienttrack.data.dataset import Sequences
 from efficienttrack.data.features import feature_width, relative_features
 from efficienttrack.data.records import EpisodeRecord
@@ -46,7 +46,6 @@ from efficienttrack.learn.nets import (
     MAX_LAYERS,
     MLP,
     Standardizer,
-    check_size,
     check_training_memory,
     resolve_device,
 )
@@ -67,30 +66,19 @@ LOSS_LABEL = "L_track + k_smooth·L_reg (rad²)"
 class PolicyConfig(TrainingSchedule):
     """Size, loss and training settings of the adjustment policy (the schedule's fields: :class:`TrainingSchedule`)."""
 
-    hidden: int = 128
+    hidden: int = setting(128, ge=1, le=MAX_HIDDEN)
     """Units per hidden layer (paper 512)."""
-    layers: int = 3
+    layers: int = setting(3, ge=1, le=MAX_LAYERS)
     """Hidden Linear → LayerNorm → ELU blocks (paper 6)."""
-    horizon: int = 20
+    horizon: int = setting(20, ge=2, le=MAX_HORIZON)
     """h: the paper's one length of the policy, read as :attr:`history_length`, :attr:`future_length` and
-    :attr:`rollout_length` (paper 20)."""
-    gamma: float = 0.98
+    :attr:`rollout_length` (paper 20); at least 2, for the smoothness term needs two actions."""
+    gamma: float = setting(0.98, gt=0, le=1)
     """γ: discount of the tracking loss over the rollout (paper 0.98)."""
-    k_smooth: float = 1.0
+    k_smooth: float = setting(1.0, ge=0)
     """k_smooth: weight of the action-smoothness regularizer (paper 1.0)."""
-    max_adjust: tuple[float, ...] = XE75_MAX_ADJUST
+    max_adjust: tuple[float, ...] = setting(XE75_MAX_ADJUST, gt=0, length=4)
     """(4,) rad, bound of |a| per joint (boom, arm, bucket, swing)."""
-
-    def __post_init__(self) -> None:
-        """Validate the fields."""
-        super().__post_init__()
-        check_size("PolicyConfig", "hidden", self.hidden, 1, MAX_HIDDEN)
-        check_size("PolicyConfig", "layers", self.layers, 1, MAX_LAYERS)
-        check_size("PolicyConfig", "horizon", self.horizon, 2, MAX_HORIZON)  # ≥ 2: the smoothness term needs two actions
-        if len(self.max_adjust) != 4 or not all(math.isfinite(b) and b > 0 for b in self.max_adjust):
-            raise EfficientTrackError(f"PolicyConfig.max_adjust must be 4 positive bounds (rad), got {self.max_adjust}")
-        if not (math.isfinite(self.gamma) and math.isfinite(self.k_smooth)) or not 0 < self.gamma <= 1 or self.k_smooth < 0:
-            raise EfficientTrackError(f"PolicyConfig: need 0 < gamma ≤ 1, k_smooth ≥ 0, got {self.gamma}, {self.k_smooth}")
 
     @property
     def history_length(self) -> int:
@@ -173,6 +161,7 @@ class AdjustmentPolicy(nn.Module):
         self.features = Standardizer(cfg.in_dim)
         self.pi_phi = MLP(cfg.in_dim, 4, cfg.hidden, cfg.layers, out_scale=self._bound(cfg))
         last = self.pi_phi.body[-1]
+        assert isinstance(last, nn.Linear)
         nn.init.zeros_(last.weight)
         nn.init.zeros_(last.bias)
 

@@ -22,13 +22,14 @@ import numpy as np
 import torch
 from torch import nn
 
-from efficienttrack.core.configfile import check_seed, config_from_dict
+from efficienttrack.core.configfile import check_seed
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import atomic_write
 from efficienttrack.core.progress import ProgressDisplay
+from efficienttrack.core.provenance import MAX_SHOWN, differences
+from efficienttrack.core.settings import check_fields, setting, settings_from_dict
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.learn.checkpoints import check_finite, load_tensors
-from efficienttrack.learn.nets import check_size
 
 MAX_BATCH_SIZE = 65_536
 """Most windows per optimizer step a config may ask for (the paper: 2048)."""
@@ -53,51 +54,30 @@ class TrainingSchedule:
     default by declaring it again.
     """
 
-    batch_size: int = 256
+    batch_size: int = setting(256, ge=1, le=MAX_BATCH_SIZE)
     """Windows per optimizer step (paper 2048)."""
-    lr: float = 1e-3
+    lr: float = setting(1e-3, gt=0, le=MAX_LR)
     """Adam learning rate (paper 1e-5)."""
-    weight_decay: float = 0.0
+    weight_decay: float = setting(0.0, ge=0, le=MAX_WEIGHT_DECAY)
     """Decoupled weight decay w (AdamW: θ ← θ − lr·w·θ each step; the paper: 0.003 for g_θ, none for π_φ)."""
-    steps: int | None = 1500
+    steps: int | None = setting(1500, ge=1, le=MAX_STEPS)
     """Optimizer steps; None to use ``epochs``."""
-    epochs: int | None = None
+    epochs: int | None = setting(None, ge=1, le=MAX_EPOCHS)
     """Passes over the windows (paper 2000), used when ``steps`` is None."""
-    cosine_decay: bool = True
+    cosine_decay: bool = setting(True)
     """Decay the learning rate to 0 along a cosine over the run (paper: constant)."""
-    grad_clip: float | None = 1.0
+    grad_clip: float | None = setting(1.0, gt=0)
     """Clip the gradient norm to this (None: no clipping)."""
-    save_every: int = 200
+    save_every: int = setting(200, ge=1, le=MAX_STEPS)
     """Save the training state every this many steps when a checkpoint path is given."""
-    eval_every: int | None = None
+    eval_every: int | None = setting(None, ge=1, le=MAX_STEPS)
     """Optimizer steps between held-out evaluations when training logs (None: a tenth of the run)."""
 
     def __post_init__(self) -> None:
-        """Validate the schedule's fields (EfficientTrackError naming the config class, the field and its bound)."""
-        name = type(self).__name__
-        check_size(name, "batch_size", self.batch_size, 1, MAX_BATCH_SIZE)
-        check_size(name, "save_every", self.save_every, 1, MAX_STEPS)
+        """Check the fields (:func:`~efficienttrack.core.settings.check_fields`), then that one of steps, epochs is set."""
+        check_fields(self)
         if (self.steps is None) == (self.epochs is None):
-            raise EfficientTrackError(f"{name}: set exactly one of steps and epochs")
-        if self.steps is not None:
-            check_size(name, "steps", self.steps, 1, MAX_STEPS)
-        if self.epochs is not None:
-            check_size(name, "epochs", self.epochs, 1, MAX_EPOCHS)
-        if self.eval_every is not None:
-            check_size(name, "eval_every", self.eval_every, 1, MAX_STEPS)
-        for field in ("lr", "weight_decay", "grad_clip"):
-            value = getattr(self, field)
-            if field == "grad_clip" and value is None:
-                continue
-            if not isinstance(value, int | float) or isinstance(value, bool) or not math.isfinite(value):
-                raise EfficientTrackError(f"{name}.{field} must be a finite number, got {value!r}")
-        if not 0 < self.lr <= MAX_LR or not 0 <= self.weight_decay <= MAX_WEIGHT_DECAY:
-            raise EfficientTrackError(
-                f"{name}: lr must be in (0, {MAX_LR:g}] and weight_decay in [0, {MAX_WEIGHT_DECAY:g}], got {self.lr} and "
-                f"{self.weight_decay}"
-            )
-        if self.grad_clip is not None and not self.grad_clip > 0:
-            raise EfficientTrackError(f"{name}.grad_clip must be > 0 or None, got {self.grad_clip}")
+            raise EfficientTrackError(f"{type(self).__name__}: set exactly one of steps and epochs")
 
     def total_steps(self, windows: int) -> int:
         """Optimizer steps of a run on ``windows`` training windows (``steps``, or ``epochs`` passes over them).
@@ -110,7 +90,8 @@ class TrainingSchedule:
         """
         if self.steps is not None:
             return self.steps
-        total = int(self.epochs) * math.ceil(windows / self.batch_size)
+        assert self.epochs is not None  # exactly one of steps and epochs is set (__post_init__)
+        total = self.epochs * math.ceil(windows / self.batch_size)
         if total > MAX_STEPS:
             raise EfficientTrackError(
                 f"{type(self).__name__}.epochs: {self.epochs} passes over {windows} windows make {total} optimizer steps, "
@@ -128,7 +109,8 @@ class TrainingSchedule:
             raise EfficientTrackError(f"{type(self).__name__}: a schedule is scaled by a share > 0, got {share}")
         if self.steps is not None:
             return dataclasses.replace(self, steps=max(1, round(self.steps * share)))
-        return dataclasses.replace(self, epochs=max(1, round(int(self.epochs) * share)))
+        assert self.epochs is not None  # exactly one of steps and epochs is set (__post_init__)
+        return dataclasses.replace(self, epochs=max(1, round(self.epochs * share)))
 
     @classmethod
     def from_dict(cls, data: dict, source: str | None = None) -> Self:
@@ -138,7 +120,7 @@ class TrainingSchedule:
             data: field name → value, as read from a JSON/YAML config; missing fields keep their defaults.
             source: where ``data`` came from, named in error messages (the class name when None).
         """
-        return config_from_dict(cls, data, source or cls.__name__)
+        return settings_from_dict(cls, data, source or cls.__name__)
 
 
 def fingerprint(records: Sequence[EpisodeRecord], seed: int, *networks: nn.Module | None) -> str:
@@ -349,16 +331,16 @@ class TrainLoop:
         self.eval_every = cfg.eval_every if cfg.eval_every is not None else math.ceil(total / EVALUATIONS)
         self._log: TrainLog | None = None
         if self.checkpoint is not None and self.checkpoint.exists():
-            self._resume()
+            self._resume(self.checkpoint)
 
-    def _resume(self) -> None:
-        """Load the saved training state, refusing one from another kind or config."""
-        state = load_tensors(self.checkpoint)
+    def _resume(self, checkpoint: Path) -> None:
+        """Load the saved training state ``checkpoint``, refusing one from another kind or config."""
+        state = load_tensors(checkpoint)
         same = (state.get("kind"), state.get("config"), state.get("total"), state.get("inputs"))
         if same != (self.kind, self._config, self.total, self.inputs):
             raise EfficientTrackError(
-                f"{self.checkpoint}: training state of another run (kind, config, steps, data, seed or model differ); "
-                "delete it (--force on the command line) to start afresh, or train with the config it was made with"
+                f"{self.checkpoint}: training state of another run ({self._difference(state)}); delete it (--force on the "
+                "command line) to start afresh, or train with the settings it was made with"
             )
         fix = "delete it (--force on the command line) to start this training afresh"
         try:
@@ -378,6 +360,20 @@ class TrainLoop:
             raise EfficientTrackError(f"{exc}; {fix}") from exc
         self.start = step
         self._losses[:step] = losses.double().numpy()[:step]
+
+    def _difference(self, state: dict[str, Any]) -> str:
+        """What makes a saved training state another run's: the kind, the config's fields, the steps or the inputs."""
+        if state.get("kind") != self.kind:
+            return f"a {state.get('kind')} training, this is a {self.kind} training"
+        if state.get("config") != self._config:
+            try:
+                saved = json.loads(state["config"])
+            except (TypeError, ValueError):
+                return "its config is unreadable"
+            return "config " + "; ".join(differences(saved, json.loads(self._config))[:MAX_SHOWN])
+        if state.get("total") != self.total:
+            return f"{state.get('total')} optimizer steps there, {self.total} now"
+        return "other data, seed or starting network"
 
     def save(self, step: int) -> None:
         """Flush the log, then write the training state after ``step`` steps atomically (no-op without a checkpoint).
@@ -460,7 +456,8 @@ class TrainLoop:
         self._log = None if self.log_dir is None else TrainLog(self.log_dir, self.start)
         try:
             with ProgressDisplay(self.progress, transient=False) as bar:
-                task = bar.add_task(f"train {self.kind}", total=self.total, completed=self.start, loss=float("nan"))
+                resumed = f" (resumed at step {self.start:,} from {self.checkpoint})" if self.start else ""
+                task = bar.add_task(f"train {self.kind}{resumed}", total=self.total, completed=self.start, loss=float("nan"))
                 for step in range(self.start, self.total):
                     yield step
                     if (step + 1) % PROGRESS_EVERY == 0 or step + 1 == self.total:

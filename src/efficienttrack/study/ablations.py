@@ -192,8 +192,8 @@ def get_ablation(name: str) -> Ablation:
 
 def make_ablation_study(
     system: SystemSpec,
-    train: Sequence[Reference],
-    test: Sequence[Reference],
+    train: list[Reference] | tuple[Reference, ...],
+    test: list[Reference] | tuple[Reference, ...],
     preset: str = "full",
     passes: int | None = None,
     run_config: RunConfig | None = None,

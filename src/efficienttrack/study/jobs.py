@@ -9,17 +9,16 @@ settings, and owns ``OUT/jobs/<method>-<variant>-s<seed>/``.
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 from efficienttrack.core.configfile import check_seed
 from efficienttrack.core.errors import EfficientTrackError
-from efficienttrack.data.references import Reference
+from efficienttrack.data.references import Reference, references_sha256
 from efficienttrack.systems.spec import SystemSpec
-from efficienttrack.workflow.config import PRESETS, RunConfig, from_dict, with_overrides
+from efficienttrack.workflow.config import PRESETS, RunConfig, amend
 
 STUDY_CONFIG = "study_config.json"
 """What a study folder is (system, references, budget, preset): a rerun must match it."""
@@ -107,7 +106,7 @@ class Study:
     @property
     def steps_per_pass(self) -> int:
         """Interaction steps of one collection pass over the training references: Σ (L_i − 1)."""
-        return sum(len(ref) - 1 for ref in self.train)
+        return sum(ref.steps for ref in self.train)
 
     def identity(self) -> dict[str, Any]:
         """What the study is, as ``study_config.json`` records it (a rerun into the same folder must match).
@@ -118,14 +117,11 @@ class Study:
             ``{"system", "train_references", "test_references": {name: length}, "references_sha256", "budget",
             "method_budgets": {method: steps}, "preset", "run_config"}``.
         """
-        digest = hashlib.sha256()
-        for ref in (*self.train, *self.test):
-            digest.update(ref.name.encode() + b"\0" + ref.q.tobytes())
         return {
             "system": self.system.to_dict(),
             "train_references": {ref.name: len(ref) for ref in self.train},
             "test_references": {ref.name: len(ref) for ref in self.test},
-            "references_sha256": digest.hexdigest(),
+            "references_sha256": references_sha256((*self.train, *self.test)),
             "budget": self.budget,
             "method_budgets": dict(self.method_budgets),
             "preset": self.preset,
@@ -201,12 +197,7 @@ class Variant:
         Raises:
             EfficientTrackError: an override names an unknown field or gives a bad value (naming the variant).
         """
-        merged = cfg.to_dict()
-        for key, value in self.overrides.items():
-            merged[key] = (
-                {**merged[key], **value} if isinstance(value, Mapping) and isinstance(merged.get(key), dict) else value
-            )
-        return from_dict(merged, f"variant {self.name}")
+        return amend(cfg, dict(self.overrides), f"variant {self.name}")
 
     def to_dict(self) -> dict[str, Any]:
         """``{"name", "label", "overrides"}`` (JSON-serializable)."""
@@ -245,7 +236,7 @@ class Job:
     def run_config(self) -> RunConfig:
         """EfficientTrack's settings for this job: the study's, the variant's overrides, ``seed`` as every seed."""
         cfg = self.study.run_config if self.variant is None else self.variant.apply(self.study.run_config)
-        return with_overrides(cfg, seed=self.seed)
+        return replace(cfg, seed=self.seed)  # collect.seed follows
 
 
 def job_folder(out: str | Path, name: str) -> Path:

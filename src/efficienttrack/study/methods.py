@@ -314,8 +314,9 @@ def make_jobs(
         if loop not in LOOPS:
             raise EfficientTrackError(f"--loops {loop}: unknown loop, choose from {', '.join(LOOPS)}")
     for name in names:
-        if METHODS[name].check is not None:
-            METHODS[name].check(study)
+        check = METHODS[name].check
+        if check is not None:
+            check(study)
     seeds = check_seeds(tuple(seeds))
     jobs = [
         Job(name, loop, seed, study)

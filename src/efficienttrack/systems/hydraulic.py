@@ -560,6 +560,7 @@ class HydraulicExcavator:
         return self._obs()
 
     def _obs(self) -> np.ndarray:
+        assert self.state is not None  # called by reset and step, after they set the state
         obs = observe(self.state, self.params, self._rng if self.sensor_noise else None)
         return obs[0] if self._single else obs
 

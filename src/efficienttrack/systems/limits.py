@@ -2,8 +2,10 @@
 
 The limits belong to the machine, never to a policy checkpoint: they come from the system (a ``limits``
 attribute; the built-in ``xe75`` derives them from its simulator's parameters), or from a limits file the user
-gives (``--limits FILE``, YAML or JSON; fields it leaves out keep the system's values). A checkpoint's
-``max_adjust`` can only make the adjustment bound tighter (:meth:`GuardLimits.adjust_bound`).
+gives (``--limits FILE``, YAML or JSON; fields it leaves out keep the system's values), or a shipped preset named
+instead of a file (``--limits xe75``: :data:`LIMITS_PRESETS`). A checkpoint's ``max_adjust`` can only make the
+adjustment bound tighter (:meth:`GuardLimits.adjust_bound`). ``efficienttrack limits --from-logs`` proposes a file from
+a machine's own logs (:mod:`efficienttrack.systems.limits_from_logs`); the schema is in docs/reference.md, "Limits files".
 
 A system that says nothing gets :data:`DEFAULT_LIMITS`: no joint limits beyond the ±2π sanity bound, the XE75's
 adjustment bounds, and a generous plausible speed.
@@ -16,20 +18,56 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, replace
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from efficienttrack.core.angles import wrap
-from efficienttrack.core.configfile import config_from_dict, read_mapping_file
+from efficienttrack.core.configfile import read_mapping_file
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.joints import JOINT_NAMES, MAX_ABS_ANGLE, N_JOINTS, SWING
+from efficienttrack.core.settings import settings_from_dict
 
 XE75_MAX_ADJUST = (0.15, 0.30, 0.40, 0.40)
 """Per-joint adjustment bound of the real XE75 deployment (boom, arm, bucket, swing), rad."""
 
+LIMITS_PRESETS = ("xe75",)
+"""Limits files shipped with the package, named instead of a file (``--limits xe75``): ``presets/<name>_limits.json``."""
+
 Vec4 = tuple[float, ...]
+
+
+def limits_preset_path(name: str) -> Path:
+    """Path of the shipped limits file of preset ``name`` (a name in :data:`LIMITS_PRESETS`).
+
+    Args:
+        name: the preset, e.g. ``"xe75"``.
+    """
+    return Path(str(resources.files("efficienttrack.systems") / "presets" / f"{name}_limits.json"))
+
+
+def resolve_limits_path(spec: str | Path) -> Path:
+    """The limits file ``spec`` names: a shipped preset (``xe75``; a preset name wins over a file of that name), else a file.
+
+    Args:
+        spec: a preset name of :data:`LIMITS_PRESETS` or the path of a YAML/JSON limits file.
+
+    Returns:
+        The file's path.
+
+    Raises:
+        EfficientTrackError: ``spec`` is neither a preset nor an existing path.
+    """
+    if str(spec) in LIMITS_PRESETS:
+        return limits_preset_path(str(spec))
+    path = Path(spec)
+    if not path.exists():
+        raise EfficientTrackError(
+            f"limits '{spec}': neither a limits preset ({', '.join(LIMITS_PRESETS)}) nor an existing YAML/JSON file"
+        )
+    return path
 
 
 @dataclass(frozen=True)
@@ -82,18 +120,19 @@ class GuardLimits:
         """Read a limits file (YAML or JSON mapping of this class's fields); fields it leaves out keep ``base``'s.
 
         Args:
-            path: the file.
+            path: the file, or a shipped preset's name (``xe75``, :data:`LIMITS_PRESETS`).
             base: the limits the file amends (the system's own); :data:`DEFAULT_LIMITS` when None.
 
         Returns:
             The validated limits.
         """
+        path = resolve_limits_path(path)
         data = read_mapping_file(path)
         if not isinstance(data, dict):
             raise EfficientTrackError(f"{path}: expected a mapping of limits fields, got {type(data).__name__}")
         merged = {**(base or DEFAULT_LIMITS).to_dict(), **data}
         try:
-            return config_from_dict(cls, merged, str(path))
+            return settings_from_dict(cls, merged, str(path))
         except EfficientTrackError as exc:
             message = str(exc)
             raise EfficientTrackError(message if message.startswith(str(path)) else f"{path}: {message}") from exc
@@ -112,7 +151,7 @@ class GuardLimits:
         if isinstance(value, GuardLimits):
             return value
         if isinstance(value, dict):
-            return config_from_dict(cls, {**DEFAULT_LIMITS.to_dict(), **value}, source)
+            return settings_from_dict(cls, {**DEFAULT_LIMITS.to_dict(), **value}, source)
         raise EfficientTrackError(f"{source}: expected GuardLimits or a mapping of its fields, got {type(value).__name__}")
 
     def to_dict(self) -> dict[str, Any]:

@@ -155,7 +155,8 @@ class SystemSpec:
     options: tuple[tuple[str, Any], ...] = ()
     """Keyword options of the callable (``--system-opt key=value``)."""
     limits: str | None = None
-    """YAML/JSON file of the guard's limits (``--limits``); fields it leaves out keep the system's own."""
+    """YAML/JSON file of the guard's limits, or a shipped preset's name (``xe75``) (``--limits``); fields it leaves out keep
+    the system's own (:meth:`GuardLimits.load`)."""
 
     def __post_init__(self) -> None:
         """Refuse a spec naming both a system and a plant."""

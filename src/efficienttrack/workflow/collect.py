@@ -30,11 +30,12 @@ from typing import NamedTuple
 import numpy as np
 
 from efficienttrack.core.angles import wrap
-from efficienttrack.core.configfile import check_seed
+from efficienttrack.core.configfile import MAX_SEED
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.joints import JOINT_NAMES
 from efficienttrack.core.progress import ProgressDisplay
 from efficienttrack.core.provenance import claim_folder
+from efficienttrack.core.settings import check_fields, setting
 from efficienttrack.data.records import EpisodeRecord, load_named_records, load_records, save_records
 from efficienttrack.data.references import Reference
 from efficienttrack.deploy.episodes import Guard, Sent, batches, rollout
@@ -51,25 +52,20 @@ NOISE_MIX = "episode"
 class CollectConfig:
     """Settings of Algorithm 1."""
 
-    sigma_max: float = 0.05
+    sigma_max: float = setting(0.05, ge=0)
     """Upper bound σ_max of the per-episode noise level σ ~ U(0, σ_max), rad."""
-    noise_ratio: tuple[float, float] = (9.0, 2.0)
+    noise_ratio: tuple[float, float] = setting((9.0, 2.0), ge=0, length=2)
     """Noisy episodes : clean episodes, as relative weights (the paper's best mix is 9:2)."""
-    passes: int = 10
+    passes: int = setting(10, ge=1, le=MAX_PASSES)
     """Passes over the reference set (the paper: 10 passes over 40 references = 176,720 steps)."""
-    seed: int = 0
-    """Seed of the noise generators."""
+    seed: int = setting(0, ge=0, le=MAX_SEED)
+    """Seed of the noise generators (in a run: the run's seed, :class:`~efficienttrack.workflow.config.RunConfig`)."""
 
     def __post_init__(self) -> None:
-        """Check the values (EfficientTrackError naming the field)."""
-        if not (np.isfinite(self.sigma_max) and self.sigma_max >= 0):
-            raise EfficientTrackError(f"collect.sigma_max: must be ≥ 0 rad, got {self.sigma_max}")
-        weights = self.noise_ratio
-        if len(weights) != 2 or not all(np.isfinite(w) and w >= 0 for w in weights) or sum(weights) == 0:
-            raise EfficientTrackError(f"collect.noise_ratio: needs two weights ≥ 0, not both 0, got {self.noise_ratio}")
-        if not isinstance(self.passes, int) or isinstance(self.passes, bool) or not 1 <= self.passes <= MAX_PASSES:
-            raise EfficientTrackError(f"collect.passes: must be an integer in [1, {MAX_PASSES}], got {self.passes!r}")
-        check_seed(self.seed, "collect.seed")
+        """Check the fields (:func:`~efficienttrack.core.settings.check_fields`) and that the mix has a weight > 0."""
+        check_fields(self)
+        if sum(self.noise_ratio) == 0:
+            raise EfficientTrackError(f"CollectConfig.noise_ratio: needs a weight > 0, got {self.noise_ratio}")
 
     @staticmethod
     def parse_noise_ratio(text: str, option: str = "--noise-ratio") -> tuple[float, float]:
@@ -131,7 +127,8 @@ def pass_counts(budget: int, steps_per_pass: int) -> list[int]:
         The pass counts p (≤ ``collect.MAX_PASSES``) with p · steps_per_pass ≤ budget, ascending; empty when not even
         one pass fits.
     """
-    counts, scale = [], 1
+    counts: list[int] = []
+    scale = 1
     while True:
         for p in (scale, 2 * scale, 5 * scale):
             if p > MAX_PASSES or p * steps_per_pass > budget:
@@ -333,7 +330,7 @@ def collect(
     names = [ref.name for ref in references]
     folder = Path(out) if out is not None else None
     if folder is not None:
-        steps = [len(ref.q) - 1 for ref in references]
+        steps = [ref.steps for ref in references]
         manifest = {"config": asdict(cfg), "noise_mix": NOISE_MIX, "references": names, "steps": steps}
         manifest = json.loads(json.dumps(manifest))  # tuples as lists, as read back
         claim_folder(folder / "collect.json", manifest, "this folder holds a collection with other settings or references")

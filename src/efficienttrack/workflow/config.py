@@ -1,27 +1,29 @@
-"""The settings of a whole run (collection, model, policy, seed, device) and its named presets.
+"""The settings of a whole run (collection, model, policy, seed, device) as one tree, and its named presets.
 
 ``RunConfig`` composes the component configs: :class:`~efficienttrack.workflow.collect.CollectConfig`,
-``ModelConfig`` (``efficienttrack.learn.dynamics``) and ``PolicyConfig`` (``efficienttrack.learn.policy``).
+``ModelConfig`` (``efficienttrack.learn.dynamics``) and ``PolicyConfig`` (``efficienttrack.learn.policy``). Every
+field states its bounds (:mod:`efficienttrack.core.settings`), checked the same way in Python, from a file and from
+``--set section.field=value``. ``RunConfig()`` is the ``cpu`` preset.
 Presets: ``paper`` (the paper's settings), ``cpu`` (a laptop-sized run), ``fastset`` (the paper's fastset: one
 collection pass, then three rounds, at the ``cpu`` sizes), ``tiny`` (seconds; tests).
-Configs are read from YAML (a safe loader that also reads ``1e-5`` as a number) or JSON and checked field by field against
-the dataclass types; unknown or mistyped fields are errors naming the file and the field.
+Configs are read from YAML (a safe loader that also reads ``1e-5`` as a number) or JSON; unknown or mistyped fields
+are errors naming the file and the field.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import json
-import math
-from dataclasses import asdict, dataclass, field, replace
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from efficienttrack.core.configfile import check_seed, config_from_dict, read_mapping_file
+from efficienttrack.core.configfile import MAX_SEED, read_mapping_file
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import atomic_write, write_json
+from efficienttrack.core.settings import check_fields, merge, parse_override, setting, settings_from_dict
 from efficienttrack.learn.dynamics import MODEL_PRESETS, ModelConfig
 from efficienttrack.learn.policy import POLICY_PRESETS, PolicyConfig
 from efficienttrack.workflow.collect import CollectConfig
@@ -30,49 +32,43 @@ MAX_ROUNDS = 100
 """Most continual-learning rounds a run may ask for (the paper: 3)."""
 ROUND_DATA = ("all", "new")
 """What a later round may train on: every episode so far, or only its own deployment pass."""
+DEVICES = ("auto", "cpu", "cuda")
+"""Torch devices a run may name: ``auto`` takes CUDA when present."""
 
 
 @dataclass(frozen=True)
 class RunConfig:
-    """Everything that decides the outcome of ``efficienttrack run``."""
+    """Everything that decides the outcome of ``efficienttrack run``: the settings tree (``efficienttrack config show``)."""
 
-    collect: CollectConfig = field(default_factory=CollectConfig)
+    collect: CollectConfig = setting(default_factory=CollectConfig)
     """Algorithm 1: noise level, noisy:clean mix, passes."""
-    model: ModelConfig = field(default_factory=ModelConfig)
+    model: ModelConfig = setting(default_factory=ModelConfig)
     """Closed-loop dynamics model g_θ and its training."""
-    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    policy: PolicyConfig = setting(default_factory=PolicyConfig)
     """Adjustment policy π_φ and its training."""
-    seed: int = 0
-    """Seed of model and policy training."""
-    device: str = "auto"
+    seed: int = setting(0, ge=0, le=MAX_SEED)
+    """The run's one seed: of the collection noise (``collect.seed`` follows it), of model and policy training."""
+    device: str = setting("auto", choices=DEVICES)
     """Torch device: ``auto`` (CUDA when available), ``cpu`` or ``cuda``."""
-    rounds: int = 1
+    rounds: int = setting(1, ge=1, le=MAX_ROUNDS)
     """Continual-learning rounds: round 1 is Algorithm 1; each later round deploys the previous policy on the
     training references (one pass, no noise) and trains model and policy on, starting from the previous ones."""
-    round_data: str = "all"
+    round_data: str = setting("all", choices=ROUND_DATA)
     """What a later round trains on: ``all`` (every episode recorded so far) or ``new`` (its own deployment
     pass only, as the paper does)."""
-    warm_budget: float = 0.5
+    warm_budget: float = setting(0.5, gt=0)
     """Optimizer steps (or epochs) of a later round's trainings, as a share of round 1's: they start from the
     previous round's networks and need fewer."""
-    time_budget: float | None = None
+    time_budget: float | None = setting(None, gt=0)
     """Minutes of wall time for the whole run, all rounds (``--time-budget``): every training's optimizer steps are
     scaled down by one factor, from step times measured on this machine when training starts
     (:mod:`efficienttrack.workflow.time_budget`); None: the configured steps."""
 
     def __post_init__(self) -> None:
-        """Validate the run-level fields (EfficientTrackError naming the field)."""
-        check_seed(self.seed, "RunConfig.seed")
-        if not isinstance(self.rounds, int) or isinstance(self.rounds, bool) or not 1 <= self.rounds <= MAX_ROUNDS:
-            raise EfficientTrackError(f"RunConfig.rounds must be an integer ≥ 1 and ≤ {MAX_ROUNDS}, got {self.rounds!r}")
-        if self.round_data not in ROUND_DATA:
-            raise EfficientTrackError(f"RunConfig.round_data must be one of {', '.join(ROUND_DATA)}, got {self.round_data!r}")
-        for name in ("warm_budget", "time_budget"):
-            budget = getattr(self, name)
-            if name == "time_budget" and budget is None:
-                continue
-            if not isinstance(budget, (int, float)) or isinstance(budget, bool) or not (math.isfinite(budget) and budget > 0):
-                raise EfficientTrackError(f"RunConfig.{name} must be a number > 0, got {budget!r}")
+        """Check the fields (EfficientTrackError naming the field); ``collect.seed`` takes the run's seed."""
+        check_fields(self)
+        if self.collect.seed != self.seed:
+            object.__setattr__(self, "collect", replace(self.collect, seed=self.seed))
 
     def to_dict(self) -> dict[str, Any]:
         """JSON/YAML-serializable form (tuples become lists); ``time_budget`` only when set.
@@ -106,11 +102,7 @@ PRESETS: dict[str, RunConfig] = {
         model=MODEL_PRESETS["paper"],
         policy=POLICY_PRESETS["paper"],
     ),
-    "cpu": RunConfig(
-        collect=CollectConfig(),
-        model=MODEL_PRESETS["cpu"],
-        policy=POLICY_PRESETS["cpu"],
-    ),
+    "cpu": RunConfig(),
     "fastset": RunConfig(
         collect=CollectConfig(passes=1),
         model=MODEL_PRESETS["cpu"],
@@ -144,41 +136,46 @@ def preset(name: str) -> RunConfig:
 
 
 def from_dict(data: Any, source: str = "config") -> RunConfig:
-    """Build a RunConfig from a plain mapping, every component validated field by field.
+    """Build a RunConfig from a plain mapping (:meth:`RunConfig.to_dict`'s form), every field checked.
 
     Args:
         data: ``{"collect": {...}, "model": {...}, "policy": {...}, "seed": int, "device": str, "rounds": int,
-            "round_data": str, "warm_budget": float, "time_budget": float or None}``; missing fields keep their defaults.
-        source: how to name the data in errors (the file).
+            "round_data": str, "warm_budget": float, "time_budget": float or None}``; missing fields keep their
+            defaults (the ``cpu`` preset). ``collect.seed``, when given, must equal ``seed``: it follows it.
+        source: how to name the data in errors (the file, the override).
 
     Returns:
         The config.
+
+    Raises:
+        EfficientTrackError: an unknown field, a wrong type or a value out of its bounds (naming ``source`` and the
+            field), or a ``collect.seed`` other than ``seed``.
     """
-    if not isinstance(data, dict):
-        raise EfficientTrackError(f"{source}: expected a mapping of fields, got {type(data).__name__}")
-    known = {f.name for f in dataclasses.fields(RunConfig)}
-    unknown = sorted(set(data) - known)
-    if unknown:
-        raise EfficientTrackError(f"{source}: unknown field(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
-    values: dict[str, Any] = {}
-    for name, cls in (("collect", CollectConfig), ("model", ModelConfig), ("policy", PolicyConfig)):
-        if name in data:
-            values[name] = config_from_dict(cls, data[name], f"{source}: {name}")
-    if "seed" in data:
-        if not isinstance(data["seed"], int) or isinstance(data["seed"], bool):
-            raise EfficientTrackError(f"{source}: field 'seed' must be an integer, got {data['seed']!r}")
-        values["seed"] = data["seed"]
-    if "device" in data:
-        if data["device"] not in ("auto", "cpu", "cuda"):
-            raise EfficientTrackError(f"{source}: field 'device' must be auto, cpu or cuda, got {data['device']!r}")
-        values["device"] = data["device"]
-    for name in ("rounds", "round_data", "warm_budget", "time_budget"):
-        if name in data:
-            values[name] = data[name]
-    try:
-        return RunConfig(**values)
-    except EfficientTrackError as exc:
-        raise EfficientTrackError(f"{source}: {exc}") from exc
+    cfg = settings_from_dict(RunConfig, data, source)
+    given = data.get("collect", {}).get("seed", cfg.seed) if isinstance(data.get("collect"), dict) else cfg.seed
+    if given != cfg.seed:
+        raise EfficientTrackError(
+            f"{source}: collect.seed is {given} but seed is {cfg.seed}: the collection noise follows the run's seed, "
+            "set seed alone"
+        )
+    return cfg
+
+
+def amend(cfg: RunConfig, changes: dict[str, Any], source: str) -> RunConfig:
+    """``cfg`` with the fields in ``changes`` replaced (a section's fields not named keep ``cfg``'s), checked.
+
+    Args:
+        cfg: the settings to start from.
+        changes: a nested mapping in :meth:`RunConfig.to_dict`'s form, e.g. ``{"model": {"history": 5}}``; a
+            ``provenance`` entry (a run's ``config.json`` has one) is ignored.
+        source: where the changes come from, named in errors.
+
+    Returns:
+        The new settings.
+    """
+    base = cfg.to_dict()
+    del base["collect"]["seed"]  # derived from seed: a change of seed alone must carry it along
+    return from_dict(merge(base, {name: value for name, value in changes.items() if name != "provenance"}), source)
 
 
 def load_config(path: str | Path, base: RunConfig | None = None) -> RunConfig:
@@ -197,51 +194,43 @@ def load_config(path: str | Path, base: RunConfig | None = None) -> RunConfig:
     """
     path = Path(path)
     data = read_mapping_file(path)
-    base = base or PRESETS["cpu"]
     if not isinstance(data, dict):
         raise EfficientTrackError(f"{path}: expected a mapping of fields")
-    merged = base.to_dict()
-    for name, value in data.items():
-        if name == "provenance":  # a run's config.json records where it came from: a fact, not a setting
-            continue
-        if isinstance(value, dict) and isinstance(merged.get(name), dict):
-            merged[name] = {**merged[name], **value}
-        else:
-            merged[name] = value
-    return from_dict(merged, str(path))
+    return amend(base or PRESETS["cpu"], data, str(path))
 
 
-def with_overrides(
-    cfg: RunConfig,
-    seed: int | None = None,
-    device: str | None = None,
-    rounds: int | None = None,
-    round_data: str | None = None,
-    time_budget: float | None = None,
-) -> RunConfig:
-    """``cfg`` with the command-line overrides applied.
+def apply_overrides(cfg: RunConfig, overrides: Sequence[str] | None) -> RunConfig:
+    """``cfg`` with ``--set section.field=value`` overrides applied in order, each checked as a file's field is.
 
     Args:
-        cfg: the config.
-        seed: new seed of training and of collection noise, or None to keep.
-        device: new device, or None to keep.
-        rounds: new number of rounds, or None to keep.
-        round_data: what later rounds train on (``all`` or ``new``), or None to keep.
-        time_budget: minutes for the whole run, or None to keep.
+        cfg: the settings.
+        overrides: e.g. ``["model.history=5", "seed=3", "collect.noise_ratio=[9, 2]"]``; values are read as YAML.
 
     Returns:
-        The new config.
+        The new settings.
+
+    Raises:
+        EfficientTrackError: a malformed override, an unknown field or a refused value (naming the override).
     """
-    changes: dict[str, Any] = {}
-    if seed is not None:
-        changes["seed"] = seed
-        changes["collect"] = replace(cfg.collect, seed=seed)
-    if device is not None:
-        changes["device"] = device
-    if rounds is not None:
-        changes["rounds"] = rounds
-    if round_data is not None:
-        changes["round_data"] = round_data
-    if time_budget is not None:
-        changes["time_budget"] = time_budget
-    return replace(cfg, **changes)
+    for text in overrides or ():
+        cfg = amend(cfg, parse_override(text), f"--set {text}")
+    return cfg
+
+
+def resolve_settings(
+    preset_name: str = "cpu", config: str | Path | None = None, overrides: Sequence[str] | None = None
+) -> RunConfig:
+    """The settings a command runs with: the preset, amended by the ``--config`` file, then by ``--set`` overrides.
+
+    Args:
+        preset_name: a name of :data:`PRESETS`.
+        config: a YAML/JSON file of fields to change, or None.
+        overrides: ``section.field=value`` strings, applied last.
+
+    Returns:
+        The settings.
+    """
+    cfg = preset(preset_name)
+    if config is not None:
+        cfg = load_config(config, cfg)
+    return apply_overrides(cfg, overrides)

@@ -31,15 +31,13 @@ from efficienttrack.core.fileio import write_json
 from efficienttrack.core.provenance import provenance
 from efficienttrack.data.metrics import compute_metrics
 from efficienttrack.data.records import EpisodeRecord
-from efficienttrack.learn.dynamics import ClosedLoopModel, ModelConfig, model_error, save_model, train_model
+from efficienttrack.learn.dynamics import MPE_STEPS, ClosedLoopModel, ModelConfig, model_error, save_model, train_model
 from efficienttrack.learn.nets import resolve_device
 from efficienttrack.learn.policy import AdjustmentPolicy, PolicyConfig, predicted_tracking_error, save_policy, train_policy
 from efficienttrack.learn.training import TrainingSchedule
 
 ConfigT = TypeVar("ConfigT", bound=TrainingSchedule)
 
-MPE_STEPS = 20
-"""Prediction horizon of the model errors a round reports (the paper's MPE)."""
 ROUND_JSON = "round.json"
 """The report a round writes into its folder (:meth:`RoundReport.to_json` with provenance and the inputs)."""
 ROUND_OUTPUTS = (
@@ -198,8 +196,11 @@ def next_round(
     if folder is not None:
         save_policy(new_policy, folder / "policy.pt", trained_policy.fingerprint)
 
-    def mpe(network: ClosedLoopModel, episodes: Sequence[EpisodeRecord]) -> float | None:
-        return model_error(network, episodes, MPE_STEPS, device).mpe_deg if episodes else None
+    def mpe(network: ClosedLoopModel, episodes: Sequence[EpisodeRecord]) -> float:
+        return model_error(network, episodes, MPE_STEPS, device).mpe_deg
+
+    def held_out_mpe(network: ClosedLoopModel) -> float | None:
+        return mpe(network, held_out) if held_out else None
 
     def predicted(pi: AdjustmentPolicy | None) -> float:
         return predicted_tracking_error(new_model, new_records, pi, policy_cfg.rollout_length, device).mae_deg
@@ -209,10 +210,10 @@ def next_round(
         old_episodes=len(old_records),
         model_steps=trained_model.steps,
         policy_steps=trained_policy.steps,
-        model_mpe_before_deg=mpe(model, new_records),
+        model_mpe_before_deg=mpe(model, new_records),  # new_records is not empty (checked above)
         model_mpe_after_deg=mpe(new_model, new_records),
-        held_out_mpe_before_deg=mpe(model, held_out),
-        held_out_mpe_after_deg=mpe(new_model, held_out),
+        held_out_mpe_before_deg=held_out_mpe(model),
+        held_out_mpe_after_deg=held_out_mpe(new_model),
         recorded_mae_deg=compute_metrics(new_records)["mae_deg"],
         predicted_pd_deg=predicted(None),
         predicted_before_deg=predicted(policy),

@@ -47,7 +47,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -62,7 +62,7 @@ from efficienttrack.core.provenance import claim_folder, provenance
 from efficienttrack.data.cycles import generate_references
 from efficienttrack.data.metrics import compute_metrics, interaction_hours, metrics_table, rounded
 from efficienttrack.data.records import EpisodeRecord
-from efficienttrack.data.references import Reference, save_references
+from efficienttrack.data.references import Reference, references_sha256, save_references
 from efficienttrack.deploy.runtime import check_references
 from efficienttrack.learn import dynamics, policy
 from efficienttrack.learn.nets import resolve_device
@@ -159,6 +159,24 @@ def fallback_share(records: Sequence[EpisodeRecord] | None) -> tuple[float | Non
     )
 
 
+def worse_than_pd(pd: dict[str, Any], efficienttrack: dict[str, Any] | None) -> str | None:
+    """A warning when the policy tracks worse than the PD controller alone (test MAE), else None.
+
+    Args:
+        pd: PD's metrics (:func:`~efficienttrack.data.metrics.compute_metrics`, ``mae_deg``).
+        efficienttrack: the policy's, or None without a policy.
+
+    Returns:
+        The warning, naming both errors and what to do, or None.
+    """
+    if efficienttrack is None or efficienttrack["mae_deg"] <= pd["mae_deg"]:
+        return None
+    return (
+        f"the policy tracks worse than PD alone ({efficienttrack['mae_deg']:.2f}° against {pd['mae_deg']:.2f}° MAE on the "
+        "test references): do not deploy it; train longer (the cpu preset, or run --time-budget MINUTES) or on more data"
+    )
+
+
 def _metrics(
     system: SystemSpec,
     refs: Sequence[Reference],
@@ -175,9 +193,13 @@ def _metrics(
 ) -> dict[str, Any]:
     """The one ``metrics.json`` schema of :func:`run_pipeline` and :func:`evaluate` (see their Returns)."""
     share, warning = fallback_share(et_records)
+    pd, efficienttrack = (
+        rounded(compute_metrics(pd_records)),
+        None if et_records is None else rounded(compute_metrics(et_records)),
+    )
     return {
-        "pd": rounded(compute_metrics(pd_records)),
-        "efficienttrack": None if et_records is None else rounded(compute_metrics(et_records)),
+        "pd": pd,
+        "efficienttrack": efficienttrack,
         "interaction_steps": interaction_steps,
         "interaction_hours": None if interaction_steps is None else round(interaction_hours(interaction_steps), 4),
         "train_seconds": train_seconds,
@@ -185,6 +207,7 @@ def _metrics(
         "fallbacks": None if et_records is None else sum(r.meta["fallbacks"] for r in et_records),
         "fallback_share": None if share is None else round(share, 4),
         "warning": warning,
+        "worse_than_pd": worse_than_pd(pd, efficienttrack),
         "references": [ref.name for ref in refs],
         "policy": policy_path,
         "system": system.to_dict(),
@@ -216,8 +239,9 @@ def _publish(
     plots.plot_tracking_error(runs, out / "plots" / "tracking_error.png")
     rows = {"PD": metrics["pd"]} if et_records is None else {"PD": metrics["pd"], method: metrics["efficienttrack"]}
     log.print(metrics_table(rows, title=f"{title} ({out})", training_steps={method: metrics["interaction_steps"]}))
-    if metrics["warning"] is not None:
-        log.print(f"[bold red]warning: {metrics['warning']}[/]")
+    for warning in (metrics["warning"], metrics["worse_than_pd"]):
+        if warning is not None:
+            log.print(f"[bold red]warning: {warning}[/]")
 
 
 def run_pipeline(
@@ -249,6 +273,7 @@ def run_pipeline(
         "interaction_steps" and "interaction_hours": training interactions of every round so far, "train_seconds",
         "model": {"tr_mpe_deg", "te_mpe_deg"}, "fallbacks": guard fallbacks, "fallback_share": their share of the
         policy's steps, "warning": None, or why the figures are not EfficientTrack's (:func:`fallback_share`),
+        "worse_than_pd": None, or a warning that the policy tracks worse than PD alone (:func:`worse_than_pd`),
         "references": test reference names, "policy": the policy checkpoint, "system", "config", "rounds": one entry per round
         (:func:`efficienttrack.workflow.rounds.round_summary`), "time_budget": None, or the budget's minutes, factors and step
         times (:meth:`~efficienttrack.workflow.time_budget.TimeBudget.summary`), "provenance"}``.
@@ -269,6 +294,7 @@ def run_pipeline(
         "system": system.to_dict(),
         "train_references": {ref.name: len(ref.q) for ref in train_refs},
         "test_references": {ref.name: len(ref.q) for ref in test_refs},
+        "references_sha256": references_sha256([*train_refs, *test_refs]),
     }
     device = resolve_device(cfg.device)
     claim_folder(
@@ -299,8 +325,8 @@ def run_pipeline(
         train_cfg = budget.first_round(collected.records, pd_records, device, pass_seconds, evaluation_seconds)
 
     # closed-loop dynamics model g_θ, then the adjustment policy π_φ trained through it
-    common = {"device": device, "seed": cfg.seed, "held_out": pd_records}
-    trainer = partial(dynamics.train_model, train_cfg.model, collected.records, **common)
+    common: dict[str, Any] = {"device": device, "seed": cfg.seed, "held_out": pd_records}
+    trainer: Callable[..., Any] = partial(dynamics.train_model, train_cfg.model, collected.records, **common)
     g_theta, model_facts = train_stage(stages, "model", out, log, trainer, dynamics.save_model, dynamics.load_model, device)
     if budget is not None:  # the policy's steps planned again, from how long the model's training really took
         train_cfg = budget.first_policy(model_facts["seconds"])

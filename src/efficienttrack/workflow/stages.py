@@ -11,7 +11,7 @@ import json
 import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import torch
 from rich.console import Console
@@ -28,6 +28,9 @@ LOGS = "logs"
 """Folder of the training logs in a run folder: ``logs/model``, ``logs/policy``."""
 LOG_WIDTH = 160
 """Characters per line of ``OUT/run.log`` (wide enough for the results table)."""
+
+NetworkT = TypeVar("NetworkT", bound=torch.nn.Module)
+"""The network a training stage trains, saves and loads (g_θ or π_φ)."""
 
 
 class Stages:
@@ -196,10 +199,10 @@ def train_stage(
     out: Path,
     log: RunLog,
     train: Callable[..., Any],
-    save: Callable[[torch.nn.Module, Path, str], Path],
-    load: Callable[[Path], torch.nn.Module],
+    save: Callable[[NetworkT, Path, str], Path],
+    load: Callable[[Path], NetworkT],
     device: torch.device,
-) -> tuple[torch.nn.Module, dict[str, Any]]:
+) -> tuple[NetworkT, dict[str, Any]]:
     """One resumable training stage: train (from ``OUT/checkpoints/<name>.ckpt``), save ``OUT/<name>.pt``, load it back.
 
     Args:

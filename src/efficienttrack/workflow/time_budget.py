@@ -19,7 +19,7 @@ import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, TypeVar
 
 import torch
 
@@ -29,6 +29,9 @@ from efficienttrack.learn import dynamics, policy
 from efficienttrack.learn.training import EVALUATIONS, TrainingSchedule
 from efficienttrack.workflow.config import RunConfig
 from efficienttrack.workflow.stages import RunLog, Stages
+
+ScheduleT = TypeVar("ScheduleT", bound=TrainingSchedule)
+"""A training's config: a :class:`~efficienttrack.learn.training.TrainingSchedule` (the model's or the policy's)."""
 
 PROBE_STEPS = (1, 4, 24)
 """Optimizer steps of the short trainings of each network: a warm-up (the process's first steps are slow), then two
@@ -66,7 +69,7 @@ class StepTimes(NamedTuple):
     policy_evaluation: float = 0.0
 
 
-def step_seconds(train: Callable[[TrainingSchedule], Any], cfg: TrainingSchedule) -> tuple[float, float, Any]:
+def step_seconds(train: Callable[[ScheduleT], Any], cfg: ScheduleT) -> tuple[float, float, Any]:
     """Seconds per optimizer step and per held-out evaluation of a training, from short runs of it.
 
     After a warm-up, runs of :data:`PROBE_STEPS` steps with one evaluation each give the step time (their difference:
@@ -106,7 +109,7 @@ def measure_step_times(
     """
     with tempfile.TemporaryDirectory() as folder:
         logs = (Path(folder) / str(i) for i in itertools.count())
-        common = {"device": device, "seed": cfg.seed, "progress": False, "held_out": held_out}
+        common: dict[str, Any] = {"device": device, "seed": cfg.seed, "progress": False, "held_out": held_out}
         model_s, model_eval, probe = step_seconds(
             lambda c: dynamics.train_model(c, records, log_dir=next(logs), **common), cfg.model
         )
@@ -335,6 +338,7 @@ class TimeBudget:
         return self.stages.finish(name, {"scale": scale, "slower_than_probed": slower, "seconds_for_training": available})
 
     def _seconds_left(self) -> float:
+        assert self.cfg.time_budget is not None  # checked in __init__
         return self.cfg.time_budget * 60 - (time.perf_counter() - self.started)
 
     def _scaled(self, scale: float) -> RunConfig:

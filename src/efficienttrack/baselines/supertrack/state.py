@@ -36,7 +36,7 @@ class Progress(NamedTuple):
         wall_seconds: the training wall time (evaluations excluded).
     """
 
-    count: int
+    count: int  # type: ignore[assignment]  # a field named like tuple.count, which it hides
     iteration: int
     buffer: list[EpisodeRecord]
     curve: list[dict[str, Any]]
@@ -108,5 +108,5 @@ def _record_state(record: EpisodeRecord) -> dict[str, Any]:
 
 
 def _record(saved: dict[str, Any]) -> EpisodeRecord:
-    arrays = {name: saved[name].numpy() if name in saved else None for name in ARRAYS}
+    arrays: dict[str, Any] = {name: saved[name].numpy() if name in saved else None for name in ARRAYS}
     return EpisodeRecord(**arrays, meta=json.loads(saved["meta"]))

@@ -64,7 +64,7 @@ def draw_references(refs: Sequence[Reference], steps: int, rng: np.random.Genera
     while total < steps:
         ref = refs[int(rng.integers(len(refs)))]
         drawn.append(ref)
-        total += len(ref) - 1
+        total += ref.steps
     return drawn
 
 
@@ -152,7 +152,7 @@ def train_supertrack(
                 drawn = draw_references(run.train_refs, min(settings.steps_per_iteration, run.budget - count), rng)
                 buffer = keep_recent(buffer + evaluate(policy_act(policy, loop, noise), drawn, loop, stepped),
                                      settings.buffer_steps)  # fmt: skip
-                count += sum(len(ref) - 1 for ref in drawn)
+                count += sum(ref.steps for ref in drawn)
                 # world model, then the policy through it, both warm-started from the last iteration
                 train_seed = seed + iteration
                 model = train_model(settings.model, buffer, settings.device, train_seed, progress=False, init=model,

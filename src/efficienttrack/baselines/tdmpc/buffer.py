@@ -36,7 +36,7 @@ class Sequences(NamedTuple):
     next_obs: np.ndarray
     action: np.ndarray
     reward: np.ndarray
-    index: np.ndarray
+    index: np.ndarray  # type: ignore[assignment]  # a field named like tuple.index, which it hides
     weight: np.ndarray
 
 

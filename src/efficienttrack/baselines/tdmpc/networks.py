@@ -9,6 +9,8 @@ controller alone in the closed loop, as every learner here starts. Every network
 
 from __future__ import annotations
 
+from typing import cast
+
 import torch
 from torch import nn
 
@@ -53,7 +55,7 @@ class TOLD(nn.Module):
                 nn.init.orthogonal_(module.weight)
                 nn.init.zeros_(module.bias)
         for last in (self.R[-1], self.Q1[-1], self.Q2[-1], self.pi_net[-1]):
-            nn.init.zeros_(last.weight)
+            nn.init.zeros_(cast(nn.Linear, last).weight)  # _mlp and _q end in a Linear
 
     def encode(self, obs: torch.Tensor) -> torch.Tensor:
         """The latent state z = h(o).

@@ -201,7 +201,8 @@ def _run(
     recorder: CurveRecorder,
     resume: Resume,
 ) -> TOLD:
-    obs_dim, action_dim = see(env.observation_space.sample()[None]).shape[1], env.action_space.shape[0]
+    # The action space is a Box, whose shape Gymnasium types as optional.
+    obs_dim, action_dim = see(env.observation_space.sample()[None]).shape[1], env.action_space.shape[0]  # type: ignore[index]
     rng = np.random.default_rng(seed)
     generator = torch.Generator(device=device).manual_seed(seed)
     with torch.random.fork_rng(devices=[]):

@@ -206,10 +206,10 @@ def steady_samples(
         saturation: (negative, positive) PWM magnitudes (4,) each at which the valves are fully open; commands
             beyond them count as held at full opening (a PD law at full speed wavers between 800 and 1000).
     """
-    delay = np.asarray(delay)
-    first = int(delay.max()) + hold
+    delays = np.asarray(delay)
+    first = int(delays.max()) + hold
     t = np.arange(first, len(data.q) - 1)
-    rows = t[None, :, None] - delay[None, None, :] - np.arange(hold)[:, None, None]  # (hold, len(t), 4)
+    rows = t[None, :, None] - delays[None, None, :] - np.arange(hold)[:, None, None]  # (hold, len(t), 4)
     lagged = data.u[rows, :, np.arange(N_JOINTS)].transpose(0, 1, 3, 2)  # (hold, len(t), N, 4)
     opening = lagged if saturation is None else np.clip(lagged, -np.asarray(saturation[0]), np.asarray(saturation[1]))
     held = (opening.max(axis=0) - opening.min(axis=0)) <= tol
@@ -367,7 +367,7 @@ def calibrate(
         delay_cost[d] = (window_residual(fits[d]) ** 2).mean(axis=0)
         report(f"delay {d}: rms window error (deg) {np.round(np.degrees(np.sqrt(delay_cost[d])), 3).tolist()}")
     # 2: each joint keeps its best delay (and the parameters fitted with it)
-    best = [min(cfg.delays, key=lambda d, j=j: delay_cost[d][j]) for j in range(N_JOINTS)]
+    best = [min(cfg.delays, key=lambda d: delay_cost[d][j]) for j in range(N_JOINTS)]
     merged: dict[str, Any] = {"delay": best}
     for name in JOINT_FIELDS:
         value = np.array(getattr(fits[best[0]], name), dtype=np.float64)

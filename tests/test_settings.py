@@ -1,0 +1,221 @@
+"""The settings tree: one validator however it is made, ``--set`` on every command that trains, ``config show``."""
+
+import dataclasses
+
+import pytest
+
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.settings import parse_override, settings_table
+from efficienttrack.learn import dynamics, policy
+from efficienttrack.learn.dynamics import MODEL_PRESETS, ClosedLoopModel, ModelConfig, save_model
+from efficienttrack.learn.policy import POLICY_PRESETS, AdjustmentPolicy, PolicyConfig, save_policy
+from efficienttrack.workflow import next_round, pipeline
+from efficienttrack.workflow.collect import CollectConfig
+from efficienttrack.workflow.config import PRESETS, RunConfig, apply_overrides, from_dict, load_config
+from test_cli import invoke, refused
+from test_dynamics import lag_records
+
+
+class Captured(Exception):
+    """Raised by a patched library function: carries the settings the command handed it."""
+
+
+def capture():
+    """A stand-in for a library function: raises :class:`Captured` with the arguments it was called with."""
+
+    def stand_in(*args, **kwargs):
+        raise Captured(args, kwargs)
+
+    return stand_in
+
+
+def captured(result):
+    assert isinstance(result.exception, Captured), result.output
+    return result.exception.args
+
+
+def test_the_library_defaults_are_the_cpu_preset():
+    assert RunConfig() == PRESETS["cpu"]
+    assert ModelConfig() == MODEL_PRESETS["cpu"] and PolicyConfig() == POLICY_PRESETS["cpu"]
+    assert RunConfig().model.history == 5
+
+
+@pytest.mark.parametrize(
+    ("make", "message"),
+    [
+        (lambda: RunConfig(device="gpu"), "RunConfig.device must be one of auto, cpu, cuda, got 'gpu'"),
+        (lambda: RunConfig(rounds=0), "RunConfig.rounds must be an integer in [1, 100], got 0"),
+        (lambda: ModelConfig(lr=1e300), "ModelConfig.lr must be a finite number in (0, 10], got 1e+300"),
+        (lambda: PolicyConfig(horizon=1), "PolicyConfig.horizon must be an integer in [2, 400], got 1"),
+        (lambda: CollectConfig(passes=True), "CollectConfig.passes must be an integer in [1, 1000], got True"),
+        (lambda: CollectConfig(noise_ratio=(0, 0)), "CollectConfig.noise_ratio: needs a weight > 0"),
+    ],
+)
+def test_python_refuses_what_a_file_refuses(make, message):
+    with pytest.raises(EfficientTrackError) as caught:
+        make()
+    assert str(caught.value) == message or message in str(caught.value)
+
+
+def test_a_value_given_in_python_is_converted_as_from_a_file():
+    cfg = PolicyConfig(max_adjust=[0.1, 0.2, 0.3, 0.4], lr=1)
+    assert cfg.max_adjust == (0.1, 0.2, 0.3, 0.4) and isinstance(cfg.lr, float)
+    assert cfg == PolicyConfig.from_dict({"max_adjust": [0.1, 0.2, 0.3, 0.4], "lr": 1})
+
+
+def test_the_device_a_file_gives_is_refused_as_in_python(tmp_path):
+    (tmp_path / "c.yaml").write_text("device: gpu\n")
+    with pytest.raises(EfficientTrackError, match=r"c.yaml: device must be one of auto, cpu, cuda, got 'gpu'"):
+        load_config(tmp_path / "c.yaml")
+
+
+def test_a_config_files_seed_governs_collection_and_training(tmp_path):
+    (tmp_path / "c.yaml").write_text("seed: 1\n")
+    cfg = load_config(tmp_path / "c.yaml", PRESETS["tiny"])
+    assert cfg.seed == 1 and cfg.collect.seed == 1
+    assert dataclasses.replace(cfg, seed=4).collect.seed == 4
+    (tmp_path / "both.yaml").write_text("seed: 1\ncollect:\n  seed: 1\n")
+    assert load_config(tmp_path / "both.yaml").collect.seed == 1
+    (tmp_path / "other.yaml").write_text("seed: 1\ncollect:\n  seed: 2\n")
+    with pytest.raises(EfficientTrackError, match="collect.seed is 2 but seed is 1"):
+        load_config(tmp_path / "other.yaml")
+
+
+def test_a_config_files_seed_reaches_the_collection_of_a_run(tmp_path, monkeypatch):
+    """End to end through `run`: the noise of the records is drawn with the file's seed, as the training is."""
+    from efficienttrack.data.references import save_references
+    from toy_system import sine_refs
+
+    monkeypatch.setattr(pipeline, "collect", capture())
+    save_references(sine_refs([40, 40]), tmp_path / "refs")
+    (tmp_path / "c.yaml").write_text("seed: 3\n")
+    args = ("run", "--train-refs", tmp_path / "refs", "--test-refs", tmp_path / "refs", "--out", tmp_path / "out")
+    result = invoke(*args, "--system", "toy_system:make", "--preset", "tiny", "--config", tmp_path / "c.yaml")
+    (_, _, collect_cfg, *_), _ = captured(result)
+    assert collect_cfg.seed == 3
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("model.history=5", {"model": {"history": 5}}),
+        ("model.history=null", {"model": {"history": None}}),
+        ("policy.lr=1e-4", {"policy": {"lr": 1e-4}}),
+        ("collect.noise_ratio=[9, 3]", {"collect": {"noise_ratio": [9, 3]}}),
+        ("device=cpu", {"device": "cpu"}),
+    ],
+)
+def test_an_override_is_read_as_yaml_at_its_path(text, expected):
+    assert parse_override(text) == expected
+
+
+def test_overrides_apply_in_order_and_are_checked_naming_the_override():
+    cfg = apply_overrides(PRESETS["tiny"], ["model.history=2", "model.history=3", "seed=7", "collect.noise_ratio=[9, 3]"])
+    assert cfg.model.history == 3 and cfg.seed == 7 and cfg.collect.seed == 7 and cfg.collect.noise_ratio == (9.0, 3.0)
+    assert cfg.policy == PRESETS["tiny"].policy
+    for text, message in [
+        ("model.histroy=3", "--set model.histroy=3: unknown ModelConfig field(s) model.histroy"),
+        ("model.history=0", "--set model.history=0: model.history must be an integer in [1, 400]"),
+        ("model=3", "--set model=3: model expected a mapping of ModelConfig fields"),
+        ("history", "--set 'history': expected section.field=value"),
+        ("model.lr=[1", "--set 'model.lr=[1': the value is not valid YAML"),
+    ]:
+        with pytest.raises(EfficientTrackError) as caught:
+            apply_overrides(PRESETS["tiny"], [text])
+        assert message in str(caught.value), str(caught.value)
+
+
+def test_the_tree_lists_every_leaf_with_its_bounds():
+    rows = {path: (value, bounds) for path, value, bounds in settings_table(RunConfig())}
+    assert rows["model.lr"] == (1e-3, "in (0, 10]")
+    assert rows["model.history"] == (5, "in [1, 400] or null")
+    assert rows["policy.max_adjust"][1] == "4 numbers, each > 0"
+    assert rows["device"] == ("auto", "one of auto, cpu, cuda")
+    assert (
+        len(rows)
+        == len(dataclasses.fields(CollectConfig))
+        + len(dataclasses.fields(ModelConfig))
+        + len(dataclasses.fields(PolicyConfig))
+        + len(dataclasses.fields(RunConfig))
+        - 3
+    )
+
+
+@pytest.mark.parametrize("name", list(PRESETS))
+def test_config_show_prints_a_file_that_config_reads_back(name, tmp_path):
+    result = invoke("config", "show", name, "--set", "model.hidden=17", "--set", "seed=5")
+    assert result.exit_code == 0, result.output
+    assert "  hidden: 17" in result.output and "# in (0, 10]" in result.output
+    (tmp_path / "shown.yaml").write_text(result.output)
+    expected = apply_overrides(PRESETS[name], ["model.hidden=17", "seed=5"])
+    assert load_config(tmp_path / "shown.yaml", PRESETS["cpu"]) == expected
+    assert from_dict(expected.to_dict()) == expected
+
+
+def test_config_show_refuses_an_unknown_preset():
+    refused(invoke("config", "show", "huge"), "--preset 'huge': unknown")
+
+
+@pytest.fixture
+def data(tmp_path):
+    from efficienttrack.data.records import save_records
+
+    save_records(lag_records(n=2, T=40), tmp_path / "data")
+    return tmp_path / "data"
+
+
+def test_set_reaches_train_model(data, tmp_path, monkeypatch):
+    monkeypatch.setattr(dynamics, "train_model", capture())
+    result = invoke("train-model", "--data", data, "--out", tmp_path / "m.pt", "--preset", "tiny", "--set", "model.hidden=9",
+                    "--set", "seed=4", "--set", "device=cpu")  # fmt: skip
+    (cfg, _, device, seed, *_), _ = captured(result)
+    assert cfg == dataclasses.replace(MODEL_PRESETS["tiny"], hidden=9) and (device, seed) == ("cpu", 4)
+
+
+def test_set_reaches_train_policy(data, tmp_path, monkeypatch):
+    save_model(ClosedLoopModel(MODEL_PRESETS["tiny"]), tmp_path / "m.pt")
+    monkeypatch.setattr(policy, "train_policy", capture())
+    (tmp_path / "c.yaml").write_text("policy:\n  k_smooth: 0.5\n")
+    args = ("train-policy", "--model", tmp_path / "m.pt", "--data", data, "--out", tmp_path / "p.pt", "--preset", "tiny")
+    result = invoke(*args, "--config", tmp_path / "c.yaml", "--set", "policy.gamma=0.9", "--seed", "2")
+    (cfg, _, _, device, seed, *_), _ = captured(result)
+    assert cfg == dataclasses.replace(POLICY_PRESETS["tiny"], k_smooth=0.5, gamma=0.9) and (device, seed) == ("auto", 2)
+
+
+def test_set_reaches_round(data, tmp_path, monkeypatch):
+    save_model(ClosedLoopModel(MODEL_PRESETS["tiny"]), tmp_path / "m.pt")
+    save_policy(AdjustmentPolicy(POLICY_PRESETS["tiny"]), tmp_path / "p.pt")
+    monkeypatch.setattr(next_round, "next_round", capture())
+    args = ("round", "--model", tmp_path / "m.pt", "--policy", tmp_path / "p.pt", "--data", data, "--out", tmp_path / "r")
+    result = invoke(*args, "--preset", "tiny", "--set", "model.steps=40", "--set", "warm_budget=0.5", "--set", "seed=6")
+    (_, _, _, _, model_schedule, policy_schedule, _, seed, *_), _ = captured(result)
+    assert model_schedule.steps == 20 and policy_schedule.steps == POLICY_PRESETS["tiny"].steps // 2 and seed == 6
+
+
+def test_set_reaches_run_and_demo(tmp_path, monkeypatch):
+    calls = []
+    monkeypatch.setattr(pipeline, "demo", lambda out, cfg, console, max_plots: calls.append(cfg))
+    result = invoke("demo", "--out", tmp_path / "d", "--preset", "tiny", "--set", "policy.k_smooth=0.25", "--rounds", "2")
+    assert result.exit_code == 0, result.output
+    assert calls == [dataclasses.replace(PRESETS["tiny"], policy=dataclasses.replace(PRESETS["tiny"].policy, k_smooth=0.25),
+                                         rounds=2)]  # fmt: skip
+    refused(invoke("demo", "--out", tmp_path / "e", "--set", "rounds=0"), "--set rounds=0: rounds must be an integer")
+
+
+@pytest.mark.parametrize("command", ["study", "ablate"])
+def test_set_reaches_study_and_ablate(command, tmp_path, monkeypatch):
+    import efficienttrack.study as study
+    from efficienttrack.data.references import save_references
+    from toy_system import sine_refs
+
+    name = "run_study" if command == "study" else "run_ablation"
+    monkeypatch.setattr(study, name, capture())
+    save_references(sine_refs([40, 40]), tmp_path / "refs")
+    args = [command, *(["history"] if command == "ablate" else []), "--out", tmp_path / "s", "--preset", "quick"]
+    refs = ("--train-refs", tmp_path / "refs", "--test-refs", tmp_path / "refs", "--system", "toy_system:make")
+    result = invoke(*args, *refs, "--set", "policy.k_smooth=0.25", "--seeds", "3")
+    positional, _ = captured(result)
+    study_arg, jobs = positional[:2] if command == "study" else positional[1:3]
+    assert study_arg.run_config.policy.k_smooth == 0.25
+    assert [(job.seed, job.run_config.seed, job.run_config.collect.seed) for job in jobs][:1] == [(3, 3, 3)]
+    assert all(job.run_config.policy.k_smooth == 0.25 for job in jobs)

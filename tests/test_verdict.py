@@ -1,0 +1,41 @@
+"""A policy worse than PD alone is called so: in metrics.json, in the run's log, and again when it is deployed."""
+
+import json
+
+import pytest
+
+from efficienttrack.deploy.deployment import recorded_verdict
+from efficienttrack.workflow.pipeline import worse_than_pd
+from test_loop import deploy_inputs, invoke  # noqa: F401  (the fixture)
+
+
+def test_worse_than_pd_compares_the_test_mae():
+    assert worse_than_pd({"mae_deg": 4.83}, None) is None
+    assert worse_than_pd({"mae_deg": 4.83}, {"mae_deg": 4.83}) is None
+    assert worse_than_pd({"mae_deg": 4.83}, {"mae_deg": 1.2}) is None
+    warning = worse_than_pd({"mae_deg": 4.83}, {"mae_deg": 5.77})
+    assert warning is not None and "(5.77° against 4.83° MAE on the test references): do not deploy it" in warning
+
+
+@pytest.mark.parametrize("inside", ["policy.pt", "rounds/2/policy.pt"])
+def test_the_run_that_tested_a_policy_gives_its_verdict(inside, tmp_path, monkeypatch):
+    run = tmp_path / "runs" / "tiny"
+    (run / inside).parent.mkdir(parents=True, exist_ok=True)
+    (run / inside).write_bytes(b"")
+    monkeypatch.chdir(tmp_path)  # the run wrote the policy's path as given, relative to where it ran
+    (run / "metrics.json").write_text(json.dumps({"policy": f"runs/tiny/{inside}", "worse_than_pd": "worse"}))
+    assert recorded_verdict(run / inside) == "worse"
+    (run / "metrics.json").write_text(json.dumps({"policy": f"runs/tiny/{inside}", "worse_than_pd": None}))
+    assert recorded_verdict(run / inside) is None
+    (run / "metrics.json").write_text(json.dumps({"policy": "runs/other/policy.pt", "worse_than_pd": "worse"}))
+    assert recorded_verdict(run / inside) is None  # another policy's verdict
+    (run / "metrics.json").write_text("{broken")
+    assert recorded_verdict(run / inside) is None and recorded_verdict(None) is None
+
+
+def test_deploy_warns_before_arming_a_policy_worse_than_pd(deploy_inputs, tmp_path):  # noqa: F811
+    refs, policy = deploy_inputs
+    (policy.parent / "metrics.json").write_text(json.dumps({"policy": str(policy), "worse_than_pd": "it tracks worse"}))
+    result = invoke("deploy", "--refs", refs, "--policy", policy, "--out", tmp_path / "o", "--fast", "--arm", "--shadow")
+    assert result.exit_code == 0, result.output
+    assert f"warning: {policy}: it tracks worse" in result.stderr
