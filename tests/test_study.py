@@ -20,7 +20,8 @@ from efficienttrack.envs.core import LOOPS
 from efficienttrack.study import METHODS, Job, Study, available_methods, make_jobs, make_study, report, run_study
 from efficienttrack.study.executors import process_pool
 from efficienttrack.study.methods import Method, point
-from efficienttrack.study.report import FIELDS, METRICS, log_mae_axis
+from efficienttrack.study.paper_table import is_paper_system, paper_row
+from efficienttrack.study.report import FIELDS, METRICS, log_mae_axis, markdown_table, summarize
 from efficienttrack.systems.spec import SystemSpec
 from efficienttrack.workflow.collect import pass_counts
 from efficienttrack.workflow.config import PRESETS
@@ -129,7 +130,9 @@ def test_study_writes_table_json_and_figure(finished):
         for field in FIELDS:
             assert math.isfinite(entry[field]) and entry[f"{field}_std"] is None  # one seed: no spread
         assert entry["episodes"] == 1 and len(entry["per_joint_mae_deg"]) == 4
-        assert entry["mae_deg"] == min(p["mae_deg"] for p in entry["curves"][0]["points"])
+        points = entry["curves"][0]["points"]
+        assert entry["mae_deg"] == max(points, key=lambda p: p["interaction_steps"])["mae_deg"]  # the final point
+        assert entry["best_mae_deg"] == min(p["mae_deg"] for p in points)
     assert et["mae_deg"] != pd["mae_deg"]
     # PPO (4 environments, the quick preset) is evaluated at 1, 2, 5, 10, 20, 50, 100 steps, as multiples of 4, and at 118
     assert [p["interaction_steps"] for p in ppo["curve"]] == [4, 8, 12, 20, 52, 100, 120]
@@ -192,6 +195,30 @@ def test_report_is_rebuilt_from_the_folders(finished, tmp_path):
     assert json.loads((out / "study.json").read_text()) == json.loads(json.dumps(rebuilt.entries))
     with pytest.raises(EfficientTrackError, match="no study here"):
         report(tmp_path / "nothing")
+
+
+def test_the_table_gives_the_final_point_and_the_best_on_test_apart_with_the_papers_rows():
+    def result(seed, maes):
+        points = [{"interaction_steps": 10 * i, "wall_seconds": i, "metrics": {**dict.fromkeys(METRICS, 1.0), "mae_deg": m,
+                   "per_joint_mae_deg": [m] * 4}} for i, m in enumerate(maes)]  # fmt: skip
+        return {"method": "efficienttrack", "loop": "closed", "seed": seed, "curve": points}
+
+    (entry,) = summarize([result(0, [3.0, 1.0, 2.0]), result(1, [3.0, 2.0, 4.0])])
+    assert entry["mae_deg"] == 3.0 and entry["interaction_steps"] == 20  # the last points: 2 and 4
+    assert entry["mae_deg_std"] == pytest.approx(np.std([2.0, 4.0], ddof=1))
+    assert entry["best_mae_deg"] == 1.5 and entry["best_interaction_steps"] == 10  # the lowest test MAEs: 1 and 2
+    assert [f["seed"] for f in entry["final"]] == [0, 1] and entry["per_joint_mae_deg"] == [3.0] * 4
+    plain = markdown_table([entry], {})
+    assert "final point" in plain and "| EfficientTrack | closed | 2 | 20 ± 0 |" in plain and "Table I" not in plain
+    assert "| 3.00 ± 1.41 |" in plain and plain.count("| 1.50 ± 0.71 | 10 ± 0 |") == 1
+    paper = markdown_table([entry], {}, paper=True)
+    published = "| *paper, Table I* | closed |  | *176,720* | *2.454* | *–* | *0.32* | *0.46* | *0.23* | *0.670* | *0.590* |"
+    assert published in paper
+    assert paper_row("pd", "open")["mae_deg"] == 2.73 and paper_row("ilc", "closed") is None
+    assert is_paper_system({"system": "paper", "plant": None, "pd": None, "options": {}})
+    assert is_paper_system({"system": None, "plant": "paper", "pd": "paper", "options": {}})
+    assert not is_paper_system({"system": "xe75", "plant": None, "pd": None, "options": {}})
+    assert not is_paper_system({"system": "paper", "plant": None, "pd": None, "options": {"seed": 1}})
 
 
 def test_the_figure_draws_mae_on_a_log_axis_only_when_the_curves_span_a_decade():

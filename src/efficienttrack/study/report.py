@@ -1,10 +1,14 @@
 """A study's report, rebuilt from its jobs' folders every time: table (Markdown, CSV), ``study.json`` and the figure.
 
-Each method and loop is reported at its best point, as the paper's Table I does ("when the model converges to the
-optimal value"): for each seed the point of its curve with the lowest test MAE, then the mean and the standard
-deviation over the seeds (sample standard deviation; null with one seed) of that point's interaction steps (I.S.),
-interaction time (I.T. = I.S. / 20 Hz, hours), the wall time to reach it and every metric of
-:func:`~efficienttrack.data.metrics.compute_metrics`.
+Each method and loop is reported at its final point: for each seed the last point of its curve, at the end of its
+budget, so that nothing is chosen by looking at the test references; then the mean and the standard deviation over
+the seeds (sample standard deviation; null with one seed) of that point's interaction steps (I.S.), interaction
+time (I.T. = I.S. / 20 Hz, hours), wall time and every metric of :func:`~efficienttrack.data.metrics.compute_metrics`.
+Beside it, the best point: the point with the lowest test MAE, as the paper's Table I reports ("when the model
+converges to the optimal value"); a choice made on the test set, so an optimistic figure, labelled so.
+
+A study on the paper's simulator (``--system paper``) prints the paper's Table I row under each of its rows
+(:mod:`efficienttrack.study.paper_table`).
 """
 
 from __future__ import annotations
@@ -26,13 +30,16 @@ from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import atomic_write, write_csv, write_json
 from efficienttrack.data.metrics import METRIC_KEYS, interaction_hours
 from efficienttrack.envs.core import LOOPS
-from efficienttrack.study.jobs import ERROR, JOBS, RESULT
+from efficienttrack.study.jobs import ERROR, JOBS, RESULT, STUDY_CONFIG
 from efficienttrack.study.methods import METHODS
+from efficienttrack.study.paper_table import is_paper_system, paper_row
 
 METRICS = METRIC_KEYS[2:-1]
 """Table I's metrics: MAE, RMSE, FMAE, 1st/2nd-order smoothness (°), ETD-MAE, ETD-FMAE (cm)."""
 FIELDS = ("interaction_steps", "interaction_hours", "wall_seconds", *METRICS)
-"""What the report gives as mean ± std over seeds, at each seed's best point."""
+"""What the report gives as mean ± std over seeds, at each seed's final point."""
+BEST_FIELDS = ("interaction_steps", "mae_deg")
+"""What it gives at each seed's best point too (``best_<field>``, ``best_<field>_std``)."""
 COLUMNS = {
     "interaction_steps": ("I.S.", ",.0f"),
     "interaction_hours": ("I.T. (h)", ".3f"),
@@ -162,7 +169,7 @@ def _mean_point(steps: int, maes: list[float]) -> dict[str, Any]:
 
 
 def summarize(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
-    """One entry per method and loop: the mean ± std over seeds of each seed's best point, and the curves.
+    """One entry per method and loop: the mean ± std over seeds of each seed's final and best points, and the curves.
 
     Args:
         results: the jobs' ``result.json`` contents.
@@ -170,8 +177,9 @@ def summarize(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     Returns:
         Entries ordered as :data:`~efficienttrack.study.methods.METHODS`, closed loop first: ``{"method", "loop",
         "seeds": [int], "interaction_steps", "interaction_hours", "wall_seconds", "mae_deg", "rmse_deg", "fmae_deg",
-        "smt1_deg", "smt2_deg", "etd_mae_cm", "etd_fmae_cm" (means) and each with ``_std``, "per_joint_mae_deg": [4],
-        "episodes", "steps": the test set, "best": [per seed: the best point], "curve": [the mean over seeds at each
+        "smt1_deg", "smt2_deg", "etd_mae_cm", "etd_fmae_cm" (means at the final points) and each with ``_std``,
+        "best_interaction_steps", "best_mae_deg" and their ``_std`` (at the best points), "per_joint_mae_deg": [4],
+        "episodes", "steps": the test set, "final", "best": [per seed: the point], "curve": [the mean over seeds at each
         interaction count: {"interaction_steps", "interaction_hours", "mae_deg", "mae_deg_std", "seeds"}],
         "curves": [{"seed", "points": [each point: interaction steps and hours, wall seconds, metrics]}]}``.
     """
@@ -182,13 +190,16 @@ def summarize(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     for (method, loop), group in sorted(groups.items(), key=lambda item: _order(item[0])):
         group = sorted(group, key=lambda r: r["seed"])
         curves = [{"seed": r["seed"], "points": [_flat(p) for p in r["curve"]]} for r in group]
+        final = [{"seed": c["seed"], **max(c["points"], key=lambda p: p["interaction_steps"])} for c in curves]
         best = [{"seed": c["seed"], **min(c["points"], key=lambda p: p["mae_deg"])} for c in curves]
         entry: dict[str, Any] = {"method": method, "loop": loop, "seeds": [c["seed"] for c in curves]}
         for field in FIELDS:
-            entry[field], entry[f"{field}_std"] = stats([b[field] for b in best if b[field] is not None])
-        entry["per_joint_mae_deg"] = np.mean([b["per_joint_mae_deg"] for b in best], axis=0).tolist()
-        entry["episodes"], entry["steps"] = best[0].get("episodes"), best[0].get("steps")
-        entry["best"] = best
+            entry[field], entry[f"{field}_std"] = stats([f[field] for f in final if f[field] is not None])
+        for field in BEST_FIELDS:
+            entry[f"best_{field}"], entry[f"best_{field}_std"] = stats([b[field] for b in best])
+        entry["per_joint_mae_deg"] = np.mean([f["per_joint_mae_deg"] for f in final], axis=0).tolist()
+        entry["episodes"], entry["steps"] = final[0].get("episodes"), final[0].get("steps")
+        entry["final"], entry["best"] = final, best
         by_steps: dict[int, list[float]] = {}
         for c in curves:
             for p in c["points"]:
@@ -215,19 +226,20 @@ def cell(mean: float | None, std: float | None, fmt: str) -> str:
     return f"{mean:{fmt}}" if std is None else f"{mean:{fmt}} ± {std:{fmt}}"
 
 
-def markdown_table(entries: Sequence[dict[str, Any]], failed: dict[str, str]) -> str:
+def markdown_table(entries: Sequence[dict[str, Any]], failed: dict[str, str], paper: bool = False) -> str:
     """The report as Markdown: one row per method and loop (mean ± std over seeds), and the failed jobs.
 
     Args:
         entries: :func:`summarize`'s entries.
         failed: job name → error.
+        paper: put the paper's Table I row under each row that has one (a study on the paper's simulator).
 
     Returns:
         The text of ``study.md``.
     """
-    headers = ["method", "loop", "seeds", *(COLUMNS[field][0] for field in FIELDS)]
+    headers = ["method", "loop", "seeds", *(COLUMNS[field][0] for field in FIELDS), "best MAE (°)", "I.S. at best"]
     lines = [
-        "# Study: each method at its best point (lowest test MAE), mean ± std over seeds",
+        "# Study: each method at its final point (the end of its budget), mean ± std over seeds",
         "",
         "| " + " | ".join(headers) + " |",
         "|" + "|".join("---" if i < 2 else "---:" for i in range(len(headers))) + "|",
@@ -235,12 +247,22 @@ def markdown_table(entries: Sequence[dict[str, Any]], failed: dict[str, str]) ->
     for e in entries:
         cells = [_label(e["method"]), e["loop"], str(len(e["seeds"]))]
         cells += [cell(e[field], e[f"{field}_std"], COLUMNS[field][1]) for field in FIELDS]
+        cells += [cell(e["best_mae_deg"], e["best_mae_deg_std"], ".2f")]
+        cells += [cell(e["best_interaction_steps"], e["best_interaction_steps_std"], ",.0f")]
         lines.append("| " + " | ".join(cells) + " |")
+        published = paper_row(e["method"], e["loop"]) if paper else None
+        if published is not None:
+            values = ["–" if published.get(field) is None else f"{published[field]:{COLUMNS[field][1]}}" for field in FIELDS]
+            lines.append("| " + " | ".join(["*paper, Table I*", e["loop"], "", *(f"*{v}*" for v in values), "", ""]) + " |")
     if not entries:
         lines.append("")
         lines.append("No job has finished yet.")
-    lines += ["", "I.S.: training interaction steps; I.T.: I.S. at 20 Hz in hours; wall: time to the best point; "
-              "metrics on the held-out test references."]  # fmt: skip
+    lines += ["", "I.S.: training interaction steps; I.T.: I.S. at 20 Hz in hours; wall: time to the final point; "
+              "metrics on the held-out test references. Best MAE: each seed's lowest test MAE along its curve and "
+              "where it was reached, the paper's selection: chosen on the test set, an optimistic figure."]  # fmt: skip
+    if paper:
+        lines += ["", "*paper, Table I*: the published figures on the paper's simulator (Zou et al. 2025), each method "
+                  "at its best point; I.S. of PPO summed over its 16 workers."]  # fmt: skip
     if failed:
         lines += ["", "## Failed jobs", "", *(f"- `{name}`: {error}" for name, error in sorted(failed.items()))]
     return "\n".join(lines) + "\n"
@@ -301,7 +323,7 @@ def plot_study(entries: Sequence[dict[str, Any]], path: str | Path) -> Path:
         ax.set_ylim(bottom=0)
     ax.set_xlabel("interaction time (h, at 20 Hz)")
     ax.set_ylabel("test MAE (°, log)" if log_mae else "test MAE (°)")
-    ax.set_title("MAE against interaction time (★ the best point)")
+    ax.set_title("MAE against interaction time (★ the lowest test MAE)")
     ax.grid(alpha=0.3, which="both")
     if entries:
         ax.legend(fontsize=8)
@@ -309,6 +331,16 @@ def plot_study(entries: Sequence[dict[str, Any]], path: str | Path) -> Path:
         return atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100))
     finally:
         plt.close(fig)
+
+
+def _study_system(out: Path) -> dict[str, Any]:
+    """The system a study folder ran on, from its ``study_config.json`` (empty when the file is missing or unreadable)."""
+    try:
+        identity = json.loads((out / STUDY_CONFIG).read_text())
+    except (OSError, ValueError):
+        return {}
+    system = identity.get("system") if isinstance(identity, dict) else None
+    return system if isinstance(system, dict) else {}
 
 
 def report(out: str | Path) -> Report:
@@ -326,8 +358,9 @@ def report(out: str | Path) -> Report:
     out = Path(out)
     results, failed = read_jobs(out)
     entries = summarize(results)
-    markdown = markdown_table(entries, failed)
-    header = ["method", "loop", "seeds", *(name for field in FIELDS for name in (field, f"{field}_std"))]
+    markdown = markdown_table(entries, failed, is_paper_system(_study_system(out)))
+    fields = (*FIELDS, *(f"best_{field}" for field in BEST_FIELDS))
+    header = ["method", "loop", "seeds", *(name for field in fields for name in (field, f"{field}_std"))]
     rows = ([e["method"], e["loop"], " ".join(map(str, e["seeds"])), *(e[name] for name in header[3:])] for e in entries)
     paths = (
         write_json(out / "study.json", entries),
