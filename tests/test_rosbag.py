@@ -21,6 +21,9 @@ String = TYPES.types["std_msgs/msg/String"]
 Header = TYPES.types["std_msgs/msg/Header"]
 Time = TYPES.types["builtin_interfaces/msg/Time"]
 Layout = TYPES.types["std_msgs/msg/MultiArrayLayout"]
+JointTrajectory = TYPES.types["trajectory_msgs/msg/JointTrajectory"]
+JointTrajectoryPoint = TYPES.types["trajectory_msgs/msg/JointTrajectoryPoint"]
+Duration = TYPES.types["builtin_interfaces/msg/Duration"]
 
 T0 = 100.0
 """The log's first stamp, s."""
@@ -45,6 +48,41 @@ def joint_state(stamp, q, qd, names=NAMES, joints=JOINTS):
 
 def array(values):
     return Float64MultiArray(Layout([], 0), np.asarray(values, dtype=np.float64))
+
+
+def trajectory(stamp, points, names=NAMES, joints=JOINTS):
+    """A JointTrajectory stamped ``stamp`` s (0: "start now") with one point per (4,) ``points`` row (boom, arm, bucket,
+    swing rad, the joints named ``joints``) placed in ``names`` (any other joint at 9.0), 0.05 s apart from 0.05 s."""
+    pick = [joints.index(n) if n in joints else None for n in names]
+    sec = int(np.floor(stamp))
+    return JointTrajectory(
+        Header(Time(sec, round((stamp - sec) * 1e9)), ""),
+        list(names),
+        [
+            JointTrajectoryPoint(
+                np.array([9.0 if i is None else q[i] for i in pick]),
+                np.zeros(len(names)),
+                np.array([]),
+                np.array([]),
+                Duration(0, (j + 1) * 50_000_000),
+            )
+            for j, q in enumerate(points)
+        ],
+    )
+
+
+def trajectories(header_delay=None, later_points=0, **names):
+    """references() as JointTrajectory messages: one point each, plus ``later_points`` points at 7.0 rad (ignored, or
+    they would be refused as beyond ±2π).
+
+    ``header_delay`` None leaves ``header.stamp`` at zero; else the header is stamped with the array's receive time and
+    the message received ``header_delay`` s later."""
+    messages = []
+    for received, msg in references():
+        points = [msg.data, *[np.full(4, 7.0)] * later_points]
+        stamp = 0.0 if header_delay is None else received
+        messages.append((received + (header_delay or 0.0), trajectory(stamp, points, **names)))
+    return messages
 
 
 def write_bag(path, topics):
@@ -211,3 +249,100 @@ def test_not_a_bag(tmp_path):
     (tmp_path / "damaged" / "metadata.yaml").write_text("rosbag2_bagfile_information: [")
     with pytest.raises(EfficientTrackError, match="damaged: not a readable rosbag2 log"):
         read_rosbag(tmp_path / "damaged", "/cmd")
+
+
+def same_record(record, expected):
+    for field in ("q", "qd", "q_ref", "q_des", "t"):
+        np.testing.assert_array_equal(getattr(record, field), getattr(expected, field), err_msg=field)
+
+
+def test_a_joint_trajectory_reference_reads_as_the_equivalent_float_array(bag, tmp_path):
+    expected = read_rosbag(bag, "/cmd")
+    # header.stamp zero ("start now"): stamped at the receive time, as the Float64MultiArray; one point, the reference
+    zero = write_bag(tmp_path / "zero", {"/joint_states": states(), "/cmd": trajectories()})
+    record = read_rosbag(zero, "/cmd")
+    same_record(record, expected)
+    assert record.meta["joint_trajectory"]["multi_point_messages"] == {"/cmd": 0}
+    assert "joint_trajectory" not in expected.meta
+    # stamped by header.stamp, received 20 ms later, with two later points: the first point at the header's stamp
+    late = write_bag(tmp_path / "late", {"/joint_states": states(), "/cmd": trajectories(0.02, later_points=2)})
+    record = read_rosbag(late, "/cmd")
+    same_record(record, expected)
+    assert record.meta["joint_trajectory"]["multi_point_messages"] == {"/cmd": 40}
+    assert "later points are ignored" in record.meta["joint_trajectory"]["rule"]
+    # --clock bag: the receive time, as the Float64MultiArray received as late
+    shifted = [(received + 0.02, msg) for received, msg in references()]
+    array_late = write_bag(tmp_path / "array_late", {"/joint_states": states(), "/cmd": shifted})
+    same_record(read_rosbag(late, "/cmd", clock="bag"), read_rosbag(array_late, "/cmd", clock="bag"))
+    # the desired topic takes the type too
+    desired = write_bag(tmp_path / "desired", {"/joint_states": states(), "/cmd": references(), "/des": trajectories()})
+    np.testing.assert_array_equal(read_rosbag(desired, "/cmd", "/des").q_des, expected.q_ref)
+
+
+def test_import_rosbag_maps_joint_trajectory_names(bag, tmp_path):
+    names = {
+        "names": ["j_swing", "j_boom", "gripper", "j_arm", "j_bucket"],
+        "joints": ("j_boom", "j_arm", "j_bucket", "j_swing"),
+    }
+    topics = {"/joint_states": states(**names), "/arm_controller/joint_trajectory": trajectories(**names)}
+    path = write_bag(tmp_path / "jtc", topics)  # the joint states and the commands name the joints alike, in any order
+    out = tmp_path / "records"
+    joints = ["--joint", "boom=j_boom", "--joint", "arm=j_arm", "--joint", "bucket=j_bucket", "--joint", "swing=j_swing"]
+    args = ["import-rosbag", str(path), "--reference", "/arm_controller/joint_trajectory", "--out", str(out), *joints]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    (loaded,) = load_records(out)
+    same_record(loaded, read_rosbag(bag, "/cmd"))
+    assert loaded.meta["joint_trajectory"]["multi_point_messages"] == {"/arm_controller/joint_trajectory": 0}
+
+
+def test_bad_joint_trajectories_are_refused_in_one_line(tmp_path):
+    def spoiled(msg, index=3):
+        messages = trajectories()
+        messages[index] = (messages[index][0], msg)
+        return messages
+
+    short = trajectory(0.0, [np.zeros(4)])
+    short.points[0].positions = np.zeros(3)
+    slew = {
+        "names": ["slew", "boom_joint", "arm_joint", "bucket_joint"],
+        "joints": ("boom_joint", "arm_joint", "bucket_joint", "slew"),
+    }
+    cases = {  # name: (reference messages, joint states' names, read_rosbag options, message)
+        "empty_points": (
+            spoiled(JointTrajectory(Header(Time(0, 0), ""), list(NAMES), [])),
+            {},
+            {},
+            "topic /cmd, message 3: field 'points' is empty; a JointTrajectory reference needs a point",
+        ),
+        "unmapped": (
+            trajectories(),
+            slew,
+            {"joints": ["swing=slew"]},
+            "topic /cmd, message 0: field 'joint_names' has no joint slew for the swing \\(names: extra_joint, swing_joint, "
+            ".*\\); map it with --joint swing=ROS_NAME",
+        ),
+        "partial": (
+            spoiled(trajectory(0.0, [np.zeros(4)], names=NAMES[:4])),
+            {},
+            {},
+            "topic /cmd, message 3: field 'joint_names' has no joint arm or arm_joint for the arm",
+        ),
+        "short_point": (
+            spoiled(short, 5),
+            {},
+            {},
+            "topic /cmd, message 5: field 'points\\[0\\].positions' holds 3 values for 5 joint names",
+        ),
+        "degrees": (
+            [(r, trajectory(0.0, [np.rad2deg(m.data) + 30])) for r, m in references()],
+            {},
+            {},
+            "topic /cmd: field 'points\\[0\\].positions' reaches 52.3 at the boom, beyond ±2π rad: degrees\\?",
+        ),
+    }
+    for name, (messages, names, options, expected) in cases.items():
+        path = write_bag(tmp_path / name, {"/joint_states": states(**names), "/cmd": messages})
+        with pytest.raises(EfficientTrackError, match=expected) as caught:
+            read_rosbag(path, "/cmd", **options)
+        assert str(path) in str(caught.value) and "\n" not in str(caught.value), name

@@ -199,7 +199,10 @@ def import_rosbag_command(
     bags: Annotated[list[Path], typer.Argument(help="rosbag2 folders (metadata.yaml + .db3/.mcap), one episode each.")],
     out: Annotated[Path, typer.Option("--out", help="Destination folder; episodes are named after the bag folders.")],
     reference: Annotated[
-        str, typer.Option("--reference", help="Topic of the references sent (Float64MultiArray or JointState) → q_ref.")
+        str,
+        typer.Option(
+            "--reference", help="Topic of the references sent (Float64MultiArray, JointState or JointTrajectory) → q_ref."
+        ),
     ],
     desired: Annotated[
         str | None, typer.Option("--desired", help="Topic of the desired positions → q_des (default: q_des = q_ref).")
@@ -208,9 +211,9 @@ def import_rosbag_command(
     joint: Annotated[
         list[str] | None, typer.Option("--joint", help="JOINT=ROS_NAME, e.g. boom=boom_joint (repeatable; see docs/ros2.md).")
     ] = None,
-    clock: Annotated[str, typer.Option("--clock", help="JointState stamps: header (header.stamp) or bag (receive time).")] = (
-        "header"
-    ),
+    clock: Annotated[
+        str, typer.Option("--clock", help="JointState/JointTrajectory stamps: header (header.stamp) or bag (receive time).")
+    ] = "header",
     max_gap: Annotated[float, typer.Option("--max-gap", help="Longest gap between two messages of a topic, s.")] = 0.25,
     fmt: Annotated[str, typer.Option("--format", help="Output format: npz or csv.")] = "npz",
     force: Annotated[

@@ -8,10 +8,19 @@ and a third when given:
   a joint named ``boom`` or ``boom_joint`` is the boom, and so on); other joints in the message are ignored;
 - the reference sent to the machine's position controller → ``q_ref``, either ``std_msgs/msg/Float64MultiArray``
   (``data``: the 4 positions in the order boom, arm, bucket, swing, as ros2_control's position controllers take
-  them; stamped with the bag's receive time, the message has no header) or ``sensor_msgs/msg/JointState``
-  (``position`` by name, through the same joint map);
-- optionally the desired positions q* → ``q_des`` (same two types); without it the reference is the desired
+  them; stamped with the bag's receive time, the message has no header), ``sensor_msgs/msg/JointState``
+  (``position`` by name, through the same joint map) or ``trajectory_msgs/msg/JointTrajectory`` (the command of
+  ros2_control's joint_trajectory_controller: ``points[0].positions`` by ``joint_names``, through the same joint map);
+- optionally the desired positions q* → ``q_des`` (same three types); without it the reference is the desired
   position (``q_des = q_ref``: a log of the controller alone, as the PD logs are).
+
+A JointTrajectory becomes one reference sample: its first point, the first target the controller moves towards (the
+controller requires the points' ``time_from_start`` to increase, so it is also the earliest), stamped at the
+message's ``header.stamp``, the trajectory's start, or at its receive time where that stamp is zero ("start now",
+as the controller reads it) or with ``clock="bag"``. ``time_from_start`` is not added to the stamp, and later points
+are ignored: a streamed command holds one point; of a multi-point trajectory only the first target is recorded (the
+record's ``meta["joint_trajectory"]`` says so and counts such messages per topic). A message without points, with a
+first point whose ``positions`` do not match ``joint_names``, or without a mapped joint is refused.
 
 Resampling: the grid is ``t_k = t_0 + k·dt`` over the time all topics cover. The joint states are interpolated
 linearly at ``t_k`` (the swing through its wrap at ±π). A reference is a command the controller holds until the
@@ -23,8 +32,8 @@ are :mod:`efficienttrack.data.tabular`'s, shared with the import of CSV and Parq
 Stamps: ``header.stamp`` of the joint states with ``clock="header"`` (the default; the time the sensor was read), or
 the bag's receive time of every message with ``clock="bag"`` (for drivers that leave the stamp at zero, or when the
 topics' clocks differ). Bad logs are refused with the bag, topic and field named: a missing topic or one of another
-type, joint names the map does not find, too few messages, stamps that do not increase, gaps longer than
-``max_gap``, topics that do not overlap in time.
+type, joint names the map does not find, a JointTrajectory without points, too few messages, stamps that do not
+increase, gaps longer than ``max_gap``, topics that do not overlap in time.
 """
 
 from __future__ import annotations
@@ -49,8 +58,17 @@ JOINT_STATE = "sensor_msgs/msg/JointState"
 """The joint states' message type (and one of the reference's)."""
 FLOAT_ARRAY = "std_msgs/msg/Float64MultiArray"
 """The other type a reference may have: 4 positions in joint order, no names, no header."""
-REFERENCE_TYPES = (FLOAT_ARRAY, JOINT_STATE)
+JOINT_TRAJECTORY = "trajectory_msgs/msg/JointTrajectory"
+"""joint_trajectory_controller's command type: the first point's positions by joint name are the reference."""
+REFERENCE_TYPES = (FLOAT_ARRAY, JOINT_STATE, JOINT_TRAJECTORY)
 """Message types a reference or desired-position topic may have."""
+FIELDS = {FLOAT_ARRAY: "data", JOINT_STATE: "position", JOINT_TRAJECTORY: "points[0].positions"}
+"""The field the positions come from, per message type."""
+TRAJECTORY_RULE = (
+    "points[0] of each JointTrajectory is the reference, stamped at header.stamp (receive time where zero or with "
+    "--clock bag); time_from_start is not added and later points are ignored"
+)
+"""How a JointTrajectory becomes a reference sample, as the record's meta says it."""
 JOINT_STATES_TOPIC = "/joint_states"
 """The joint states' topic by default (the ROS convention)."""
 CLOCKS = ("header", "bag")
@@ -91,8 +109,9 @@ def joint_map(pairs: Sequence[str] | Mapping[str, str] | None) -> dict[str, tupl
 class _Topic:
     """One topic's messages: (M,) stamps s, (M, 4) positions rad in joint order, (M, 4) velocities rad/s or None.
 
-    ``kind`` is the message type; ``stamped_by`` names where the stamps come from (``header.stamp`` or ``receive
-    time``), and ``field`` the field the positions come from, for messages.
+    ``kind`` is the message type; ``stamped_by`` names where the stamps come from (``header.stamp``, ``receive time``,
+    or for a JointTrajectory both, per message), and ``field`` the field the positions come from, for messages;
+    ``multi_point`` counts the JointTrajectory messages with more than one point (0 for the other types).
     """
 
     def __init__(
@@ -102,9 +121,10 @@ class _Topic:
         velocities: list[np.ndarray] | None,
         kind: str,
         stamped_by: str,
+        multi_point: int = 0,
     ) -> None:
-        self.kind, self.stamped_by = kind, stamped_by
-        self.field = "data" if kind == FLOAT_ARRAY else "position"
+        self.kind, self.stamped_by, self.multi_point = kind, stamped_by, multi_point
+        self.field = FIELDS[kind]
         self.stamps = np.asarray(stamps, dtype=np.float64)
         self.positions = np.asarray(positions, dtype=np.float64).reshape(-1, N_JOINTS)
         self.velocities = None if velocities is None else np.asarray(velocities, dtype=np.float64).reshape(-1, N_JOINTS)
@@ -128,12 +148,14 @@ def read_rosbag(
         joint_states: the ``sensor_msgs/msg/JointState`` topic → ``q``, ``qd``.
         joints: the joint map, ``joint=ros_name`` pairs or a mapping (:func:`joint_map`); None for the defaults.
         clock: ``"header"`` (the joint states' ``header.stamp``) or ``"bag"`` (receive times) for every message of a
-            JointState topic; a Float64MultiArray topic is always stamped with its receive time.
+            JointState or JointTrajectory topic (a JointTrajectory whose ``header.stamp`` is zero takes its receive
+            time with either); a Float64MultiArray topic is always stamped with its receive time.
         max_gap: the longest gap between two messages of a topic, s.
 
     Returns:
         The validated record: q, qd, q_ref, q_des (T, 4), u None, t (T,) s from the grid's start; ``meta`` names the
-        bag, its topics and the grid's start stamp. Its name is the bag folder's.
+        bag, its topics and the grid's start stamp, and, when a topic is a JointTrajectory, the point rule and the
+        count of multi-point messages per topic (``joint_trajectory``). Its name is the bag folder's.
 
     Raises:
         EfficientTrackError: naming the bag, and the topic and field where one is at fault.
@@ -190,6 +212,9 @@ def read_rosbag(
         "start_stamp": start,
         "joints": {joint: list(ros_names) for joint, ros_names in names.items()},
     }
+    trajectories = {wanted[role]: t.multi_point for role, t in topics.items() if t.kind == JOINT_TRAJECTORY}
+    if trajectories:
+        meta["joint_trajectory"] = {"rule": TRAJECTORY_RULE, "multi_point_messages": trajectories}
     record = EpisodeRecord(q=q, qd=qd, q_ref=q_ref, q_des=q_des, u=None, t=grid - start, meta=meta)
     return record.validate(f"{bag} (rosbag2)")
 
@@ -209,6 +234,7 @@ def _read_topic(reader: AnyReader, bag: Path, topic: str, role: str, names: dict
     positions: list[np.ndarray] = []
     velocities: list[np.ndarray] | None = [] if role == "joint_states" else None
     columns: dict[tuple[str, ...], list[int]] = {}  # the joints' indices, per list of names seen
+    header_stamps = multi_point = 0  # JointTrajectory: messages stamped by their header, with more than one point
     for index, (connection, received, raw) in enumerate(reader.messages(connections=connections)):
         msg: Any = reader.deserialize(raw, connection.msgtype)  # a message class the bag's type store builds
         where = f"{bag}: topic {topic}, message {index}"
@@ -220,6 +246,30 @@ def _read_topic(reader: AnyReader, bag: Path, topic: str, role: str, names: dict
                 )
             stamps.append(received * 1e-9)
             positions.append(data)
+            continue
+        if kind == JOINT_TRAJECTORY:
+            key = tuple(msg.joint_names)
+            if not msg.points:
+                raise EfficientTrackError(
+                    f"{where}: field 'points' is empty; a JointTrajectory reference needs a point (its first is the reference)"
+                )
+            if key not in columns:
+                columns[key] = _columns(key, names, where, "joint_names")
+            position = np.asarray(msg.points[0].positions, dtype=np.float64)
+            if position.shape != (len(key),):
+                raise EfficientTrackError(
+                    f"{where}: field 'points[0].positions' holds {position.size} values for {len(key)} joint names"
+                )
+            positions.append(position[columns[key]])
+            multi_point += len(msg.points) > 1
+            stamp = msg.header.stamp
+            if clock == "header" and (
+                stamp.sec or stamp.nanosec
+            ):  # in ns first, as a receive time: the same instant, the same s
+                stamps.append((stamp.sec * 1_000_000_000 + stamp.nanosec) * 1e-9)
+                header_stamps += 1
+            else:  # a zero stamp means "start now": the controller takes the time it received the message
+                stamps.append(received * 1e-9)
             continue
         key = tuple(msg.name)
         if key not in columns:
@@ -242,17 +292,19 @@ def _read_topic(reader: AnyReader, bag: Path, topic: str, role: str, names: dict
     if len(stamps) < 2:
         raise EfficientTrackError(f"{bag}: topic {topic} has {len(stamps)} message(s); at least 2 are needed")
     stamped_by = "header.stamp" if kind == JOINT_STATE and clock == "header" else "receive time"
-    return _Topic(stamps, positions, velocities, kind, stamped_by)
+    if kind == JOINT_TRAJECTORY and header_stamps:
+        stamped_by = "header.stamp" if header_stamps == len(stamps) else "header.stamp (receive time where zero)"
+    return _Topic(stamps, positions, velocities, kind, stamped_by, multi_point)
 
 
-def _columns(key: tuple[str, ...], names: dict[str, tuple[str, ...]], where: str) -> list[int]:
-    """Indices of boom, arm, bucket, swing in a JointState's ``name`` list."""
+def _columns(key: tuple[str, ...], names: dict[str, tuple[str, ...]], where: str, field: str = "name") -> list[int]:
+    """Indices of boom, arm, bucket, swing in a JointState's ``name`` (or a JointTrajectory's ``joint_names``) list."""
     cols = []
     for joint, ros_names in names.items():
         found = [key.index(n) for n in ros_names if n in key]
         if not found:
             raise EfficientTrackError(
-                f"{where}: field 'name' has no joint {' or '.join(ros_names) or 'left'} for the {joint} (names: "
+                f"{where}: field '{field}' has no joint {' or '.join(ros_names) or 'left'} for the {joint} (names: "
                 f"{', '.join(key) or 'none'}); map it with --joint {joint}=ROS_NAME"
             )
         cols.append(found[0])
@@ -267,7 +319,7 @@ def _check_stamps(topic: _Topic, bag: Path, name: str, max_gap: float) -> None:
         hint = "; with stamps left at zero or reset, read the receive times with --clock bag"
         raise EfficientTrackError(
             f"{bag}: topic {name}: field {topic.stamped_by} does not increase at message {k} ({stamps[k - 1]:.9f} s, then "
-            f"{stamps[k]:.9f} s)" + (hint if topic.stamped_by == "header.stamp" else "")
+            f"{stamps[k]:.9f} s)" + (hint if topic.stamped_by.startswith("header.stamp") else "")
         )
     if np.any(steps > max_gap):
         k = int(np.argmax(steps > max_gap)) + 1
