@@ -109,6 +109,23 @@ def test_onnx_runtime_runs_the_same_guarded_step(logged, exported):
     assert not onnx_rt.running
 
 
+def test_both_runtimes_fall_back_after_dropped_samples_and_start_afresh(logged, exported):
+    onnx_rt, torch_rt = OnnxRuntime(load_onnx_policy(exported), limits=LIMITS), Runtime(logged[0], limits=LIMITS)
+    q_des = np.full((1, 3, 4), 0.1)
+    sent = {}
+    for name, rt in (("onnx", onnx_rt), ("torch", torch_rt)):
+        rt.start(np.zeros((1, 8)), t=0.0)
+        rt.step(np.zeros((1, 8)), q_des, t=DT)
+        moved = np.zeros((1, 8))
+        moved[0, 0] = 0.2
+        sent[name] = [rt.step(moved, q_des, t=7 * DT), rt.step(moved, q_des, t=8 * DT)]  # 5 periods without a call
+    for a, b in zip(sent["onnx"], sent["torch"], strict=True):
+        np.testing.assert_allclose(a.q_ref, b.q_ref, atol=1e-5)
+        np.testing.assert_array_equal(a.guard, b.guard)
+    assert sent["onnx"][0].guard[0] == Guard.OBS_STALE and not sent["onnx"][1].fallback[0]
+    np.testing.assert_array_equal(onnx_rt._history.obs, torch_rt._history.obs)
+
+
 BLOCK_TORCH = """
 import importlib.abc, sys
 

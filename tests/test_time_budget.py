@@ -2,6 +2,7 @@
 
 import io
 import json
+import time
 from dataclasses import replace
 from types import SimpleNamespace
 
@@ -11,14 +12,23 @@ from typer.testing import CliRunner
 
 from efficienttrack.cli import app
 from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.learn import dynamics, policy
 from efficienttrack.learn.dynamics import ModelConfig
 from efficienttrack.learn.policy import PolicyConfig
 from efficienttrack.learn.training import read_scalars
-from efficienttrack.workflow import time_budget
+from efficienttrack.workflow import pipeline, time_budget
 from efficienttrack.workflow.config import RunConfig, from_dict
 from efficienttrack.workflow.pipeline import run_pipeline
 from efficienttrack.workflow.stages import RunLog, Stages
-from efficienttrack.workflow.time_budget import LAST_PLAN_MARGIN, RESERVE, StepTimes, TimeBudget, budget_scale, step_seconds
+from efficienttrack.workflow.time_budget import (
+    LAST_PLAN_MARGIN,
+    RESERVE,
+    StepTimes,
+    TimeBudget,
+    budget_scale,
+    read_spent,
+    step_seconds,
+)
 from toy_system import TOY, TOY_CFG, toy_split
 
 CFG = RunConfig(model=ModelConfig(steps=100), policy=PolicyConfig(steps=50), rounds=3, warm_budget=0.5, time_budget=10)
@@ -184,3 +194,154 @@ def test_the_cli_option_sets_the_budget_and_refuses_a_bad_one(tmp_path):
 def test_a_config_without_a_budget_serializes_as_before_the_field_existed():
     assert "time_budget" not in TOY_CFG.to_dict()  # folders made before it still match their settings and resume
     assert from_dict(CFG.to_dict()) == CFG and from_dict(TOY_CFG.to_dict()) == TOY_CFG
+
+
+def _run_clock(monkeypatch):
+    """One fake clock for the pipeline and the budget: a run's wall time moves only when a test says so."""
+    clock = Clock()
+    fake = SimpleNamespace(perf_counter=clock.perf_counter)
+    monkeypatch.setattr(time_budget, "time", fake)
+    monkeypatch.setattr(pipeline, "time", fake)
+    return clock
+
+
+def _stage(folder, name):
+    return json.loads((folder / "stages" / f"{name}.json").read_text())
+
+
+def test_a_run_killed_in_its_model_training_and_rerun_ends_within_its_minutes(tmp_path, monkeypatch):
+    clock = _run_clock(monkeypatch)
+    monkeypatch.setattr(time_budget, "measure_step_times", lambda *args: StepTimes(1.0, 2.0, 500))  # 300 + 600 s a round
+    cfg = replace(TOY_CFG, time_budget=2, rounds=1)  # 120 s; collection and PD take no time on this clock
+    train_model = dynamics.train_model
+
+    def killed(*args, **kwargs):
+        clock.now += 30  # 30 s into the model's training, the run is killed
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(dynamics, "train_model", killed)
+    with pytest.raises(KeyboardInterrupt):
+        run_pipeline(TOY, *toy_split(), tmp_path, cfg, max_plots=0)
+    first = _stage(tmp_path, "time_budget")
+    assert first["scale"] == pytest.approx(120 * (1 - RESERVE) / 900)  # the model's training: 38 s of steps
+    assert read_spent(tmp_path / "stages" / "time_budget_spent.json")[0] == pytest.approx(30)
+
+    def resumed(*args, **kwargs):  # the rerun trains the rest: 8 s, so the training took the 38 s planned
+        clock.now += 8
+        return train_model(*args, **kwargs)
+
+    def policy_training(policy_cfg, *args, **kwargs):  # takes its steps at the probes' step time, then the test ends
+        clock.now += policy_cfg.steps * 2.0
+        raise KeyboardInterrupt
+
+    def measured_again(*args):
+        raise AssertionError("the rerun measured the step times again")
+
+    monkeypatch.setattr(dynamics, "train_model", resumed)
+    monkeypatch.setattr(policy, "train_policy", policy_training)
+    monkeypatch.setattr(time_budget, "measure_step_times", measured_again)
+    with pytest.raises(KeyboardInterrupt):
+        run_pipeline(TOY, *toy_split(), tmp_path, cfg, max_plots=0)
+    assert _stage(tmp_path, "time_budget") == first  # round 1's plan is kept: its model trained those steps
+    plan = _stage(tmp_path, "time_budget_policy")
+    # the model's training took 30 s before the kill and 8 s after it, as planned; 120 − 38 s are left, not 120 − 8
+    assert plan["slower_than_probed"] == pytest.approx(1)
+    assert plan["seconds_for_training"] == pytest.approx((120 - 38) * (1 - RESERVE))
+    assert plan["scale"] == pytest.approx(plan["seconds_for_training"] / (600 * (1 + LAST_PLAN_MARGIN)))
+    assert clock.now <= 120  # both invocations together: the run ends within its 2 minutes
+
+
+def test_a_rerun_plans_with_what_the_collection_and_the_evaluation_took_before_the_kill(tmp_path, monkeypatch):
+    clock = _run_clock(monkeypatch)
+    monkeypatch.setattr(time_budget, "measure_step_times", lambda *args: StepTimes(1.0, 2.0, 500))
+    cfg = replace(TOY_CFG, time_budget=3, rounds=2)  # 180 s
+    collect, evaluate_stage, kills = pipeline.collect, pipeline.evaluate_stage, [KeyboardInterrupt]
+
+    def collecting(*args, **kwargs):  # 6 passes of 5 s; the rerun finds them recorded
+        if not (tmp_path / "stages" / "collect.json").exists():
+            clock.now += 30
+        return collect(*args, **kwargs)
+
+    def evaluating(stages, name, *args, **kwargs):  # 4 s into the PD evaluation the run is killed; the rerun takes 4 s more
+        clock.now += 4
+        if kills:
+            raise kills.pop()
+        return evaluate_stage(stages, name, *args, **kwargs)
+
+    def stop(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pipeline, "collect", collecting)
+    monkeypatch.setattr(pipeline, "evaluate_stage", evaluating)
+    monkeypatch.setattr(dynamics, "train_model", stop)  # the test ends after round 1's plan
+    for _ in range(2):
+        with pytest.raises(KeyboardInterrupt):
+            run_pipeline(TOY, *toy_split(), tmp_path, cfg, max_plots=0)
+    plan = _stage(tmp_path, "time_budget")
+    # planned at 38 s: two evaluations of 8 s (4 s before the kill, 4 s after) and a deployment pass of 5 s to come
+    assert plan["other_seconds"] == pytest.approx(2 * 8 + 5)
+    assert plan["scale"] == pytest.approx(((180 - 38) * (1 - RESERVE) - 21) / plan["unscaled_training_seconds"])
+
+
+def _budget(folder, clock, cfg=CFG):
+    return TimeBudget(cfg, Stages(folder), RunLog(folder, Console(file=io.StringIO())), clock.perf_counter())
+
+
+def test_a_killed_run_loses_at_most_a_heartbeat_of_its_time(tmp_path, monkeypatch):
+    clock = _run_clock(monkeypatch)
+    monkeypatch.setattr(time_budget, "HEARTBEAT", 0.005)
+    path = tmp_path / "stages" / "time_budget_spent.json"
+    with _budget(tmp_path, clock).counting():
+        assert read_spent(path) == (0.0, 1, False, {})  # written as it starts
+        clock.now = 42.0
+        deadline = time.monotonic() + 5
+        while read_spent(path)[0] != 42.0:  # the heartbeat writes it, with nothing else happening in the run
+            assert time.monotonic() < deadline, "no heartbeat"
+            time.sleep(0.002)
+        rerun = _budget(tmp_path, clock)  # as after a SIGKILL here: nothing more is written before the rerun
+        assert rerun.seconds_spent() == 42.0 and rerun.invocation == 2
+        clock.now = 50.0
+        assert rerun.seconds_spent() == 50.0
+
+
+def test_work_that_a_kill_split_took_the_runs_time_from_its_start_else_what_was_measured(tmp_path, monkeypatch):
+    clock = _run_clock(monkeypatch)
+    first = _budget(tmp_path, clock)
+    with pytest.raises(KeyboardInterrupt), first.counting():
+        first.begin("collect")
+        clock.now = 10.0
+        assert first.took("collect", 9.5) == 9.5  # within one invocation: what the caller measured
+        first.begin("round_1_model")
+        clock.now = 40.0  # killed 30 s into the training (Ctrl-C: the time is written on the way out)
+        raise KeyboardInterrupt
+    second = _budget(tmp_path, clock)
+    with second.counting():
+        clock.now = 41.0  # the restart
+        second.begin("collect")  # found done: kept as it was
+        second.begin("round_1_model")
+        assert second.took("collect", 0.0) == 9.5
+        clock.now = 61.0  # the resumed training reports its own 20 s
+        assert second.took("round_1_model", 20.0) == pytest.approx(40 + 1 + 20 - 10)
+        assert second.took("round_1_policy", 3.0) == 3.0  # never begun (a folder older than the record): as measured
+    assert read_spent(tmp_path / "stages" / "time_budget_spent.json")[:3] == (61.0, 2, False)
+    assert _budget(tmp_path, clock).took("round_1_model", 1.0) == pytest.approx(51)  # kept for a later rerun
+
+
+def test_a_rerun_that_adds_rounds_to_a_finished_run_counts_its_own_minutes(tmp_path, monkeypatch):
+    clock = _run_clock(monkeypatch)
+    budget = _budget(tmp_path, clock)
+    with budget.counting():
+        clock.now = 500.0
+        budget.finish()
+    assert budget.summary()["seconds_spent"] == 500.0
+    assert _budget(tmp_path, clock).seconds_spent() == 0.0
+
+
+def test_an_unreadable_record_of_the_time_spent_is_refused_naming_it(tmp_path, monkeypatch):
+    clock = _run_clock(monkeypatch)
+    path = tmp_path / "stages" / "time_budget_spent.json"
+    path.parent.mkdir()
+    for text in ("{", '{"spent_seconds": -1, "invocations": 1, "finished": false, "work": {}}', "[]"):
+        path.write_text(text)
+        with pytest.raises(EfficientTrackError, match=r"time_budget_spent.json: the time budget's record .* --force$"):
+            _budget(tmp_path, clock)

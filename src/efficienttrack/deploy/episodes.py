@@ -50,7 +50,8 @@ class Guard(enum.IntFlag):
     OBS_JUMP = 32
     """The position moved more than ``max_speed · dt`` since the last observation (a sensor fault, dropped samples)."""
     OBS_STALE = 64
-    """The observation repeated bit for bit for ``stale_steps`` steps."""
+    """The observation repeated bit for bit for ``stale_steps`` steps, or (``Runtime.step`` given times) arrived after a
+    gap of dropped samples longer than ``max_gap`` periods."""
     DESIRED_OUTSIDE = 128
     """A desired position the policy sees was outside the joint limits or not finite."""
     RATE_LIMITED = 256

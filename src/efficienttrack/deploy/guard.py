@@ -9,17 +9,30 @@ The guard owns its limits (:class:`~efficienttrack.systems.limits.GuardLimits`, 
 file, never from the policy file, whose ``max_adjust`` can only tighten the bound). Every step, per machine:
 
 1. a non-finite observation, one that jumped farther than ``max_speed · dt``, one repeated bit for bit for
-   ``stale_steps`` steps, or a desired position the policy sees outside the joint limits: fall back;
+   ``stale_steps`` steps, one that comes more than ``max_gap`` periods after the last (dropped samples, see below), or a
+   desired position the policy sees outside the joint limits: fall back;
 2. a policy that raises, returns a shape other than (N, 4), a non-finite value or |a| beyond the bound: fall back;
 3. the adjustment's change from the last step is limited to ``max_adjust_rate``;
 4. the reference sent is clamped into the joint limits.
 
 Falling back sends the raw desired position (a = 0). Each intervention sets a :class:`~efficienttrack.deploy.episodes.Guard`
 bit in :attr:`Sent.guard`, and records keep them per step (``meta["guard"]``).
+
+Time: without time stamps every ``step`` is one control period ``dt`` after the one before, as
+:func:`~efficienttrack.deploy.runtime.track` and the fixed-rate loop of :mod:`efficienttrack.deploy.loop` call it (the
+loop watches the time itself: a dropped sample is a step with a non-finite observation, and missed periods are overruns
+it counts, holds on and stops at). A caller that may skip periods passes ``t``, the observation's
+time in seconds on a monotonic clock, to ``start`` and ``step``: the jump check then allows ``max_speed`` times the
+real time since the last observation, and an observation more than ``max_gap`` periods (:data:`MAX_GAP`) after the last
+falls back (:attr:`~efficienttrack.deploy.episodes.Guard.OBS_STALE`: the samples between were dropped) and starts the
+histories afresh from it, as ``start`` does: the histories hold one entry per period, and the policy must not see the
+jump over the gap as one period's motion. The adjustment comes back from 0 at ``max_adjust_rate``. A period between two
+calls without both stamps counts as one.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from typing import Any, Self
 
@@ -34,6 +47,9 @@ from efficienttrack.systems.limits import DEFAULT_LIMITS, GuardLimits
 
 GUARD_TOLERANCE = 1e-6
 """Slack (rad) on the adjustment bound before the guard intervenes (float32 round-off)."""
+MAX_GAP = 2.0
+"""Control periods between two time-stamped observations beyond which samples were dropped: the step falls back and
+the histories start afresh (the fixed-rate loop's ``stale_ticks``: one call late by less than a period is not a gap)."""
 
 PolicyCall = Callable[[np.ndarray, np.ndarray, np.ndarray], Any]
 """A policy as the guard calls it: ``(obs_hist (N, h, 8), qref_hist (N, h, 4), q_des_future (N, F, 4))``, float64
@@ -58,7 +74,9 @@ class GuardedRuntime:
         policy_max_adjust: (4,) rad, the bound the policy file states, or None; it only tightens ``limits.max_adjust``.
         limits: the machine's limits (a system's ``limits``, or :meth:`GuardLimits.load`), always given: None is the
             explicit choice of :data:`DEFAULT_LIMITS` (±2π, no joint limits), never a forgotten argument.
-        dt: control period, s (for the observation jump check).
+        dt: control period, s (for the observation jump check, and the period a call without ``t`` stands for).
+        max_gap: periods between two time-stamped observations beyond which the step falls back and the histories
+            start afresh (> 1; see the module docstring).
     """
 
     def __init__(
@@ -68,8 +86,13 @@ class GuardedRuntime:
         policy_max_adjust: Sequence[float] | None,
         limits: GuardLimits | None,
         dt: float = DT,
+        max_gap: float = MAX_GAP,
     ) -> None:
+        if not (isinstance(max_gap, int | float) and math.isfinite(max_gap) and max_gap > 1):
+            raise EfficientTrackError(f"runtime: max_gap must be a number of control periods > 1, got {max_gap!r}")
         self._policy_call = act
+        self.dt, self.max_gap = float(dt), float(max_gap)
+        """The control period, s, and the gap in periods beyond which samples count as dropped."""
         self.history_length, self.future_length = (int(n) for n in lengths)
         """h, F: lengths of the histories kept and of the desired positions ``step`` needs (policy's, or 1 without)."""
         self.limits = DEFAULT_LIMITS if limits is None else limits
@@ -87,6 +110,7 @@ class GuardedRuntime:
         self._history: History | None = None
         self._a_prev = np.zeros((0, 4))
         self._repeats = np.zeros(0, dtype=np.int64)
+        self._t_last: float | None = None  # the last observation's time stamp, s, when it had one
 
     def __enter__(self) -> Self:
         """Enter the context (``start`` is still called with the first observation)."""
@@ -101,17 +125,19 @@ class GuardedRuntime:
         """True between ``start`` and ``stop``."""
         return self._history is not None
 
-    def start(self, obs0: np.ndarray) -> None:
+    def start(self, obs0: np.ndarray, t: float | None = None) -> None:
         """Begin an episode for N machines: histories filled with ``o_0`` and ``q^r_0 = q_0``, counters zeroed.
 
         Args:
             obs0: (N, 8) [rad, rad/s], the measured start observations (finite: there is nothing to fall back on yet).
+            t: s on a monotonic clock, when ``obs0`` was measured, or None (see ``step``).
         """
         obs0 = np.asarray(obs0, dtype=np.float64)
         if obs0.ndim != 2 or obs0.shape[1] != 8:
             raise EfficientTrackError(f"runtime: start expects obs0 of shape (N, 8), got {obs0.shape}")
         if not np.all(np.isfinite(obs0)):
             raise EfficientTrackError("runtime: non-finite start observation; nothing was sent")
+        self._t_last = None if t is None else _checked_time(t, "start")
         n = len(obs0)
         self._history = initial_history(obs0, self.history_length)
         self.fallbacks = np.zeros(n, dtype=np.int64)
@@ -120,18 +146,29 @@ class GuardedRuntime:
         self._a_prev = np.zeros((n, 4))
         self._repeats = np.zeros(n, dtype=np.int64)
 
-    def step(self, obs: np.ndarray, q_des_future: np.ndarray) -> Sent:
+    def step(self, obs: np.ndarray, q_des_future: np.ndarray, t: float | None = None) -> Sent:
         """One control period: the reference to send for step t+1.
+
+        Without ``t`` the call stands for one control period after the last (``start`` or ``step``). With ``t`` (and a
+        stamp on the last call) the guard uses the real time since the last observation: the jump check allows
+        ``max_speed`` times it, and more than ``max_gap`` periods (dropped samples) fall back
+        (``Guard.OBS_STALE``) and start the histories afresh from ``obs``, as ``start`` does.
 
         Args:
             obs: (N, 8) [rad, rad/s], the observation ``o_t`` just measured (a non-finite one falls back).
             q_des_future: (N, F', 4) rad, desired positions ``q*_{t+1} … q*_{t+F'}``, F' ≥ ``future_length``
                 (padded with the last desired position past the end of the reference). Only ``[:, 0]`` is
                 used when there is no policy; it must be finite (there is nothing else to send).
+            t: s on a monotonic clock (``time.monotonic()``), when ``obs`` was measured, later than the last call's;
+                None: one period after the last call.
 
         Returns:
             The reference sent (N, 4) rad, the adjustment as sent, the per-machine fallback flags and
             :class:`~efficienttrack.deploy.episodes.Guard` bits.
+
+        Raises:
+            EfficientTrackError: called before ``start``, inputs of the wrong shape, a non-finite ``q*_{t+1}``, or a
+                ``t`` not finite or not after the last call's; nothing was sent.
         """
         if self._history is None:
             raise EfficientTrackError("runtime: step called before start (or after stop)")
@@ -152,9 +189,13 @@ class GuardedRuntime:
             raise EfficientTrackError(
                 f"runtime: non-finite desired position q*_(t+1) for machine(s) {machines}; nothing was sent"
             )
-        guard = self._check_inputs(obs, q_des_future[:, : max(F, 1)])
+        periods = self._periods(t)
+        guard = self._check_inputs(obs, q_des_future[:, : max(F, 1)], periods)
+        gap = periods > self.max_gap  # samples were dropped: a = 0, and the histories start afresh
+        guard |= _bits(np.full(n, gap), Guard.OBS_STALE)
         obs = np.where(guard[:, None] & Guard.OBS_NONFINITE, self._history.obs[:, -1], obs)  # keep the last good one
-        history = push_observation(self._history, obs)
+        history = initial_history(obs, self.history_length) if gap else self._history
+        history = push_observation(history, obs)
         a = np.zeros((n, 4))
         if self._policy_call is not None:
             a, policy_guard = self._act(history, np.where(np.isfinite(q_des_future[:, :F]), q_des_future[:, :F], 0.0))
@@ -173,6 +214,7 @@ class GuardedRuntime:
         a[:, SWING] = np.where(clamped, wrap(a[:, SWING]), a[:, SWING])  # a swing clamped after wrapping
         self._history = push_reference(history, q_ref)
         self._a_prev = a
+        self._t_last = t
         self.fallbacks += fallback
         for flag in Guard:
             self.counts[str(flag.name).lower()] += (guard & flag.value) != 0
@@ -202,15 +244,32 @@ class GuardedRuntime:
         """End the episode (the counters stay readable)."""
         self._history = None
 
-    def _check_inputs(self, obs: np.ndarray, q_des_seen: np.ndarray) -> np.ndarray:
-        """(N,) uint16 Guard bits of the inputs: non-finite, jumping or stale observations, desired positions outside."""
+    def _periods(self, t: float | None) -> float:
+        """Control periods since the last observation: by the stamps of both, else 1 (checked, not kept)."""
+        if t is None:
+            return 1.0
+        t = _checked_time(t, "step")
+        if self._t_last is None:
+            return 1.0
+        if t <= self._t_last:
+            raise EfficientTrackError(
+                f"runtime: step at t = {t} s, not after the last call's {self._t_last} s; t must come from a monotonic "
+                "clock; nothing was sent"
+            )
+        return (t - self._t_last) / self.dt
+
+    def _check_inputs(self, obs: np.ndarray, q_des_seen: np.ndarray, periods: float = 1.0) -> np.ndarray:
+        """(N,) uint16 Guard bits of the inputs: non-finite, jumping or stale observations, desired positions outside.
+
+        ``periods``: control periods since the last observation (the jump check allows ``max_speed`` for that long).
+        """
         assert self._history is not None  # step checks that the runtime was started
         last = self._history.obs[:, -1]
         finite = np.all(np.isfinite(obs), axis=1)
         with np.errstate(invalid="ignore"):
             move = np.abs(obs[:, :4] - last[:, :4])
             move[:, SWING] = np.abs(wrap(move[:, SWING]))
-            jump = finite & np.any(move > self._max_move, axis=1)
+            jump = finite & np.any(move > self._max_move * periods, axis=1)
         self._repeats = np.where(np.all(obs == last, axis=1), self._repeats + 1, 0)
         stale = np.zeros(len(obs), dtype=bool) if self.limits.stale_steps is None else self._repeats >= self.limits.stale_steps
         outside = np.any(self.limits.outside(q_des_seen), axis=(1, 2))
@@ -237,6 +296,13 @@ class GuardedRuntime:
             beyond = ~nonfinite & np.any(np.abs(a) > self.max_adjust + GUARD_TOLERANCE, axis=1)
         guard = _bits(nonfinite, Guard.POLICY_NONFINITE) | _bits(beyond, Guard.ADJUST_BOUND)
         return np.where((nonfinite | beyond)[:, None], 0.0, a), guard
+
+
+def _checked_time(t: Any, where: str) -> float:
+    """``t`` as a finite float, else EfficientTrackError naming the call."""
+    if isinstance(t, bool) or not isinstance(t, int | float | np.integer | np.floating) or not math.isfinite(t):
+        raise EfficientTrackError(f"runtime: {where} needs t as a finite number of seconds or None, got {t!r}")
+    return float(t)
 
 
 def _bits(hit: np.ndarray, flag: Guard) -> np.ndarray:

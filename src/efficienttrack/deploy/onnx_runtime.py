@@ -9,8 +9,8 @@ An export (``efficienttrack export``, :mod:`efficienttrack.deploy.export`) is a 
   and the SHA-256 of ``policy.onnx`` (checked before the graph is loaded).
 
 :class:`OnnxRuntime` is :class:`~efficienttrack.deploy.guard.GuardedRuntime` (the one guard, the same histories and the
-same ``start``/``step``/``stop`` and :class:`~efficienttrack.deploy.episodes.Sent` as the torch runtime) around the
-exported graph::
+same ``start``/``step``/``stop`` and :class:`~efficienttrack.deploy.episodes.Sent` as the torch runtime, with the same
+optional time stamps ``t``) around the exported graph::
 
     with OnnxRuntime(load_onnx_policy("export/"), limits=GuardLimits.load("xe75_limits.yaml")) as rt:
         rt.start(read_obs())                                                     # (1, 8)
@@ -36,7 +36,7 @@ import onnxruntime
 
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.joints import JOINT_NAMES, N_JOINTS, OBS_DIM
-from efficienttrack.deploy.guard import GuardedRuntime
+from efficienttrack.deploy.guard import MAX_GAP, GuardedRuntime
 from efficienttrack.systems.limits import GuardLimits
 
 ONNX_FILE = "policy.onnx"
@@ -204,13 +204,18 @@ class OnnxRuntime(GuardedRuntime):
         limits: the machine's limits (a system's ``limits``, or :meth:`GuardLimits.load`), a required keyword;
             ``limits=None`` is the explicit choice of the default limits. The contract's ``max_adjust`` only tightens
             ``limits.max_adjust``.
-        dt: control period, s (for the observation jump check); the contract's when None.
+        dt: control period, s (for the observation jump check, and the period a ``step`` without ``t`` stands for); the
+            contract's when None.
+        max_gap: periods between two time-stamped observations (``step(..., t=...)``) beyond which samples count as
+            dropped: the step falls back and the histories start afresh (:data:`~efficienttrack.deploy.guard.MAX_GAP`).
     """
 
-    def __init__(self, policy: OnnxPolicy, *, limits: GuardLimits | None, dt: float | None = None) -> None:
+    def __init__(
+        self, policy: OnnxPolicy, *, limits: GuardLimits | None, dt: float | None = None, max_gap: float = MAX_GAP
+    ) -> None:
         contract = policy.contract
         lengths = (contract.history_length, contract.future_length)
-        super().__init__(policy, lengths, contract.max_adjust, limits, contract.dt if dt is None else dt)
+        super().__init__(policy, lengths, contract.max_adjust, limits, contract.dt if dt is None else dt, max_gap)
         self.policy = policy
 
 

@@ -13,6 +13,12 @@ Two levels:
               sent = rt.step(read_obs(), q_des[None, t + 1 : t + 1 + rt.future_length])  # q_des padded at the end
               send_reference(sent.q_ref[0])          # to the machine's position controller
       print(rt.fallbacks, rt.counts)
+
+  Each ``step`` without a time stamp stands for one control period after the last. A caller that may miss periods
+  (dropped samples, a busy computer) passes the observation's time, ``rt.start(obs0, t=time.monotonic())`` and
+  ``rt.step(obs, q_des_future, t=time.monotonic())``: the jump check then allows the real time since the last
+  observation, and a gap of more than ``max_gap`` periods falls back (a = 0) and starts the histories afresh
+  (:mod:`efficienttrack.deploy.guard`).
 - :func:`track`, whole episodes: runs :class:`Runtime` over references on a (batched) system
   and returns :class:`~efficienttrack.data.records.EpisodeRecord` s. ``policy=None`` is the PD
   controller alone (a = 0) through the same loop.
@@ -39,7 +45,7 @@ from efficienttrack.core.progress import ProgressDisplay
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.data.references import Reference
 from efficienttrack.deploy.episodes import STEP_TIMEOUT, batches, rollout
-from efficienttrack.deploy.guard import GuardedRuntime
+from efficienttrack.deploy.guard import MAX_GAP, GuardedRuntime
 from efficienttrack.learn.nets import resolve_device
 from efficienttrack.learn.policy import PolicyConfig, seen_lengths
 from efficienttrack.systems.limits import GuardLimits
@@ -60,7 +66,9 @@ class Runtime(GuardedRuntime):
             runtime without them would send anything within ±2π. ``limits=None`` is the explicit choice of
             :data:`DEFAULT_LIMITS` (a simulator, a test). The policy's ``cfg.max_adjust`` only tightens
             ``limits.max_adjust``.
-        dt: control period, s (for the observation jump check).
+        dt: control period, s (for the observation jump check, and the period a ``step`` without ``t`` stands for).
+        max_gap: periods between two time-stamped observations (``step(..., t=...)``) beyond which samples count as
+            dropped: the step falls back and the histories start afresh (:data:`~efficienttrack.deploy.guard.MAX_GAP`).
     """
 
     def __init__(
@@ -70,10 +78,11 @@ class Runtime(GuardedRuntime):
         *,
         limits: GuardLimits | None,
         dt: float = DT,
+        max_gap: float = MAX_GAP,
     ) -> None:
         cfg = cast(PolicyConfig, policy.cfg) if policy is not None else None  # a policy module carries its PolicyConfig
         act = None if policy is None else self._evaluate
-        super().__init__(act, seen_lengths(cfg), None if cfg is None else cfg.max_adjust, limits, dt)
+        super().__init__(act, seen_lengths(cfg), None if cfg is None else cfg.max_adjust, limits, dt, max_gap)
         self.policy = policy
         if policy is None:
             self.device = torch.device("cpu")

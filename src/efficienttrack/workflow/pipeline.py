@@ -10,7 +10,8 @@ Output folder layout (everything written atomically)::
     OUT/logs/{model,policy}/        scalars.csv and TensorBoard events of each training (docs/logged-metrics.md)
     OUT/records/{pd,efficienttrack}/<reference>.npz
     OUT/stages/<stage>.json         written last by each finished stage (its facts: seconds, log folder)
-    OUT/stages/time_budget*.json    with ``time_budget``: the step times measured, the factor on each round's steps
+    OUT/stages/time_budget*.json    with ``time_budget``: the step times measured, the factor on each round's steps,
+                                    and the wall time every invocation of the run spent (``time_budget_spent.json``)
     OUT/metrics.json                PD and EfficientTrack metrics, training interactions, provenance
     OUT/plots/*.png                 tracking per test reference, tracking error over time, training curves
     OUT/run.log                     what the console showed, plain text, a header line per invocation
@@ -27,7 +28,9 @@ the policy's training time (docs/logged-metrics.md).
 
 With ``time_budget`` (minutes), the trainings' steps are scaled to fit the run into it, planned after the PD evaluation
 and again before round 1's policy training and before each later round (:mod:`efficienttrack.workflow.time_budget`);
-``metrics.json`` gets ``"time_budget"``: the minutes, the factors and the step times measured (null without a budget).
+``metrics.json`` gets ``"time_budget"``: the minutes, the factors, the step times measured and the seconds spent (null
+without a budget). A killed and rerun budgeted run counts the time its earlier invocations spent, and plans from what is
+actually left (the module's docstring says how).
 
 A rerun with the same run.json skips every finished stage; an interrupted stage resumes
 (collection at its first unwritten pass, training from its checkpoint). A rerun with other
@@ -44,6 +47,7 @@ yet recorded (each is written as soon as it has run, :func:`efficienttrack.workf
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import time
@@ -67,6 +71,7 @@ from efficienttrack.deploy.runtime import check_references
 from efficienttrack.learn import dynamics, policy
 from efficienttrack.learn.nets import resolve_device
 from efficienttrack.learn.training import read_scalars
+from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.systems.spec import SystemSpec
 from efficienttrack.workflow import plots
 from efficienttrack.workflow.collect import collect
@@ -275,8 +280,8 @@ def run_pipeline(
         policy's steps, "warning": None, or why the figures are not EfficientTrack's (:func:`fallback_share`),
         "worse_than_pd": None, or a warning that the policy tracks worse than PD alone (:func:`worse_than_pd`),
         "references": test reference names, "policy": the policy checkpoint, "system", "config", "rounds": one entry per round
-        (:func:`efficienttrack.workflow.rounds.round_summary`), "time_budget": None, or the budget's minutes, factors and step
-        times (:meth:`~efficienttrack.workflow.time_budget.TimeBudget.summary`), "provenance"}``.
+        (:func:`efficienttrack.workflow.rounds.round_summary`), "time_budget": None, or the budget's minutes, factors, step
+        times and seconds spent (:meth:`~efficienttrack.workflow.time_budget.TimeBudget.summary`), "provenance"}``.
 
     Raises:
         EfficientTrackError: bad system spec, no references, one outside the joint limits, a negative ``max_plots``, or
@@ -306,20 +311,48 @@ def run_pipeline(
     log = RunLog(out, console)
     log.header(command)
     stages = Stages(out)
+    budget = None if cfg.time_budget is None else TimeBudget(cfg, stages, log, start)  # counts earlier invocations too
+    with contextlib.nullcontext() if budget is None else budget.counting():
+        return _run_stages(system, train_refs, test_refs, out, cfg, env, device, log, stages, budget, max_plots, start)
+
+
+def _run_stages(
+    system: SystemSpec,
+    train_refs: Sequence[Reference],
+    test_refs: Sequence[Reference],
+    out: Path,
+    cfg: RunConfig,
+    env: BatchedSystem,
+    device: torch.device,
+    log: RunLog,
+    stages: Stages,
+    budget: TimeBudget | None,
+    max_plots: int | None,
+    start: float,
+) -> RunResult:
+    """:func:`run_pipeline`'s stages, once its folder is claimed (``budget``: the time budget, or None)."""
+
+    def begin(name: str) -> None:
+        if budget is not None:
+            budget.begin(name)
+
+    def took(name: str, seconds: float) -> float:  # what work a kill split took, all of it (TimeBudget.took)
+        return seconds if budget is None else budget.took(name, seconds)
 
     # Algorithm 1: collection (resumes pass by pass)
     collecting = time.perf_counter()
+    begin("collect")
     collected = collect(env, train_refs, cfg.collect, out / "records" / "train")
-    pass_seconds = (time.perf_counter() - collecting) / cfg.collect.passes
+    pass_seconds = took("collect", time.perf_counter() - collecting) / cfg.collect.passes
     steps = collected.interaction_steps
     facts = stages.done("collect", ("interaction_steps",)) or stages.finish("collect", {"interaction_steps": steps})
     log.print(f"collected {len(collected.records)} episodes, {facts['interaction_steps']} interaction steps")
 
     # the PD controller alone on the test references: the baseline, and the held-out episodes of both trainings
     evaluating = time.perf_counter()
+    begin("evaluate_pd")
     pd_records = evaluate_stage(stages, "pd", out, env, None, test_refs, device)
-    evaluation_seconds = time.perf_counter() - evaluating
-    budget = None if cfg.time_budget is None else TimeBudget(cfg, stages, log, start)
+    evaluation_seconds = took("evaluate_pd", time.perf_counter() - evaluating)
     train_cfg = cfg
     if budget is not None:  # fewer training steps, to fit the run into its minutes
         train_cfg = budget.first_round(collected.records, pd_records, device, pass_seconds, evaluation_seconds)
@@ -327,11 +360,15 @@ def run_pipeline(
     # closed-loop dynamics model g_θ, then the adjustment policy π_φ trained through it
     common: dict[str, Any] = {"device": device, "seed": cfg.seed, "held_out": pd_records}
     trainer: Callable[..., Any] = partial(dynamics.train_model, train_cfg.model, collected.records, **common)
+    begin("round_1_model")
     g_theta, model_facts = train_stage(stages, "model", out, log, trainer, dynamics.save_model, dynamics.load_model, device)
+    model_seconds = took("round_1_model", model_facts["seconds"])
     if budget is not None:  # the policy's steps planned again, from how long the model's training really took
-        train_cfg = budget.first_policy(model_facts["seconds"])
+        train_cfg = budget.first_policy(model_seconds)
     trainer = partial(policy.train_policy, train_cfg.policy, g_theta, collected.records, **common)
+    begin("round_1_policy")
     pi_phi, policy_facts = train_stage(stages, "policy", out, log, trainer, policy.save_policy, policy.load_policy, device)
+    trained = [round(model_seconds + took("round_1_policy", policy_facts["seconds"]), 2)]  # each round's, for the plans
 
     # Algorithm 2 on the held-out references
     et_records = evaluate_stage(stages, "efficienttrack", out, env, pi_phi, test_refs, device)
@@ -345,9 +382,10 @@ def run_pipeline(
 
     # continual learning: deploy, record, retrain from the previous weights, evaluate
     for k in range(2, cfg.rounds + 1):
-        round_cfg = cfg if budget is None else budget.later_round(k, sum(entry["train_seconds"] for entry in summaries))
-        state = run_round(k, state, round_cfg, env, train_refs, test_refs, pd_records, out, log, device)
+        round_cfg = cfg if budget is None else budget.later_round(k, sum(trained))
+        state = run_round(k, state, round_cfg, env, train_refs, test_refs, pd_records, out, log, device, budget=budget)
         summaries.append(state.summary)
+        trained.append(round(sum(took(f"round_{k}_{name}", state.facts[name]["seconds"]) for name in ("model", "policy")), 2))
 
     # report (the last round's policy)
     metrics = _metrics(
@@ -379,6 +417,8 @@ def run_pipeline(
         write_rounds(rows, out)
         plots.plot_rounds(rows, out / "plots" / "rounds.png")
         log.print(rounds_table(rows, title=f"rounds ({out})"))
+    if budget is not None:
+        budget.finish()  # a rerun that adds rounds counts its own minutes
     return RunResult(out=out, metrics=metrics, skipped=tuple(stages.skipped))
 
 

@@ -38,6 +38,7 @@ from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.workflow.config import RunConfig
 from efficienttrack.workflow.next_round import continued_config
 from efficienttrack.workflow.stages import RunLog, Stages, evaluate_stage, train_stage
+from efficienttrack.workflow.time_budget import TimeBudget
 
 ROUNDS = "rounds"
 """Folder of the rounds after the first in a run folder: ``rounds/<k>/``."""
@@ -129,6 +130,7 @@ def run_round(
     out: Path,
     log: RunLog,
     device: torch.device,
+    budget: TimeBudget | None = None,
 ) -> RoundState:
     """Round k ≥ 2: deploy π_{k−1} on the training references, retrain from θ_{k−1}, φ_{k−1}, evaluate (resumable).
 
@@ -143,6 +145,9 @@ def run_round(
         out: the run folder; the round writes ``out/rounds/<k>/``.
         log: the run's console log.
         device: where the networks run.
+        budget: the run's time budget, which notes when each training begins and what it took, all of it when a kill
+            split it (:meth:`~efficienttrack.workflow.time_budget.TimeBudget.took`: ``round_<k>_model``,
+            ``round_<k>_policy``); None without one.
 
     Returns:
         Where round k leaves off.
@@ -157,9 +162,16 @@ def run_round(
     model_cfg = continued_config(cfg.model.scaled(cfg.warm_budget), previous.g_theta.cfg)
     policy_cfg = continued_config(cfg.policy.scaled(cfg.warm_budget), previous.pi_phi.cfg)
     trainer: Callable[..., Any] = partial(dynamics.train_model, model_cfg, train_records, init=previous.g_theta, **common)
+    if budget is not None:
+        budget.begin(f"round_{k}_model")
     g_theta, model_facts = train_stage(stages, "model", folder, log, trainer, dynamics.save_model, dynamics.load_model, device)
+    if budget is not None:
+        budget.took(f"round_{k}_model", model_facts["seconds"])
+        budget.begin(f"round_{k}_policy")
     trainer = partial(policy.train_policy, policy_cfg, g_theta, train_records, init=previous.pi_phi, **common)
     pi_phi, policy_facts = train_stage(stages, "policy", folder, log, trainer, policy.save_policy, policy.load_policy, device)
+    if budget is not None:
+        budget.took(f"round_{k}_policy", policy_facts["seconds"])
     test_records = evaluate_stage(stages, "efficienttrack", folder, system, pi_phi, test_refs, device)
     steps = previous.interaction_steps + sum(len(r) for r in deployed)
     stages.done(INTERACTIONS_STAGE, ("interaction_steps",)) or stages.finish(INTERACTIONS_STAGE, {"interaction_steps": steps})

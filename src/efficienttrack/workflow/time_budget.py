@@ -9,21 +9,44 @@ round it plans again from the time left, with the step times corrected by how lo
 (:class:`TimeBudget`): a machine can run a short probe a third faster than the minutes of training after it. The
 factors are kept as stages, so a resumed run trains the same steps. The budget is a target, not a guarantee: work that
 starts beside the run after the last plan slows its steps.
+
+A run that is killed and rerun (resumed) counts the wall time of all its invocations, not only the rerun's: the seconds
+spent are kept in ``OUT/stages/time_budget_spent.json`` (:data:`SPENT`), written when an invocation starts, every
+:data:`HEARTBEAT` s while it runs (from a thread, so that a process killed with SIGKILL loses at most that much) and
+when it stops; a rerun reads them back and plans from the minutes less all of it. The time between the kill and the
+rerun does not count (the machine was not the run's). Work that a kill splits, the collection, the PD evaluation or a
+training resumed from its checkpoint, counts from its start in the first invocation to its end (:meth:`TimeBudget.begin`,
+:meth:`TimeBudget.took`): the part before the kill, the restart and the steps trained again since the last checkpoint
+included. A resumed training's ``seconds`` are its last invocation's part only; a plan corrected by those alone would
+take the machine for faster than it is and give the next training too many steps.
+
+Every plan, once made, is kept on resume: round 1's (:data:`STAGE`), round 1's policy's and each later round's. A
+training resumes from a checkpoint made for the planned steps (a training state made for other steps is refused: a new
+factor would stop the rerun with an error, or throw the trained part away), and the later plans correct the step times
+by how long the trainings of the planned steps took. So what a kill costs is not taken from a plan already made but
+from the time left, by the next plan; a kill during the last plan's training (round K's, or round 1's policy's in a
+1-round run) has no plan after it and may end the run late by what it cost. A rerun that adds rounds to a finished run
+counts its minutes afresh from its own start, as before.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import itertools
+import json
+import math
 import tempfile
+import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple, TypeVar
 
 import torch
 
 from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.fileio import write_json
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.learn import dynamics, policy
 from efficienttrack.learn.training import EVALUATIONS, TrainingSchedule
@@ -48,6 +71,12 @@ them predicted (10 plans in five 15-minute runs; one ended 8 s over with :data:`
 STAGE = "time_budget"
 """The stage that keeps round 1's factor, ``OUT/stages/time_budget.json``; round 1's policy's is
 ``time_budget_policy``, round k's ``time_budget_round_<k>``."""
+SPENT = "time_budget_spent"
+"""The run's wall time so far, ``OUT/stages/time_budget_spent.json`` (not a stage: rewritten as the run goes):
+``{"spent_seconds": the seconds of every invocation so far, "invocations", "finished": whether the last one finished
+the run, "work": {name: {"began": spent seconds when it began, "invocation", "seconds": what it took, once known}}}``."""
+HEARTBEAT = 2.0
+"""Seconds between two writes of :data:`SPENT` while a run goes on: a killed run loses at most this much of its time."""
 
 
 class StepTimes(NamedTuple):
@@ -196,13 +225,18 @@ class TimeBudget:
     finished trainings really took than the probes predicted (saving, a machine slower than during the probes, other
     work on it). The last plan keeps :data:`LAST_PLAN_MARGIN` of its training free, as no later one can correct it.
     Each factor is kept as a stage (:data:`STAGE`, ``time_budget_policy``, ``time_budget_round_<k>``), so a
-    resumed run trains the same steps.
+    resumed run trains the same steps. The time spent counts every invocation of the run: the earlier ones' seconds are
+    read from :data:`SPENT`, which :meth:`counting` keeps up to date while this one runs.
 
     Args:
         cfg: the run's config, with ``time_budget`` set (minutes).
-        stages: the run's finished-stage markers.
+        stages: the run's finished-stage markers (:data:`SPENT` lies in their folder).
         log: where to say what was decided.
-        started: ``time.perf_counter()`` when this invocation of the run began; the budget counts from there.
+        started: ``time.perf_counter()`` when this invocation of the run began; its time counts from there, added to
+            what the earlier invocations spent (none when the last one finished the run: a rerun that adds rounds).
+
+    Raises:
+        EfficientTrackError: the config has no budget, or :data:`SPENT` is unreadable.
     """
 
     def __init__(self, cfg: RunConfig, stages: Stages, log: RunLog, started: float) -> None:
@@ -212,6 +246,88 @@ class TimeBudget:
         self.facts: dict[str, Any] = {}
         self.scales: list[float] = []
         self.policy_scale: float | None = None
+        self.path = stages.folder / f"{SPENT}.json"
+        spent, invocations, finished, self.work = read_spent(self.path)
+        self.spent_before = 0.0 if finished else spent
+        """Seconds the run's earlier invocations spent."""
+        self.invocation = invocations + 1
+        self.finished = False
+        self._lock = threading.RLock()
+
+    def seconds_spent(self) -> float:
+        """Wall seconds the run has spent so far: its earlier invocations' and this one's."""
+        return self.spent_before + (time.perf_counter() - self.started)
+
+    @contextlib.contextmanager
+    def counting(self) -> Iterator[None]:
+        """Keep :data:`SPENT` up to date while the block runs: at its start, every :data:`HEARTBEAT` s and at its end.
+
+        A thread writes it, so that a killed process (SIGKILL, or SIGTERM at its default action: no ``finally`` runs)
+        loses at most :data:`HEARTBEAT` s; an interrupt (Ctrl-C) or an error writes it once more on the way out.
+        """
+        stop = threading.Event()
+
+        def beat() -> None:
+            while not stop.wait(HEARTBEAT):
+                with contextlib.suppress(OSError, EfficientTrackError):  # the next write in the run's thread reports it
+                    self._save()
+
+        self._save()
+        thread = threading.Thread(target=beat, name="efficienttrack-time-budget", daemon=True)
+        thread.start()
+        try:
+            yield
+        except BaseException:
+            stop.set()
+            thread.join()
+            with contextlib.suppress(OSError, EfficientTrackError):  # the error on its way out is the one to show
+                self._save()
+            raise
+        stop.set()
+        thread.join()
+        self._save()
+
+    def begin(self, name: str) -> None:
+        """Note that work ``name`` (the collection, an evaluation, a training) begins now, unless an earlier invocation did.
+
+        Args:
+            name: the work, e.g. ``"collect"``, ``"evaluate_pd"``, ``"round_<k>_model"``.
+        """
+        with self._lock:
+            if name not in self.work:
+                self.work[name] = {"began": self.seconds_spent(), "invocation": self.invocation}
+                self._save()
+
+    def took(self, name: str, seconds: float) -> float:
+        """What work ``name`` took: ``seconds`` when it ran within this invocation, else the run's time from its start.
+
+        Work that a kill split (begun in an earlier invocation, finished in this one) took the part before the kill,
+        the restart and what was done again, which ``seconds`` (this invocation's part, as a resumed training reports)
+        leaves out; the run's time since :meth:`begin` counts them all. The answer is kept, so a later call (a rerun)
+        gets the same.
+
+        Args:
+            name: the work, as given to :meth:`begin`.
+            seconds: what this invocation measured of it (its whole time when it was not split).
+
+        Returns:
+            The seconds it took (``seconds`` for work never begun with :meth:`begin`, e.g. in a folder older than it).
+        """
+        with self._lock:
+            entry = self.work.get(name)
+            if entry is None:
+                return seconds
+            if "seconds" not in entry:
+                split = entry["invocation"] != self.invocation
+                entry["seconds"] = max(seconds, self.seconds_spent() - entry["began"]) if split else seconds
+                self._save()
+            return float(entry["seconds"])
+
+    def finish(self) -> None:
+        """Note that the run is finished: a later invocation (adding rounds) counts its minutes from its own start."""
+        with self._lock:
+            self.finished = True
+            self._save()
 
     def first_round(
         self,
@@ -317,13 +433,15 @@ class TimeBudget:
 
         Returns:
             ``{"minutes", "scales": one factor per round so far (round 1's: its model's), "round_1_policy_scale",
-            "times": the costs measured (:class:`StepTimes`)}``.
+            "times": the costs measured (:class:`StepTimes`), "seconds_spent": the run's wall seconds so far, every
+            invocation's (:meth:`seconds_spent`)}``.
         """
         return {
             "minutes": self.cfg.time_budget,
             "scales": self.scales,
             "round_1_policy_scale": self.policy_scale,
             "times": self.facts.get("times"),
+            "seconds_spent": round(self.seconds_spent(), 2),
         }
 
     def _replan(self, name: str, slower: float, other: float, training: float, last: bool) -> dict[str, Any]:
@@ -339,9 +457,54 @@ class TimeBudget:
 
     def _seconds_left(self) -> float:
         assert self.cfg.time_budget is not None  # checked in __init__
-        return self.cfg.time_budget * 60 - (time.perf_counter() - self.started)
+        return self.cfg.time_budget * 60 - self.seconds_spent()
+
+    def _save(self) -> None:
+        """Write :data:`SPENT` (from the run's thread or :meth:`counting`'s)."""
+        with self._lock:
+            write_json(
+                self.path,
+                {
+                    "spent_seconds": self.seconds_spent(),
+                    "invocations": self.invocation,
+                    "finished": self.finished,
+                    "work": self.work,
+                },
+            )
 
     def _scaled(self, scale: float) -> RunConfig:
         if scale >= 1:
             return self.cfg
         return dataclasses.replace(self.cfg, model=self.cfg.model.scaled(scale), policy=self.cfg.policy.scaled(scale))
+
+
+def read_spent(path: Path) -> tuple[float, int, bool, dict[str, dict[str, Any]]]:
+    """The run's time so far, as :data:`SPENT` keeps it; nothing spent when the file does not exist.
+
+    Args:
+        path: ``OUT/stages/time_budget_spent.json``.
+
+    Returns:
+        The seconds spent, the invocations, whether the last one finished the run, and the work noted
+        (:meth:`TimeBudget.begin`).
+
+    Raises:
+        EfficientTrackError: the file is unreadable or malformed, naming it and the fix.
+    """
+    if not path.exists():
+        return 0.0, 0, False, {}
+    try:
+        data = json.loads(path.read_text())
+        spent, invocations, finished = float(data["spent_seconds"]), data["invocations"], data["finished"]
+        work = {str(name): dict(entry) for name, entry in data["work"].items()}
+        if not math.isfinite(spent) or spent < 0 or not isinstance(invocations, int) or not isinstance(finished, bool):
+            raise ValueError("bad spent_seconds, invocations or finished")
+        for entry in work.values():
+            if not math.isfinite(float(entry["began"])) or not isinstance(entry["invocation"], int):
+                raise ValueError("bad work entry")
+    except (OSError, ValueError, TypeError, KeyError, AttributeError) as exc:
+        raise EfficientTrackError(
+            f"{path}: the time budget's record of the run's time is unreadable ({exc}); delete it to count from the next "
+            "invocation only, or start afresh with --force"
+        ) from exc
+    return spent, invocations, finished, work
