@@ -47,7 +47,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=1000, help="interaction steps timed after the seeding")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    settings = dataclasses.replace(tdmpc_settings("full"), device="cpu")
+    settings = dataclasses.replace(tdmpc_settings("cpu"), device="cpu")
     refs = generate_references(16, seed=0)
     train, test = refs[:8], refs[8:]
     print(f"command: {' '.join([os.path.basename(sys.executable), *sys.argv])}  (torch threads 1, device cpu)")

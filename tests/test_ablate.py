@@ -38,7 +38,7 @@ def refs():
 
 
 def tiny_ablation(refs, passes=1):
-    return make_ablation_study(SystemSpec(), *refs, preset="quick", passes=passes, run_config=FAST)
+    return make_ablation_study(SystemSpec(), *refs, preset="tiny", passes=passes, run_config=FAST)
 
 
 @pytest.fixture(scope="module")
@@ -66,7 +66,7 @@ def test_noise_ratio_variants_differ_only_in_the_mix_at_equal_passes(refs):
         assert replace(cfg, collect=replace(cfg.collect, noise_ratio=(9, 2))) == configs[3]  # nothing else differs
     assert jobs[1].run_config.seed == 3 and jobs[1].run_config.collect.seed == 3
     # the preset's passes when none are given: the quick preset's tiny run settings collect 3
-    assert make_ablation_study(SystemSpec(), *refs, preset="quick").run_config.collect.passes == 3
+    assert make_ablation_study(SystemSpec(), *refs, preset="tiny").run_config.collect.passes == 3
 
 
 def test_k_smooth_and_history_variants(refs):
@@ -98,7 +98,7 @@ def test_ablation_writes_table_json_and_figure(finished):
     assert list(result.ran) == names and not result.failed and not result.skipped
     assert lines[0].endswith("4 jobs, 0 finished earlier (skipped), 4 to run (local)")
     document = json.loads((out / "ablation.json").read_text())
-    assert document["ablation"] == "k-smooth" and document["passes"] == 1 and document["preset"] == "quick"
+    assert document["ablation"] == "k-smooth" and document["passes"] == 1 and document["preset"] == "tiny"
     entries = document["variants"]
     assert [(e["variant"], e["label"], e["seeds"]) for e in entries] == [
         ("k_smooth-0", "k_smooth = 0", [0, 1]), ("k_smooth-2", "k_smooth = 2", [0, 1])
@@ -136,7 +136,7 @@ def test_rerun_skips_finished_jobs_and_a_folder_refuses_other_work(finished, ref
     more = tiny_ablation(refs, passes=2)
     with pytest.raises(EfficientTrackError, match="an ablation of another kind, system, references, passes"):
         run_ablation(ABLATIONS["k-smooth"], more, ablation_jobs(ABLATIONS["k-smooth"], more, [0], ["0"]), out)
-    plain = make_study(SystemSpec(), *refs, budget=118, preset="quick", run_config=FAST)
+    plain = make_study(SystemSpec(), *refs, budget=118, preset="tiny", run_config=FAST)
     with pytest.raises(EfficientTrackError, match="holds a study of another system, references, budget or preset, or an abl"):
         run_study(plain, make_jobs(plain, ["pd"]), out)
 
@@ -148,7 +148,7 @@ def test_cli_ablate(refs, tmp_path, monkeypatch):
     save_references(refs[1], tmp_path / "test")
     out = tmp_path / "ablation"
     common = ["ablate", "history", "--train-refs", tmp_path / "train", "--test-refs", tmp_path / "test", "--out", out,
-              "--preset", "quick", "--passes", "1"]  # fmt: skip
+              "--preset", "tiny", "--passes", "1"]  # fmt: skip
     result = CliRunner().invoke(app, [str(a) for a in [*common, "--values", "2"]], env={"COLUMNS": "200"})
     assert result.exit_code == 0, result.output
     assert "efficienttrack-history-2-s0 done in" in result.output and "| history 2 | 1 | 118 |" in result.output

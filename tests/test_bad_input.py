@@ -73,9 +73,9 @@ COMMANDS: dict[str, str] = {
     "deploy": "deploy --refs {refs} --out {out_folder} --policy {policy} --limits {limits} --arm --shadow --fast "
     "--plant xe75 --pd {pd} --device cpu",
     "limits": "limits --from-logs {records} --out {out_json}",
-    "study": "study --train-refs {refs} --test-refs {refs2} --out {out_folder} --limits {limits} --preset quick "
+    "study": "study --train-refs {refs} --test-refs {refs2} --out {out_folder} --limits {limits} --preset tiny "
     "--methods pd --budget 10",
-    "ablate": "ablate history --train-refs {refs} --test-refs {refs2} --out {out_folder} --preset quick --values 1 --passes 1",
+    "ablate": "ablate history --train-refs {refs} --test-refs {refs2} --out {out_folder} --preset tiny --values 1 --passes 1",
     "config show": "config show tiny --config {config}",
 }
 """Each command's arguments, a ``{slot}`` for every file or folder (a slot's kind: :data:`SLOTS`)."""

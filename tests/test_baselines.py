@@ -90,7 +90,7 @@ QUICK_RUNS = [("ppo", [1, 64, 256], [4, 64, 256]), ("sac", [1, 60, 200], [1, 60,
 def test_quick_preset_trains_on_the_closed_loop(refs, tmp_path, method, eval_at, measured):
     train, test = refs
     budget = measured[-1]
-    curve = train_baseline(method, "closed", SystemSpec(), train, test, budget, 0, tmp_path, preset="quick", eval_at=eval_at)
+    curve = train_baseline(method, "closed", SystemSpec(), train, test, budget, 0, tmp_path, preset="tiny", eval_at=eval_at)
     assert [p["interaction_steps"] for p in curve] == measured
     assert all(finite(p["metrics"]) and p["metrics"]["episodes"] == len(test) for p in curve)
     walls = [p["wall_seconds"] for p in curve]
@@ -98,7 +98,7 @@ def test_quick_preset_trains_on_the_closed_loop(refs, tmp_path, method, eval_at,
     written = json.loads((tmp_path / "curve.json").read_text())
     assert (written["method"], written["loop"], written["seed"]) == (method, "closed", 0)
     assert written["curve"] == json.loads(json.dumps(curve))
-    assert written["settings"]["n_envs"] == method_settings(method, "quick").n_envs
+    assert written["settings"]["n_envs"] == method_settings(method, "tiny").n_envs
     assert (tmp_path / "model.zip").stat().st_size > 0
 
 
@@ -203,7 +203,7 @@ def test_a_restored_state_is_the_saved_one(refs, tmp_path, settings):
 )
 def test_bad_input_is_refused_before_training(refs, tmp_path, change, message):
     args = {"method": "ppo", "loop": "closed", "system": SystemSpec(), "train_refs": refs[0], "test_refs": refs[1]}
-    args |= {"budget": 100, "seed": 0, "folder": tmp_path / "out", "preset": "quick", "eval_at": None} | change
+    args |= {"budget": 100, "seed": 0, "folder": tmp_path / "out", "preset": "tiny", "eval_at": None} | change
     with pytest.raises(EfficientTrackError, match=message):
         train_baseline(**args)
     assert not (tmp_path / "out").exists()
@@ -228,7 +228,7 @@ def test_bad_settings_name_the_field(settings, message):
 def test_presets_keep_the_papers_settings():
     assert method_settings("ppo").n_envs == 16
     assert method_settings("sac").buffer_size == 100_000
-    assert method_settings("ppo", "quick").n_envs < 16 and method_settings("sac", "quick").net_arch == (32, 32)
+    assert method_settings("ppo", "tiny").n_envs < 16 and method_settings("sac", "tiny").net_arch == (32, 32)
 
 
 def test_the_paper_presets_carry_the_research_codes_settings():
@@ -236,7 +236,7 @@ def test_the_paper_presets_carry_the_research_codes_settings():
     assert (sac.gamma, sac.batch_size, sac.learning_rate, sac.net_arch) == (0.98, 4096, 3e-5, (512, 512, 512, 128))
     assert (ppo.gamma, ppo.gae_lambda, ppo.learning_rate, ppo.clip_range) == (0.98, 0.99, 3e-5, 3.0)
     assert ppo.n_envs * ppo.n_steps == ppo.batch_size == 4096  # one batch of parallel episodes per update
-    assert all(method_settings(m, p).inputs == "relative" for m in ("ppo", "sac") for p in ("paper", "full", "quick"))
+    assert all(method_settings(m, p).inputs == "relative" for m in ("ppo", "sac") for p in ("paper", "cpu", "tiny"))
 
 
 @pytest.mark.parametrize("method", ["ppo", "sac"])

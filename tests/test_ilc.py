@@ -56,11 +56,11 @@ def test_the_lead_matters_on_the_delayed_toy(tmp_path):
 
 def test_xe75_trials_lower_the_error_and_trial_0_is_pd(tmp_path):
     refs = xe75_refs()
-    curve = train_ilc("closed", SystemSpec(), [], refs, 10**6, 0, tmp_path, preset="quick")
+    curve = train_ilc("closed", SystemSpec(), [], refs, 10**6, 0, tmp_path, preset="tiny")
     pd = compute_metrics(evaluate(lambda obs: np.zeros((len(obs), 4)), refs, system=SystemSpec()))
     assert curve[0]["metrics"]["mae_deg"] == pytest.approx(pd["mae_deg"], rel=1e-9)
     mae = maes(curve)
-    assert len(mae) == ILC_PRESETS["quick"].trials + 1
+    assert len(mae) == ILC_PRESETS["tiny"].trials + 1
     assert mae[-1] < 0.5 * mae[0], mae
 
 
@@ -125,7 +125,7 @@ def test_bad_settings(changes, message):
 def test_bad_input(tmp_path):
     refs = toy_refs()
     good = {"loop": "closed", "system": TOY_DELAYED, "train_refs": refs, "test_refs": refs, "budget": 10**6, "seed": 0,
-            "folder": tmp_path, "preset": "quick"}  # fmt: skip
+            "folder": tmp_path, "preset": "tiny"}  # fmt: skip
     cases = [
         ({"loop": "open"}, "closed loop only"),
         ({"loop": "sideways"}, "unknown"),
@@ -144,4 +144,4 @@ def test_bad_input(tmp_path):
     for changes, message in cases:
         with pytest.raises(EfficientTrackError, match=message):
             train_ilc(**{**good, **changes})
-    assert ilc_settings("full") is ILC_PRESETS["full"]
+    assert ilc_settings("cpu") is ILC_PRESETS["cpu"]

@@ -107,7 +107,7 @@ def test_pwm_policy_cannot_drive_the_closed_loop_model():
 REFS = short_refs(6, 80)
 TRAIN, TEST = REFS[:4], REFS[4:]
 """Four short training references (316 steps a pass) and two test ones."""
-SUPERTRACK_SETTINGS = dataclasses.replace(SUPERTRACK_PRESETS["quick"], steps_per_iteration=300)
+SUPERTRACK_SETTINGS = dataclasses.replace(SUPERTRACK_PRESETS["tiny"], steps_per_iteration=300)
 """SuperTrack's quick settings, 300 interaction steps an iteration."""
 
 
@@ -115,7 +115,7 @@ SUPERTRACK_SETTINGS = dataclasses.replace(SUPERTRACK_PRESETS["quick"], steps_per
 def open_run(tmp_path_factory):
     """Open-loop EfficientTrack, quick, seed 0, 1,000 steps (two pass counts), uninterrupted: ``(curve, folder)``."""
     folder = tmp_path_factory.mktemp("open") / "a"
-    return train_efficienttrack_open("open", SystemSpec(), TRAIN, TEST, 1000, 0, folder, preset="quick"), folder
+    return train_efficienttrack_open("open", SystemSpec(), TRAIN, TEST, 1000, 0, folder, preset="tiny"), folder
 
 
 @pytest.fixture(scope="module")
@@ -142,7 +142,7 @@ def test_open_loop_efficienttrack_quick_curve_and_determinism(tmp_path, open_run
     assert all(np.isfinite(p["metrics"]["mae_deg"]) and p["wall_seconds"] > 0 for p in curve)
     saved = json.loads((folder / CURVE_FILE).read_text())
     assert saved["method"] == "efficienttrack" and saved["loop"] == "open" and len(saved["curve"]) == 2
-    again = train_efficienttrack_open("open", SystemSpec(), TRAIN, TEST, 400, 0, tmp_path / "b", preset="quick")
+    again = train_efficienttrack_open("open", SystemSpec(), TRAIN, TEST, 400, 0, tmp_path / "b", preset="tiny")
     assert again[0]["metrics"] == curve[0]["metrics"]
 
 
@@ -151,7 +151,7 @@ def test_an_interrupted_open_loop_efficienttrack_run_keeps_its_finished_pass_cou
     tmp_path, monkeypatch, interrupt_at, open_run
 ):
     def run(folder, seed=0, budget=1000):
-        return train_efficienttrack_open("open", SystemSpec(), TRAIN, TEST, budget, seed, folder, preset="quick")
+        return train_efficienttrack_open("open", SystemSpec(), TRAIN, TEST, budget, seed, folder, preset="tiny")
 
     interrupt_at(632)  # killed when it would measure two passes
     with pytest.raises(KeyboardInterrupt):
@@ -202,18 +202,18 @@ def test_an_interrupted_supertrack_run_resumes_as_if_uninterrupted(tmp_path, mon
 
 def test_bad_input_is_refused(tmp_path):
     with pytest.raises(EfficientTrackError, match="open loop only"):
-        train_efficienttrack_open("closed", SystemSpec(), TRAIN, TEST, 1000, 0, tmp_path, preset="quick")
+        train_efficienttrack_open("closed", SystemSpec(), TRAIN, TEST, 1000, 0, tmp_path, preset="tiny")
     with pytest.raises(EfficientTrackError, match="PWM-level plant"):
-        train_efficienttrack_open("open", SystemSpec(system="learned"), TRAIN, TEST, 1000, 0, tmp_path, preset="quick")
+        train_efficienttrack_open("open", SystemSpec(system="learned"), TRAIN, TEST, 1000, 0, tmp_path, preset="tiny")
     with pytest.raises(EfficientTrackError, match="less than one collection pass"):
-        train_efficienttrack_open("open", SystemSpec(), TRAIN, TEST, 100, 0, tmp_path, preset="quick")
+        train_efficienttrack_open("open", SystemSpec(), TRAIN, TEST, 100, 0, tmp_path, preset="tiny")
     with pytest.raises(EfficientTrackError, match="PWM-level plant"):
-        train_supertrack("open", SystemSpec(system="learned"), TRAIN, TEST, 1000, 0, tmp_path, preset="quick")
+        train_supertrack("open", SystemSpec(system="learned"), TRAIN, TEST, 1000, 0, tmp_path, preset="tiny")
     with pytest.raises(EfficientTrackError, match="loop"):
-        train_supertrack("sideways", SystemSpec(), TRAIN, TEST, 1000, 0, tmp_path, preset="quick")
+        train_supertrack("sideways", SystemSpec(), TRAIN, TEST, 1000, 0, tmp_path, preset="tiny")
     with pytest.raises(EfficientTrackError, match="preset"):
         train_supertrack("closed", SystemSpec(), TRAIN, TEST, 1000, 0, tmp_path, preset="huge")
     with pytest.raises(EfficientTrackError, match="budget"):
-        train_supertrack("closed", SystemSpec(), TRAIN, TEST, 0, 0, tmp_path, preset="quick")
+        train_supertrack("closed", SystemSpec(), TRAIN, TEST, 0, 0, tmp_path, preset="tiny")
     with pytest.raises(EfficientTrackError, match="imitation_steps"):
-        dataclasses.replace(OPEN_PRESETS["quick"], imitation_steps=-1)
+        dataclasses.replace(OPEN_PRESETS["tiny"], imitation_steps=-1)

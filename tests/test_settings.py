@@ -211,7 +211,7 @@ def test_set_reaches_study_and_ablate(command, tmp_path, monkeypatch):
     name = "run_study" if command == "study" else "run_ablation"
     monkeypatch.setattr(study, name, capture())
     save_references(sine_refs([40, 40]), tmp_path / "refs")
-    args = [command, *(["history"] if command == "ablate" else []), "--out", tmp_path / "s", "--preset", "quick"]
+    args = [command, *(["history"] if command == "ablate" else []), "--out", tmp_path / "s", "--preset", "tiny"]
     refs = ("--train-refs", tmp_path / "refs", "--test-refs", tmp_path / "refs", "--system", "toy_system:make")
     result = invoke(*args, *refs, "--set", "policy.k_smooth=0.25", "--seeds", "3")
     positional, _ = captured(result)
@@ -219,3 +219,20 @@ def test_set_reaches_study_and_ablate(command, tmp_path, monkeypatch):
     assert study_arg.run_config.policy.k_smooth == 0.25
     assert [(job.seed, job.run_config.seed, job.run_config.collect.seed) for job in jobs][:1] == [(3, 3, 3)]
     assert all(job.run_config.policy.k_smooth == 0.25 for job in jobs)
+
+
+def test_the_earlier_preset_names_are_read_with_a_warning(tmp_path):
+    from efficienttrack.baselines import method_settings
+    from efficienttrack.core.settings import canonical_preset
+    from efficienttrack.study import make_study
+    from efficienttrack.systems.spec import SystemSpec
+    from toy_system import sine_refs
+
+    assert canonical_preset("cpu") == "cpu" and canonical_preset("paper") == "paper"
+    with pytest.warns(FutureWarning, match="preset 'full' is now called 'cpu'"):
+        assert canonical_preset("full") == "cpu"
+    with pytest.warns(FutureWarning, match="preset 'quick' is now called 'tiny'"):
+        assert method_settings("sac", "quick") == method_settings("sac", "tiny")
+    refs = sine_refs([40, 40])
+    with pytest.warns(FutureWarning):
+        assert make_study(SystemSpec(), refs[:1], refs[1:], preset="quick").preset == "tiny"

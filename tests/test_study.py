@@ -40,7 +40,7 @@ def refs():
 
 def tiny_study(refs, budget=None):
     train, test = refs
-    return make_study(SystemSpec(), train, test, budget=budget or 2 * 59, preset="quick", run_config=FAST)
+    return make_study(SystemSpec(), train, test, budget=budget or 2 * 59, preset="tiny", run_config=FAST)
 
 
 @pytest.fixture(scope="module")
@@ -142,7 +142,7 @@ def test_study_writes_table_json_and_figure(finished):
     assert job["curve"][0]["metrics"]["mae_deg"] == pytest.approx(et["mae_deg"])
     assert (out / "jobs" / "efficienttrack-closed-s0" / "passes_1" / "policy.pt").is_file()
     config = json.loads((out / "study_config.json").read_text())
-    assert config["budget"] == 118 and config["preset"] == "quick" and config["system"]["system"] == "xe75"
+    assert config["budget"] == 118 and config["preset"] == "tiny" and config["system"]["system"] == "xe75"
     table = (out / "study.md").read_text()
     assert (
         "| PD | closed | 1 | 0 |" in table and "| EfficientTrack | closed | 1 | 118 |" in table and "| PPO | open |" in table
@@ -302,7 +302,7 @@ def test_cli_study(refs, tmp_path, monkeypatch):
     save_references(refs[0], tmp_path / "train")
     save_references(refs[1], tmp_path / "test")
     out = tmp_path / "study"
-    common = ["study", "--train-refs", tmp_path / "train", "--test-refs", tmp_path / "test", "--out", out, "--preset", "quick"]
+    common = ["study", "--train-refs", tmp_path / "train", "--test-refs", tmp_path / "test", "--out", out, "--preset", "tiny"]
     result = CliRunner().invoke(app, [str(a) for a in [*common, "--methods", "pd,boom"]], env={"COLUMNS": "200"})
     assert result.exit_code == 1, result.output  # a job failed; the other finished and the report is written
     assert "pd-closed-s0 done in" in result.output and "boom-closed-s0 FAILED: RuntimeError" in result.output
@@ -326,14 +326,14 @@ def test_cli_study(refs, tmp_path, monkeypatch):
 
 def test_a_method_budget_replaces_the_study_budget_for_that_method(refs):
     train, test = refs
-    study = make_study(SystemSpec(), train, test, budget=2 * 59, preset="quick", run_config=FAST, method_budgets={"ppo": 64})
+    study = make_study(SystemSpec(), train, test, budget=2 * 59, preset="tiny", run_config=FAST, method_budgets={"ppo": 64})
     jobs = {job.method: job for job in make_jobs(study, ["efficienttrack", "ppo"])}
     assert jobs["ppo"].budget == 64 and jobs["efficienttrack"].budget == 2 * 59
     assert study.identity()["method_budgets"] == {"ppo": 64, "tdmpc": 2_000}  # the quick preset's own for TD-MPC
     with pytest.raises(EfficientTrackError, match="--method-budget efficienttrack=50: less than one collection pass"):
-        make_jobs(make_study(SystemSpec(), train, test, 2 * 59, "quick", FAST, {"efficienttrack": 50}), ["efficienttrack"])
+        make_jobs(make_study(SystemSpec(), train, test, 2 * 59, "tiny", FAST, {"efficienttrack": 50}), ["efficienttrack"])
     with pytest.raises(EfficientTrackError, match="--method-budget nope=…: unknown method"):
-        make_jobs(make_study(SystemSpec(), train, test, 2 * 59, "quick", FAST, {"nope": 50}), ["pd"])
+        make_jobs(make_study(SystemSpec(), train, test, 2 * 59, "tiny", FAST, {"nope": 50}), ["pd"])
 
 
 def test_the_ilc_oracle_runs_as_a_study_method_below_pd(refs, tmp_path):
@@ -343,14 +343,14 @@ def test_the_ilc_oracle_runs_as_a_study_method_below_pd(refs, tmp_path):
     assert best["ilc"] < 0.5 * best["pd"]
     assert "ILC (oracle" in result.report.markdown
     with pytest.raises(EfficientTrackError, match="--method-budget ilc=10: less than one ILC trial .*59 steps"):
-        make_jobs(make_study(SystemSpec(), *refs, 2 * 59, "quick", FAST, {"ilc": 10}), ["ilc"])
+        make_jobs(make_study(SystemSpec(), *refs, 2 * 59, "tiny", FAST, {"ilc": 10}), ["ilc"])
 
 
 def test_the_quick_preset_gives_td_mpc_a_smaller_budget_that_the_user_may_override(refs):
     train, test = refs
-    assert make_study(SystemSpec(), train, test, preset="quick").budget_of("tdmpc") == 2_000
-    assert make_study(SystemSpec(), train, test, preset="quick", method_budgets={"tdmpc": 500}).budget_of("tdmpc") == 500
-    assert make_study(SystemSpec(), train, test, preset="full").budget_of("tdmpc") == 200_000
+    assert make_study(SystemSpec(), train, test, preset="tiny").budget_of("tdmpc") == 2_000
+    assert make_study(SystemSpec(), train, test, preset="tiny", method_budgets={"tdmpc": 500}).budget_of("tdmpc") == 500
+    assert make_study(SystemSpec(), train, test, preset="cpu").budget_of("tdmpc") == 200_000
 
 
 def test_a_study_refuses_an_unknown_preset(refs):

@@ -29,7 +29,7 @@ from efficienttrack.envs import evaluate
 from efficienttrack.learn.checkpoints import load_tensors
 from efficienttrack.systems.spec import SystemSpec
 
-TINY = replace(PRESETS["quick"], seed_steps=20, schedule_steps=40, device="cpu")
+TINY = replace(PRESETS["tiny"], seed_steps=20, schedule_steps=40, device="cpu")
 """The quick preset with a shorter seeding phase, so that a few dozen steps reach the planner and the updates."""
 
 
@@ -159,7 +159,7 @@ def finite(metrics):
 
 def test_quick_preset_trains_on_the_closed_loop(refs, tmp_path):
     train, test = refs
-    settings = replace(tdmpc_settings("quick"), device="cpu")
+    settings = replace(tdmpc_settings("tiny"), device="cpu")
     curve = train_tdmpc("closed", SystemSpec(), train, test, 70, 0, tmp_path, settings, eval_at=[1, 50, 70])
     assert [p["interaction_steps"] for p in curve] == [1, 50, 70]
     assert all(finite(p["metrics"]) and p["metrics"]["episodes"] == len(test) for p in curve)
@@ -233,7 +233,7 @@ def test_an_interrupted_run_resumes_as_if_uninterrupted(refs, tmp_path, monkeypa
 )
 def test_bad_input_is_refused_before_training(refs, tmp_path, change, message):
     args = {"loop": "closed", "system": SystemSpec(), "train_refs": refs[0], "test_refs": refs[1], "budget": 100}
-    args |= {"seed": 0, "folder": tmp_path / "out", "preset": "quick", "eval_at": None} | change
+    args |= {"seed": 0, "folder": tmp_path / "out", "preset": "tiny", "eval_at": None} | change
     with pytest.raises(EfficientTrackError, match=message):
         train_tdmpc(**args)
     assert not (tmp_path / "out").exists()
@@ -257,12 +257,12 @@ def test_bad_settings_name_the_field(change, message):
 
 
 def test_presets_keep_the_papers_settings_and_schedules():
-    full = tdmpc_settings("full")
+    full = tdmpc_settings("cpu")
     assert (full.horizon, full.iterations, full.num_samples, full.num_elites, full.num_pi_samples) == (5, 6, 512, 64, 25)
     assert (full.batch_size, full.buffer_size, full.seed_steps, full.latent_dim, full.hidden) == (512, 180_000, 5000, 50, 512)
     assert (full.reward_coef, full.value_coef, full.consistency_coef, full.rho, full.discount) == (0.5, 0.1, 2.0, 0.5, 0.98)
     assert full.schedule(0) == (1, 0.5) and full.schedule(25_000) == (5, 0.05) and full.schedule(12_500)[0] == 3
-    assert tdmpc_settings("quick").latent_dim == 8 and tdmpc_settings("quick").hidden == 32
+    assert tdmpc_settings("tiny").latent_dim == 8 and tdmpc_settings("tiny").hidden == 32
 
 
 def test_an_untrained_policy_is_the_pd_controller_and_sees_the_shared_input(refs, tmp_path):

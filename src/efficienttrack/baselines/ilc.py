@@ -41,6 +41,7 @@ from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import check_output_folder, output_lock
 from efficienttrack.core.joints import N_JOINTS
 from efficienttrack.core.progress import ProgressDisplay
+from efficienttrack.core.settings import canonical_preset
 from efficienttrack.data.metrics import MIN_STEPS, compute_metrics
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.data.references import Reference
@@ -105,21 +106,23 @@ class ILCSettings:
             raise EfficientTrackError(f"ilc.cutoff_hz: must be a number > 0 Hz or None (no filter), got {cutoff!r}")
 
 
-ILC_PRESETS: dict[str, ILCSettings] = {"full": ILCSettings(), "quick": ILCSettings(trials=5)}
-"""The oracle's presets: ``full`` (50 trials) and ``quick`` (5 trials, for tests)."""
+ILC_PRESETS: dict[str, ILCSettings] = {"cpu": ILCSettings(), "tiny": ILCSettings(trials=5)}
+"""The oracle's presets: ``cpu`` (50 trials) and ``tiny`` (5 trials, for tests)."""
 
 
-def ilc_settings(preset: str | ILCSettings = "full") -> ILCSettings:
+def ilc_settings(preset: str | ILCSettings = "cpu") -> ILCSettings:
     """The ILC settings by preset name, or ``preset`` itself when it is an :class:`ILCSettings`.
 
     Args:
-        preset: ``"full"``, ``"quick"`` or an :class:`ILCSettings`.
+        preset: ``"cpu"``, ``"tiny"`` or an :class:`ILCSettings`.
 
     Returns:
         The settings.
     """
     if isinstance(preset, ILCSettings):
         return preset
+    if isinstance(preset, str):
+        preset = canonical_preset(preset)
     if not isinstance(preset, str) or preset not in ILC_PRESETS:
         raise EfficientTrackError(f"preset {preset!r}: unknown for ilc (known: {', '.join(ILC_PRESETS)}, or ILCSettings)")
     return ILC_PRESETS[preset]
@@ -252,7 +255,7 @@ def train_ilc(
     budget: int,
     seed: int,
     folder: str | Path,
-    preset: str | ILCSettings = "full",
+    preset: str | ILCSettings = "cpu",
     eval_at: Sequence[int] | None = None,
     progress: ProgressDisplay | None = None,
 ) -> list[dict[str, Any]]:
@@ -274,7 +277,7 @@ def train_ilc(
         budget: interaction steps allowed (≥ one trial's steps).
         seed: unused (ILC is deterministic), checked and written to the curve's header.
         folder: output folder for ``curve.json`` (created; other files in it are left alone).
-        preset: ``"full"``, ``"quick"`` (:data:`ILC_PRESETS`) or an :class:`ILCSettings`.
+        preset: ``"cpu"``, ``"tiny"`` (:data:`ILC_PRESETS`) or an :class:`ILCSettings`.
         eval_at: interaction counts at which to record a point, each in ``[1, budget]`` (each recorded at the first
             trial whose count reaches it), besides trial 0; None: every trial.
         progress: a display to show the interaction count and the last MAE on, or None for no progress.

@@ -37,6 +37,7 @@ from efficienttrack.core.configfile import check_seed
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import output_lock
 from efficienttrack.core.progress import ProgressDisplay
+from efficienttrack.core.settings import canonical_preset
 from efficienttrack.data.dataset import Sequences
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.data.references import Reference
@@ -82,24 +83,25 @@ class OpenLoopSettings:
 
 
 OPEN_PRESETS: dict[str, OpenLoopSettings] = {
-    "full": OpenLoopSettings(),
-    "quick": OpenLoopSettings(
+    "cpu": OpenLoopSettings(),
+    "tiny": OpenLoopSettings(
         model=ModelConfig(hidden=32, layers=2, horizon=4, history=None, batch_size=64, lr=3e-3, steps=100),
         policy=PolicyConfig(hidden=32, layers=2, horizon=4, batch_size=64, lr=3e-3, steps=60, k_smooth=0.01),
         imitation_steps=60,
     ),
 }
-"""``full``: minutes per pass count on a CPU; ``quick``: seconds (tests; its curves say nothing about the method)."""
+"""``cpu``: minutes per pass count on a CPU; ``tiny``: seconds (tests; its curves say nothing about the method)."""
 
 
 def open_settings(preset: str | OpenLoopSettings) -> OpenLoopSettings:
     """The settings by preset name (:data:`OPEN_PRESETS`), or ``preset`` itself.
 
     Args:
-        preset: ``"full"``, ``"quick"`` or an :class:`OpenLoopSettings`.
+        preset: ``"cpu"``, ``"tiny"`` or an :class:`OpenLoopSettings`.
     """
     if isinstance(preset, OpenLoopSettings):
         return preset
+    preset = canonical_preset(preset)
     if preset not in OPEN_PRESETS:
         raise EfficientTrackError(f"preset '{preset}': unknown for open-loop EfficientTrack ({', '.join(OPEN_PRESETS)})")
     return OPEN_PRESETS[preset]
@@ -148,7 +150,7 @@ def train_efficienttrack_open(
     budget: int,
     seed: int,
     folder: str | Path,
-    preset: str | OpenLoopSettings = "full",
+    preset: str | OpenLoopSettings = "cpu",
     eval_at: Sequence[int] | None = None,
     progress: ProgressDisplay | None = None,
 ) -> list[dict[str, Any]]:
@@ -168,7 +170,7 @@ def train_efficienttrack_open(
         budget: interaction steps (≥ one pass over ``train_refs``).
         seed: seed of the collection noise and the trainings.
         folder: output folder for ``curve.json``.
-        preset: ``"full"``, ``"quick"`` (:data:`OPEN_PRESETS`) or an :class:`OpenLoopSettings`.
+        preset: ``"cpu"``, ``"tiny"`` (:data:`OPEN_PRESETS`) or an :class:`OpenLoopSettings`.
         eval_at: interaction counts; each is measured after the most passes whose steps do not exceed it (at least
             one). None: the pass counts 1, 2, 5, 10 … that fit the budget
             (:func:`~efficienttrack.workflow.collect.pass_counts`).

@@ -89,7 +89,7 @@ def train_baseline(
     budget: int,
     seed: int,
     folder: str | Path,
-    preset: str | PPOSettings | SACSettings = "full",
+    preset: str | PPOSettings | SACSettings = "cpu",
     eval_at: Sequence[int] | None = None,
     progress: ProgressDisplay | None = None,
     save_every_seconds: float = SAVE_EVERY_SECONDS,
@@ -123,7 +123,8 @@ def train_baseline(
             With N environments training stops at the first multiple of N that reaches it.
         seed: seed of SB3 (Python, numpy, torch, the action space) and of the environments (environment i: seed + i).
         folder: output folder for ``curve.json`` and ``model.zip`` (created; other files in it are left alone).
-        preset: ``"full"``, ``"quick"`` (:data:`~efficienttrack.baselines.settings.PRESETS`) or the method's settings.
+        preset: ``"paper"``, ``"cpu"``, ``"tiny"`` (:data:`~efficienttrack.baselines.settings.PRESETS`) or the method's
+            settings.
         eval_at: interaction counts to evaluate at, each in ``[1, budget]``; None for :func:`default_eval_points`.
         progress: a display to show the training steps and the last MAE on, or None for no progress.
         save_every_seconds: wall seconds between saves of the training state (0: at every rollout's start).

@@ -1,10 +1,10 @@
-"""The settings of the Stable-Baselines3 baselines: one frozen dataclass per method, presets ``paper``, ``full``, ``quick``.
+"""The settings of the Stable-Baselines3 baselines: one frozen dataclass per method, presets ``paper``, ``cpu``, ``tiny``.
 
 ``paper`` takes the research code's values (``comparative_experiments/PidExcavatorRL``: ``PPO_Agent.py``,
 ``train_ppo.py``, ``SAC_Agent.py``, ``train_sac.py`` in the public repository ZiqingZou/EfficientTrack) where SB3 can
-express them; docs/baselines.md lists each field and its source. ``full`` is the paper's stated setup (PPO: 16
+express them; docs/baselines.md lists each field and its source. ``cpu`` is the paper's stated setup (PPO: 16
 parallel environments; SAC: a replay buffer of 100,000 transitions) with Stable-Baselines3's own defaults (SB3 2.x,
-``MlpPolicy``) for everything else. ``quick`` shrinks networks, rollouts and batches so that a few thousand
+``MlpPolicy``) for everything else. ``tiny`` shrinks networks, rollouts and batches so that a few thousand
 interaction steps take seconds on a CPU (tests and smoke runs; its curves say nothing about the methods).
 
 Every preset gives the learner the input EfficientTrack's networks see (``inputs="relative"``:
@@ -25,6 +25,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from torch import nn
 
 from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.settings import canonical_preset
 
 INPUTS = ("relative", "raw")
 """What a baseline sees: the standardized relative features every learner shares, or the raw flat observation."""
@@ -221,28 +222,29 @@ PPO_PRESETS: dict[str, PPOSettings] = {
         clip_range=3.0,
         net_arch=PAPER_NET,
     ),
-    "full": PPOSettings(),
-    "quick": PPOSettings(n_envs=4, n_steps=32, batch_size=32, n_epochs=2, net_arch=(32, 32)),
+    "cpu": PPOSettings(),
+    "tiny": PPOSettings(n_envs=4, n_steps=32, batch_size=32, n_epochs=2, net_arch=(32, 32)),
 }
-"""PPO's presets: ``paper`` (the research code's), ``full`` (the paper's 16 environments, SB3's defaults), ``quick``."""
+"""PPO's presets: ``paper`` (the research code's), ``cpu`` (the paper's 16 environments, SB3's defaults), ``tiny``."""
 
 SAC_PRESETS: dict[str, SACSettings] = {
     "paper": SACSettings(batch_size=4096, learning_rate=3e-5, gamma=0.98, net_arch=PAPER_NET),
-    "full": SACSettings(),
-    "quick": SACSettings(buffer_size=10_000, learning_starts=50, batch_size=32, net_arch=(32, 32)),
+    "cpu": SACSettings(),
+    "tiny": SACSettings(buffer_size=10_000, learning_starts=50, batch_size=32, net_arch=(32, 32)),
 }
-"""SAC's presets: ``paper`` (the research code's), ``full`` (its 100,000-transition buffer, SB3's defaults), ``quick``."""
+"""SAC's presets: ``paper`` (the research code's), ``cpu`` (its 100,000-transition buffer, SB3's defaults), ``tiny``."""
 
 PRESETS: dict[str, dict[str, PPOSettings] | dict[str, SACSettings]] = {"ppo": PPO_PRESETS, "sac": SAC_PRESETS}
 """Presets by method name, then preset name."""
 
 
-def method_settings(method: str, preset: str | PPOSettings | SACSettings = "full") -> PPOSettings | SACSettings:
+def method_settings(method: str, preset: str | PPOSettings | SACSettings = "cpu") -> PPOSettings | SACSettings:
     """The settings of ``method`` by preset name, or ``preset`` itself when it is a settings object of that method.
 
     Args:
         method: ``"ppo"`` or ``"sac"``.
-        preset: ``"paper"``, ``"full"``, ``"quick"``, or a :class:`PPOSettings` / :class:`SACSettings` of the method.
+        preset: ``"paper"``, ``"cpu"``, ``"tiny"`` (``"full"``, ``"quick"``: their earlier names), or a
+            :class:`PPOSettings` / :class:`SACSettings` of the method.
 
     Returns:
         The settings.
@@ -254,10 +256,11 @@ def method_settings(method: str, preset: str | PPOSettings | SACSettings = "full
         raise EfficientTrackError(f"method '{method}': unknown baseline (known: {', '.join(PRESETS)})")
     presets = PRESETS[method]
     if isinstance(preset, str):
+        preset = canonical_preset(preset)
         if preset not in presets:
             raise EfficientTrackError(f"preset '{preset}': unknown for {method} (known: {', '.join(presets)})")
         return presets[preset]
-    expected = type(presets["full"])
+    expected = type(presets["cpu"])
     if not isinstance(preset, expected):
         raise EfficientTrackError(f"preset: {method} takes a preset name or {expected.__name__}, got {type(preset).__name__}")
     return preset

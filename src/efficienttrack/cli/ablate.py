@@ -49,7 +49,7 @@ def ablate_command(
     passes: Annotated[
         int | None, typer.Option("--passes", help="Collection passes of every variant (default: the preset's, full 10).")
     ] = None,
-    preset_name: StudyPresetOpt = "full",
+    preset_name: StudyPresetOpt = "cpu",
     overrides: StudySetOpt = None,
     executor: ExecutorOpt = "local",
     jobs: JobsOpt = 1,

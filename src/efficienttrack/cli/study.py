@@ -34,11 +34,13 @@ def _study_settings(preset_name: str, overrides: list[str] | None):
 
     Each job's seed replaces ``seed`` (``--seeds``); an ablation's variant changes its one setting on top.
     """
+    from efficienttrack.core.settings import canonical_preset
     from efficienttrack.study.jobs import STUDY_PRESETS
     from efficienttrack.workflow.config import apply_overrides, preset
 
     if not overrides:
         return None
+    preset_name = canonical_preset(preset_name)
     if preset_name not in STUDY_PRESETS:
         raise EfficientTrackError(f"--preset '{preset_name}': unknown, choose one of {', '.join(STUDY_PRESETS)}")
     return apply_overrides(preset(STUDY_PRESETS[preset_name].run), overrides)
@@ -55,7 +57,10 @@ def _method_budgets(items: list[str]) -> dict[str, int]:
     return budgets
 
 
-StudyPresetOpt = Annotated[str, typer.Option("--preset", help="quick (tiny networks, minutes) or full.")]
+StudyPresetOpt = Annotated[
+    str,
+    typer.Option("--preset", help="tiny (tiny networks, minutes) or cpu (the cpu run preset, the baselines' cpu settings)."),
+]
 StudySetOpt = Annotated[
     list[str] | None,
     typer.Option(
@@ -95,13 +100,13 @@ def study_command(
     ] = "closed",
     seeds: Annotated[str, typer.Option("--seeds", help="Comma-separated seeds, one job per method, loop and seed.")] = "0",
     budget: Annotated[
-        int | None, typer.Option("--budget", help="Interaction steps per job (default: quick 20,000, full 200,000).")
+        int | None, typer.Option("--budget", help="Interaction steps per job (default: tiny 20,000, cpu 200,000).")
     ] = None,
     method_budget: Annotated[
         list[str] | None,
         typer.Option("--method-budget", help="METHOD=N: that method's interaction steps instead of --budget (repeatable)."),
     ] = None,
-    preset_name: StudyPresetOpt = "full",
+    preset_name: StudyPresetOpt = "cpu",
     overrides: StudySetOpt = None,
     executor: ExecutorOpt = "local",
     jobs: JobsOpt = 1,

@@ -11,6 +11,7 @@ of settings with each field's bounds (``efficienttrack config show``).
 from __future__ import annotations
 
 import types
+import warnings
 from collections.abc import Iterator, Sequence
 from dataclasses import MISSING, dataclass, field, fields, is_dataclass
 from typing import Any, TypeVar, Union, get_args, get_origin, get_type_hints
@@ -322,3 +323,25 @@ def settings_table(settings: Any, prefix: str = "") -> Iterator[tuple[str, Any, 
                 text = f"{bounds.length} numbers" + (f", each {text}" if text else "")
             optional = type(None) in get_args(_hints(type(settings))[spec.name])
             yield path, value, f"{text} or null".lstrip() if optional and text else ("null allowed" if optional else text)
+
+
+PRESET_SIZES = ("tiny", "cpu", "paper")
+"""The one preset vocabulary of run, study and baselines: ``tiny`` (seconds: tests and smoke runs), ``cpu`` (minutes to
+hours on 2 CPU cores), ``paper`` (the paper's settings, a GPU job where the method has them)."""
+LEGACY_PRESETS = {"quick": "tiny", "full": "cpu"}
+"""The study's and baselines' earlier preset names, still read, with a warning."""
+
+
+def canonical_preset(name: str) -> str:
+    """A preset name in the one vocabulary (:data:`PRESET_SIZES`): an earlier name is translated, with a warning.
+
+    Args:
+        name: the name given (``--preset``, a library call).
+
+    Returns:
+        The name, or its new name for ``quick`` (``tiny``) and ``full`` (``cpu``).
+    """
+    if name in LEGACY_PRESETS:
+        warnings.warn(f"preset '{name}' is now called '{LEGACY_PRESETS[name]}'", FutureWarning, stacklevel=2)
+        return LEGACY_PRESETS[name]
+    return name

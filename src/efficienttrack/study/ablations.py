@@ -27,6 +27,7 @@ from rich.console import Console
 
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import write_json
+from efficienttrack.core.settings import canonical_preset
 from efficienttrack.data.records import load_records
 from efficienttrack.data.references import Reference
 from efficienttrack.learn.dynamics import load_model
@@ -194,7 +195,7 @@ def make_ablation_study(
     system: SystemSpec,
     train: list[Reference] | tuple[Reference, ...],
     test: list[Reference] | tuple[Reference, ...],
-    preset: str = "full",
+    preset: str = "cpu",
     passes: int | None = None,
     run_config: RunConfig | None = None,
 ) -> Study:
@@ -207,8 +208,8 @@ def make_ablation_study(
         system: the closed-loop system.
         train: training references, each q (L_i, 4) rad.
         test: held-out references.
-        preset: ``quick`` or ``full`` (:data:`~efficienttrack.study.jobs.STUDY_PRESETS`).
-        passes: collection passes of every variant (None: the settings' own, e.g. 10 for ``full``, 3 for ``quick``).
+        preset: ``tiny`` or ``cpu`` (:data:`~efficienttrack.study.jobs.STUDY_PRESETS`).
+        passes: collection passes of every variant (None: the settings' own, e.g. 10 for ``cpu``, 3 for ``tiny``).
         run_config: EfficientTrack's settings (None: the preset's).
 
     Returns:
@@ -217,6 +218,7 @@ def make_ablation_study(
     Raises:
         EfficientTrackError: an unknown preset, bad passes, no references.
     """
+    preset = canonical_preset(preset)
     if preset not in STUDY_PRESETS:
         raise EfficientTrackError(f"--preset '{preset}': unknown, choose one of {', '.join(STUDY_PRESETS)}")
     base = make_study(system, train, test, 1, preset, run_config)

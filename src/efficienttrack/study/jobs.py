@@ -16,6 +16,7 @@ from typing import Any
 
 from efficienttrack.core.configfile import check_seed
 from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.settings import canonical_preset
 from efficienttrack.data.references import Reference, references_sha256
 from efficienttrack.systems.spec import SystemSpec
 from efficienttrack.workflow.config import PRESETS, RunConfig, amend
@@ -39,7 +40,7 @@ class StudyPreset:
     run: str
     """EfficientTrack's settings: a name of :data:`efficienttrack.workflow.config.PRESETS`."""
     baselines: str
-    """The baselines' settings: the name of their presets (``quick``, ``full``) in :mod:`efficienttrack.baselines`."""
+    """The baselines' settings: the name of their presets (``tiny``, ``cpu``) in :mod:`efficienttrack.baselines`."""
     budget: int
     """Interaction steps per job when the study gives none."""
     method_budgets: tuple[tuple[str, int], ...] = ()
@@ -47,11 +48,11 @@ class StudyPreset:
 
 
 STUDY_PRESETS: dict[str, StudyPreset] = {
-    "quick": StudyPreset(run="tiny", baselines="quick", budget=20_000, method_budgets=(("tdmpc", 2_000),)),
-    "full": StudyPreset(run="cpu", baselines="full", budget=200_000),
+    "tiny": StudyPreset(run="tiny", baselines="tiny", budget=20_000, method_budgets=(("tdmpc", 2_000),)),
+    "cpu": StudyPreset(run="cpu", baselines="cpu", budget=200_000),
 }
-"""``quick``: tiny networks, minutes (the tests; TD-MPC, which updates and plans at every step, gets 2,000 steps);
-``full``: the ``cpu`` preset, and the baselines' full settings."""
+"""``tiny``: tiny networks, minutes (the tests; TD-MPC, which updates and plans at every step, gets 2,000 steps);
+``cpu``: the ``cpu`` preset, and the baselines' ``cpu`` settings (earlier names ``quick`` and ``full`` are read too)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -134,7 +135,7 @@ def make_study(
     train: list[Reference] | tuple[Reference, ...],
     test: list[Reference] | tuple[Reference, ...],
     budget: int | None = None,
-    preset: str = "full",
+    preset: str = "cpu",
     run_config: RunConfig | None = None,
     method_budgets: dict[str, int] | None = None,
 ) -> Study:
@@ -145,7 +146,7 @@ def make_study(
         train: training references, each q (L_i, 4) rad.
         test: held-out references.
         budget: interaction steps per job (None: the preset's).
-        preset: ``quick`` or ``full`` (:data:`STUDY_PRESETS`).
+        preset: ``tiny`` or ``cpu`` (:data:`STUDY_PRESETS`; ``quick``, ``full``: their earlier names).
         run_config: EfficientTrack's settings (None: the preset's ``run`` preset).
         method_budgets: method name → interaction steps for that method's jobs instead of ``budget`` (added to, and
             overriding, the preset's own).
@@ -156,6 +157,7 @@ def make_study(
     Raises:
         EfficientTrackError: an unknown preset, a budget < 1, no references.
     """
+    preset = canonical_preset(preset)
     if preset not in STUDY_PRESETS:
         raise EfficientTrackError(f"--preset '{preset}': unknown, choose one of {', '.join(STUDY_PRESETS)}")
     sizes = STUDY_PRESETS[preset]

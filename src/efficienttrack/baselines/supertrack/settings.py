@@ -1,4 +1,4 @@
-"""SuperTrack's settings: one frozen dataclass, presets ``full`` (minutes on a CPU) and ``quick`` (seconds, tests)."""
+"""SuperTrack's settings: one frozen dataclass, presets ``cpu`` (minutes on a CPU) and ``tiny`` (seconds, tests)."""
 
 from __future__ import annotations
 
@@ -6,6 +6,7 @@ import math
 from dataclasses import dataclass, field
 
 from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.settings import canonical_preset
 from efficienttrack.learn.dynamics import ModelConfig
 from efficienttrack.learn.nets import check_size, resolve_device
 from efficienttrack.learn.policy import PolicyConfig
@@ -70,25 +71,26 @@ class SuperTrackSettings:
 
 
 SUPERTRACK_PRESETS: dict[str, SuperTrackSettings] = {
-    "full": SuperTrackSettings(),
-    "quick": SuperTrackSettings(
+    "cpu": SuperTrackSettings(),
+    "tiny": SuperTrackSettings(
         model=ModelConfig(hidden=32, layers=2, horizon=4, history=3, batch_size=64, steps=20, lr=3e-3, cosine_decay=False),
         policy=PolicyConfig(hidden=32, layers=2, horizon=4, batch_size=64, steps=20, lr=3e-3, cosine_decay=False),
         steps_per_iteration=1000,
         buffer_steps=20_000,
     ),
 }
-"""``full``: minutes per 50,000 interaction steps on a CPU; ``quick``: seconds (tests; its curves say nothing)."""
+"""``cpu``: minutes per 50,000 interaction steps on a CPU; ``tiny``: seconds (tests; its curves say nothing)."""
 
 
 def supertrack_settings(preset: str | SuperTrackSettings) -> SuperTrackSettings:
     """The settings by preset name (:data:`SUPERTRACK_PRESETS`), or ``preset`` itself.
 
     Args:
-        preset: ``"full"``, ``"quick"`` or a :class:`SuperTrackSettings`.
+        preset: ``"cpu"``, ``"tiny"`` or a :class:`SuperTrackSettings`.
     """
     if isinstance(preset, SuperTrackSettings):
         return preset
+    preset = canonical_preset(preset)
     if preset not in SUPERTRACK_PRESETS:
         raise EfficientTrackError(f"preset '{preset}': unknown for supertrack (known: {', '.join(SUPERTRACK_PRESETS)})")
     return SUPERTRACK_PRESETS[preset]

@@ -88,7 +88,7 @@ def train_supertrack(
     budget: int,
     seed: int,
     folder: str | Path,
-    preset: str | SuperTrackSettings = "full",
+    preset: str | SuperTrackSettings = "cpu",
     eval_at: Sequence[int] | None = None,
     progress: ProgressDisplay | None = None,
     save_every_seconds: float = SAVE_EVERY_SECONDS,
@@ -109,7 +109,7 @@ def train_supertrack(
         budget: interaction steps to train for, ≥ 1.
         seed: seed of the reference draws, the noise and the trainings.
         folder: output folder for ``curve.json``.
-        preset: ``"full"``, ``"quick"`` (:data:`~.settings.SUPERTRACK_PRESETS`) or a :class:`SuperTrackSettings`.
+        preset: ``"cpu"``, ``"tiny"`` (:data:`~.settings.SUPERTRACK_PRESETS`) or a :class:`SuperTrackSettings`.
         eval_at: interaction counts to evaluate at, each in ``[1, budget]``; None: 1, 2, 5 × 10^k and the budget.
             A point is measured after the first iteration whose count reaches it (points reached together once).
         progress: a display for the interaction count and the last MAE, or None.

@@ -1,7 +1,7 @@
-"""The settings of TD-MPC: one frozen dataclass, presets ``full`` (the paper's TD-MPC config) and ``quick`` (tiny).
+"""The settings of TD-MPC: one frozen dataclass, presets ``cpu`` (the paper's TD-MPC config) and ``tiny``.
 
-``full`` is the configuration the paper gives for its TD-MPC baseline (Hansen et al. 2022), and the public TD-MPC
-code's defaults for what the paper leaves out (each field's docstring says which). ``quick`` shrinks networks,
+``cpu`` is the configuration the paper gives for its TD-MPC baseline (Hansen et al. 2022), and the public TD-MPC
+code's defaults for what the paper leaves out (each field's docstring says which). ``tiny`` shrinks networks,
 samples, batches and the seeding phase so that a few hundred interaction steps take seconds on a CPU (tests and smoke
 runs; its curves say nothing about the method).
 """
@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass
 
 from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.settings import canonical_preset
 
 EVALUATE_WITH = ("policy", "plan")
 """How the curve's deterministic agent acts: π's mean action, or the planner without exploration noise."""
@@ -158,8 +159,8 @@ class TDMPCSettings:
 
 
 PRESETS: dict[str, TDMPCSettings] = {
-    "full": TDMPCSettings(),
-    "quick": TDMPCSettings(
+    "cpu": TDMPCSettings(),
+    "tiny": TDMPCSettings(
         horizon=3,
         iterations=2,
         num_samples=32,
@@ -174,14 +175,15 @@ PRESETS: dict[str, TDMPCSettings] = {
         encoder_hidden=32,
     ),
 }
-"""TD-MPC's presets: ``full`` (the paper's TD-MPC config) and ``quick`` (tiny, for tests and smoke runs)."""
+"""TD-MPC's presets: ``cpu`` (the paper's TD-MPC config: small networks, so a CPU runs it; what it cannot give is the
+paper's budget) and ``tiny`` (for tests and smoke runs)."""
 
 
-def tdmpc_settings(preset: str | TDMPCSettings = "full") -> TDMPCSettings:
+def tdmpc_settings(preset: str | TDMPCSettings = "cpu") -> TDMPCSettings:
     """The settings by preset name, or ``preset`` itself when it is a :class:`TDMPCSettings`.
 
     Args:
-        preset: ``"full"``, ``"quick"`` or a :class:`TDMPCSettings`.
+        preset: ``"cpu"``, ``"tiny"`` or a :class:`TDMPCSettings`.
 
     Returns:
         The settings.
@@ -192,6 +194,7 @@ def tdmpc_settings(preset: str | TDMPCSettings = "full") -> TDMPCSettings:
     if isinstance(preset, TDMPCSettings):
         return preset
     if isinstance(preset, str):
+        preset = canonical_preset(preset)
         if preset not in PRESETS:
             raise EfficientTrackError(f"preset '{preset}': unknown for tdmpc (known: {', '.join(PRESETS)})")
         return PRESETS[preset]

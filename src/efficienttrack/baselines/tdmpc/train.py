@@ -115,7 +115,7 @@ def train_tdmpc(
     budget: int,
     seed: int,
     folder: str | Path,
-    preset: str | TDMPCSettings = "full",
+    preset: str | TDMPCSettings = "cpu",
     eval_at: Sequence[int] | None = None,
     progress: ProgressDisplay | None = None,
     save_every_seconds: float = SAVE_EVERY_SECONDS,
@@ -142,7 +142,7 @@ def train_tdmpc(
         seed: seeds the networks' initialization, the planner's and π's noise, the replay sampling, the seeding
             phase's random actions and the environment's reference draws.
         folder: output folder for ``curve.json`` and ``model.pt`` (created; other files in it are left alone).
-        preset: ``"full"``, ``"quick"`` (:data:`~efficienttrack.baselines.tdmpc.settings.PRESETS`) or a
+        preset: ``"cpu"``, ``"tiny"`` (:data:`~efficienttrack.baselines.tdmpc.settings.PRESETS`) or a
             :class:`~efficienttrack.baselines.tdmpc.settings.TDMPCSettings`.
         eval_at: interaction counts to evaluate at, each in ``[1, budget]``; None for
             :func:`~efficienttrack.baselines.curve.default_eval_points`.
