@@ -32,6 +32,7 @@ SMALL_RUNS = {
     ),
     "sim_throughput.py": (["--seconds", "0.05"], "closed loop steps/s", r"\n *4096 \| *[\d,]+ \| *([\d,]+)\n"),
     "loop_jitter.py": (["--minutes", "0.01", "--size", "tiny"], "missed ticks", r"(\d+) ticks at 20 Hz"),
+    "fuzz_loaders.py": (["--mutants", "5"], "escaped in all: 0", r"episode \.npz +\d+ +(\d+) +0 "),
 }
 """Benchmarks cheap enough to run here: their smallest arguments, a phrase of the report they must print, and a pattern
 of the report whose group is a figure that must be > 0 (a rate, a p99 latency, the ticks run)."""

@@ -52,15 +52,36 @@ def read_mapping_file(path: str | Path) -> Any:
     path = Path(path)
     try:
         text = path.read_text()
-        return json.loads(text) if path.suffix == ".json" else yaml.load(text, Loader=ConfigLoader)
     except OSError as exc:
         raise EfficientTrackError(f"{path}: cannot read the config ({exc.strerror or exc})") from exc
     except UnicodeDecodeError as exc:
         raise EfficientTrackError(f"{path}: cannot read the config (not a text file: {exc.reason})") from exc
-    except json.JSONDecodeError as exc:
-        raise EfficientTrackError(f"{path}: cannot read the config (not valid JSON: {exc})") from exc
+    if path.suffix == ".json":
+        try:
+            return json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise EfficientTrackError(f"{path}: cannot read the config (not valid JSON: {exc})") from exc
+        except ValueError as exc:  # an integer of over 4,300 digits (int()'s limit)
+            raise EfficientTrackError(f"{path}: cannot read the config (not valid JSON: {_one_line(exc)})") from exc
+        except RecursionError as exc:  # brackets nested beyond Python's recursion limit
+            raise EfficientTrackError(f"{path}: cannot read the config (nested too deeply)") from exc
+    try:
+        return yaml.load(text, Loader=ConfigLoader)
     except yaml.YAMLError as exc:
         raise EfficientTrackError(f"{path}: cannot read the config (not valid YAML: {yaml_problem(exc)})") from exc
+    except RecursionError as exc:  # brackets nested beyond Python's recursion limit (PyYAML's parser recurses)
+        raise EfficientTrackError(f"{path}: cannot read the config (nested too deeply)") from exc
+    except Exception as exc:
+        # The one broad catch, around yaml.load alone: PyYAML's safe constructors convert a scalar with Python builtins
+        # and let out whatever those raise, an open-ended set: ValueError from int() on "!!int 0x" or datetime on
+        # "2001-13-01", KeyError from "!!bool maybe", AttributeError from "!!timestamp x", IndexError from an empty
+        # "!!int". The text is already read, so what is raised here is about the file's content.
+        raise EfficientTrackError(f"{path}: cannot read the config (not valid YAML: {_one_line(exc)})") from exc
+
+
+def _one_line(exc: BaseException) -> str:
+    """``Type: message``, the message on one line."""
+    return f"{type(exc).__name__}: {' '.join(str(exc).split())}"
 
 
 def yaml_problem(exc: yaml.YAMLError) -> str:

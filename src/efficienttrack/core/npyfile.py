@@ -10,9 +10,13 @@ allocating anything, and turn numpy's, zipfile's, zlib's and pickle's exceptions
 
 from __future__ import annotations
 
+import io
 import math
+import os
 import pickle
 import struct
+import sys
+import tokenize
 import zipfile
 import zlib
 from collections.abc import Callable
@@ -31,6 +35,10 @@ largest reference 17 KB, an upstream episode ``.npy`` 185 KB."""
 
 _READ_ERRORS = (OSError, ValueError, EOFError, KeyError, IndexError, TypeError, struct.error, zlib.error, zipfile.BadZipFile)
 """What numpy's header parser, zipfile and zlib raise on a damaged file."""
+
+MAX_HEADER_BYTES = 10_000
+"""Longest ``.npy`` header read (numpy's own ``max_header_size``). numpy checks it only after reading the header, and a
+version 2 or 3 header declares its length in 4 bytes: a damaged one could make it read (and allocate) up to 4 GiB."""
 
 
 def _size_text(nbytes: int) -> str:
@@ -62,13 +70,35 @@ def _check_declared(shape: tuple[int, ...], dtype: np.dtype, source: str, budget
 
 
 def _read_header(f: IO[bytes]) -> tuple[tuple[int, ...], bool, np.dtype]:
-    """Read the magic string and header of the ``.npy`` data at ``f``: (shape, fortran_order, dtype)."""
+    """Read the magic string and header of the ``.npy`` data at ``f``: (shape, fortran_order, dtype).
+
+    The header's declared length is checked against :data:`MAX_HEADER_BYTES` before the header is read; numpy then
+    parses it from memory.
+
+    Raises:
+        ValueError: an unsupported version, a truncated or overlong header, or one numpy cannot parse.
+    """
     version = npy_format.read_magic(f)
     if version == (1, 0):
-        return npy_format.read_array_header_1_0(f)
-    if version in ((2, 0), (3, 0)):
-        return npy_format.read_array_header_2_0(f)
-    raise ValueError(f"unsupported .npy format version {version}")
+        length_format, parse = "<H", npy_format.read_array_header_1_0
+    elif version in ((2, 0), (3, 0)):
+        length_format, parse = "<I", npy_format.read_array_header_2_0
+    else:
+        raise ValueError(f"unsupported .npy format version {version}")
+    length_bytes = f.read(struct.calcsize(length_format))
+    if len(length_bytes) != struct.calcsize(length_format):
+        raise ValueError("truncated in its header length")
+    (length,) = struct.unpack(length_format, length_bytes)
+    if length > MAX_HEADER_BYTES:
+        raise ValueError(f"Header info length {length} is more than the {MAX_HEADER_BYTES} bytes numpy reads")
+    header = f.read(length)
+    if len(header) != length:
+        raise ValueError(f"truncated in its header ({len(header)} of {length} bytes)")
+    try:
+        return parse(io.BytesIO(length_bytes + header))
+    except (tokenize.TokenError, SyntaxError) as exc:  # numpy's header parser (tokenize, ast, np.dtype) lets these out
+        problem = exc.args[0] if isinstance(exc, tokenize.TokenError) and exc.args else _first_line(exc)
+        raise ValueError(f"a damaged header ({type(exc).__name__}: {problem})") from exc
 
 
 def _read_data(f: IO[bytes], shape: tuple[int, ...], fortran: bool, dtype: np.dtype, nbytes: int) -> np.ndarray:
@@ -76,8 +106,21 @@ def _read_data(f: IO[bytes], shape: tuple[int, ...], fortran: bool, dtype: np.dt
     data = f.read(nbytes + 1)
     if len(data) != nbytes:
         raise ValueError(f"holds {len(data)}{'+' if len(data) > nbytes else ''} bytes of data, its header declares {nbytes}")
+    _check_text(data, dtype)
     flat = np.frombuffer(data, dtype=dtype)
     return (flat.reshape(shape[::-1]).T if fortran else flat.reshape(shape)).copy()
+
+
+def _check_text(data: bytes, dtype: np.dtype) -> None:
+    """Refuse the data of a text array (dtype kind ``U``, UCS-4) that holds a code point beyond U+10FFFF.
+
+    numpy makes a Python string of such data without a check, and the string then fails in unrelated places (a
+    ``SystemError`` from iterating over it).
+    """
+    if dtype.kind == "U" and data:
+        codes = np.frombuffer(data, dtype=np.dtype(np.uint32).newbyteorder(dtype.byteorder))
+        if codes.size and int(codes.max()) > sys.maxunicode:
+            raise ValueError(f"holds text that is not Unicode (a character code {int(codes.max()):#x})")
 
 
 def read_npy(path: str | Path, kinds: str = "f") -> np.ndarray:
@@ -189,10 +232,15 @@ class _NumpyOnlyUnpickler(pickle._Unpickler):
     dispatch: ClassVar[dict[int, Callable[[Any], None]]] = dict(pickle._Unpickler.dispatch)
     stack: list[Any]
     """The pure-Python unpickler's value stack (undocumented, so typeshed leaves it out)."""
+    read: Callable[[int], bytes]
+    """Reads the next bytes of the pickle, within the current frame (set by ``load``; undocumented too)."""
+    append: Callable[[Any], None]
+    """Pushes a value on the stack (set by ``load``; undocumented too)."""
 
-    def __init__(self, file: IO[bytes], source: Path) -> None:
-        super().__init__(file)
+    def __init__(self, data: bytes, source: Path) -> None:
+        super().__init__(io.BytesIO(data))
         self.source = source
+        self.size = len(data)
         self.budget = MAX_EXPANDED_BYTES
 
     def _refuse(self, problem: str) -> EfficientTrackError:
@@ -230,6 +278,22 @@ class _NumpyOnlyUnpickler(pickle._Unpickler):
 
     dispatch[pickle.BUILD[0]] = load_build
 
+    def load_bytearray8(self) -> None:
+        """``BYTEARRAY8``: refuse a declared length beyond the pickle's own size before the bytearray is allocated.
+
+        The one opcode that allocates what its length declares before reading (the others read from memory, see
+        :func:`read_pickled_npy`, and find the data short).
+        """
+        (length,) = struct.unpack("<Q", self.read(8))
+        if length > self.size:
+            raise self._refuse(f"a bytearray declares {length} bytes, more than the {self.size}-byte pickle holds")
+        data = bytearray(self.read(length))
+        if len(data) != length:
+            raise pickle.UnpicklingError("pickle data was truncated")
+        self.append(data)
+
+    dispatch[pickle.BYTEARRAY8[0]] = load_bytearray8
+
     def _check_array_state(self, state: object) -> None:
         """An array's state ``(1, shape, dtype, fortran, data)`` must declare an allowed size and hold exactly that data."""
         if not (
@@ -247,6 +311,8 @@ class _NumpyOnlyUnpickler(pickle._Unpickler):
             exact = isinstance(data, bytes) and len(data) == count * dtype.itemsize
         if not exact:
             raise self._refuse(f"an array of shape {shape} and dtype {dtype} holds data of another size")
+        if isinstance(data, bytes):
+            _check_text(data, dtype)
 
 
 def _plain_dtype_state(state: object, dtype: np.dtype) -> bool:
@@ -287,7 +353,16 @@ def read_pickled_npy(path: str | Path, what: str) -> Any:
             shape, _, dtype = _read_header(f)
             if dtype != np.dtype(object) or shape != ():
                 raise EfficientTrackError(f"{path}: holds a {dtype} array of shape {shape}, not {what}")
-            content = _NumpyOnlyUnpickler(f, path).load()
+            # The pickle is unpickled from memory: an opcode that declares a length (a frame, bytes, a string) then
+            # reads no more than the file holds, where reading the file would allocate the declared length first.
+            size = os.fstat(f.fileno()).st_size - f.tell()
+            if size > MAX_EXPANDED_BYTES:
+                raise EfficientTrackError(
+                    f"{path}: its pickle holds {_size_text(size)}, more than the {_size_text(MAX_EXPANDED_BYTES)} one "
+                    "file may expand to (efficienttrack.core.npyfile.MAX_EXPANDED_BYTES)"
+                )
+            data = f.read(size)
+        content = _NumpyOnlyUnpickler(data, path).load()
     except EfficientTrackError:
         raise
     except (*_READ_ERRORS, AttributeError, OverflowError, pickle.UnpicklingError) as exc:

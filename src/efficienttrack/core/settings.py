@@ -10,6 +10,7 @@ of settings with each field's bounds (``efficienttrack config show``).
 
 from __future__ import annotations
 
+import reprlib
 import types
 import warnings
 from collections.abc import Iterator, Sequence
@@ -69,6 +70,15 @@ def _number(value: float | None) -> str:
     if isinstance(value, int) or (isinstance(value, float) and value.is_integer()):
         return str(int(value))
     return f"{value:g}"
+
+
+_SHOWN = reprlib.Repr()
+_SHOWN.maxlevel, _SHOWN.maxlist, _SHOWN.maxdict, _SHOWN.maxstring, _SHOWN.maxother = 3, 6, 6, 60, 60
+
+
+def shown(value: Any) -> str:
+    """A value as an error message shows it: its repr, cut short (a YAML alias bomb's would not fit in memory)."""
+    return _SHOWN.repr(value)
 
 
 def setting(
@@ -168,18 +178,18 @@ def coerce(hint: Any, value: Any, where: str, bounds: Bounds | None = None) -> A
         return coerce(inner, value, where, bounds)
     if isinstance(hint, type) and is_dataclass(hint):
         if not isinstance(value, hint):
-            raise EfficientTrackError(f"{where} must be a {hint.__name__}, got {value!r}")
+            raise EfficientTrackError(f"{where} must be a {hint.__name__}, got {shown(value)}")
         return value
     if origin is tuple:
         (element, *_) = get_args(hint)
         if not isinstance(value, list | tuple):
-            raise EfficientTrackError(f"{where} must be a list of {_elements(bounds, element)}, got {value!r}")
+            raise EfficientTrackError(f"{where} must be a list of {_elements(bounds, element)}, got {shown(value)}")
         try:
             items = tuple(_scalar(element, item, where, bounds) for item in value)
         except EfficientTrackError:
-            raise EfficientTrackError(f"{where} must be a list of {_elements(bounds, element)}, got {value!r}") from None
+            raise EfficientTrackError(f"{where} must be a list of {_elements(bounds, element)}, got {shown(value)}") from None
         if bounds is not None and bounds.length is not None and len(items) != bounds.length:
-            raise EfficientTrackError(f"{where} must be a list of {_elements(bounds, element)}, got {value!r}")
+            raise EfficientTrackError(f"{where} must be a list of {_elements(bounds, element)}, got {shown(value)}")
         return items
     return _scalar(hint, value, where, bounds)
 
@@ -196,7 +206,7 @@ def _scalar(hint: Any, value: Any, where: str, bounds: Bounds | None) -> Any:
     """One scalar value checked against its type (bool, int, float, str) and bounds."""
     if hint is bool:
         if not isinstance(value, bool):
-            raise EfficientTrackError(f"{where} must be true or false, got {value!r}")
+            raise EfficientTrackError(f"{where} must be true or false, got {shown(value)}")
         return value
     if hint is int:
         ok = isinstance(value, int) and not isinstance(value, bool)
@@ -212,7 +222,7 @@ def _scalar(hint: Any, value: Any, where: str, bounds: Bounds | None) -> Any:
     if not ok or (bounds is not None and not bounds.admits(value)):
         described = bounds.describe() if bounds is not None else ""
         expected = described if bounds is not None and bounds.choices is not None else f"{kind} {described}".rstrip()
-        raise EfficientTrackError(f"{where} must be {expected}, got {value!r}")
+        raise EfficientTrackError(f"{where} must be {expected}, got {shown(value)}")
     return float(value) if hint is float and type(value) is not float else value
 
 

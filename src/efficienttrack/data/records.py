@@ -213,7 +213,7 @@ def parse_meta(text: str, source: str, default_name: str) -> dict[str, Any]:
     """
     try:
         meta = json.loads(text)
-    except (json.JSONDecodeError, RecursionError) as exc:
+    except (ValueError, RecursionError) as exc:  # JSONDecodeError, an integer of over 4,300 digits, nested too deeply
         raise EfficientTrackError(f"{source} is not valid JSON ({type(exc).__name__}: {exc})") from exc
     if not isinstance(meta, dict):
         raise EfficientTrackError(f"{source} holds a JSON {type(meta).__name__}, expected an object")
@@ -344,7 +344,10 @@ def load_upstream_npy(path: str | Path) -> EpisodeRecord:
 
 def _load_upstream_csv(path: Path, lines: list[str]) -> EpisodeRecord:
     """Parse the original repository's CSV ``lines`` (vectors printed as ``"[a b c d]"``)."""
-    rows = list(csv.reader(lines))
+    try:
+        rows = list(csv.reader(lines))
+    except csv.Error as exc:  # a stray quote makes the rest of the file one field, beyond csv's field size limit
+        raise EfficientTrackError(f"{path}: not a readable CSV ({exc})") from exc
     header, rows = rows[0], rows[1:]
     if any(len(row) != len(header) for row in rows):
         raise EfficientTrackError(f"{path}: rows do not all have the {len(header)} columns of the header")

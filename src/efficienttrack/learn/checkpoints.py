@@ -198,9 +198,16 @@ def load_checkpoint(
 
 CHECKPOINT_READ_ERRORS = (
     pickle.UnpicklingError, RuntimeError, EOFError, OSError, ValueError, AttributeError, IndexError, KeyError, TypeError,
-    OverflowError, struct.error,
+    OverflowError, struct.error, AssertionError,
 )  # fmt: skip
-"""What ``torch.load(weights_only=True)`` raises on a file that is not a checkpoint (random bytes give all of these)."""
+"""What ``torch.load(weights_only=True)`` raises on a file that is not a checkpoint (random bytes give all of these;
+a damaged persistent id in its pickle gives AssertionError, "saved_id must be a tuple")."""
+
+
+def _starts_as_zip(path: str | Path) -> bool:
+    """Whether the file starts with a zip's local file header: what makes ``torch.load`` read it as an archive."""
+    with open(path, "rb") as f:
+        return f.read(4) == b"PK\x03\x04"
 
 
 def load_tensors(path: str | Path) -> dict[str, Any]:
@@ -220,18 +227,22 @@ def load_tensors(path: str | Path) -> dict[str, Any]:
     size = Path(path).stat().st_size if Path(path).is_file() else None
     if size == 0:
         raise EfficientTrackError(f"{path}: empty file (0 bytes), not a checkpoint")
-    if size is not None and zipfile.is_zipfile(path):
-        try:
+    declared = 0
+    try:
+        # torch reads a file as a zip archive when it starts with a zip's local header, whatever zipfile thinks of it
+        if size is not None and (_starts_as_zip(path) or zipfile.is_zipfile(path)):
             with zipfile.ZipFile(path) as archive:
                 declared = sum(member.file_size for member in archive.infolist())
-        except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
-            raise EfficientTrackError(f"{path}: refused to load: a damaged checkpoint archive ({exc})") from exc
-        if declared > max(size, MAX_EXPANDED_BYTES):
-            raise EfficientTrackError(
-                f"{path}: refused to load: its {size}-byte archive expands to {declared / 2**20:.1f} MiB, more than the "
-                f"file itself or the {MAX_EXPANDED_BYTES / 2**20:.0f} MiB a compressed checkpoint may expand to "
-                "(efficienttrack.core.npyfile.MAX_EXPANDED_BYTES)"
-            )
+    # is_zipfile lets BadZipFile out (a zip64 end record naming several disks); ZipFile raises NotImplementedError for
+    # a zip version it does not know and ValueError (UnicodeDecodeError) for a member name that is not UTF-8
+    except (zipfile.BadZipFile, NotImplementedError, OSError, ValueError, EOFError, struct.error) as exc:
+        raise EfficientTrackError(f"{path}: refused to load: a damaged checkpoint archive ({exc})") from exc
+    if size is not None and declared > max(size, MAX_EXPANDED_BYTES):
+        raise EfficientTrackError(
+            f"{path}: refused to load: its {size}-byte archive expands to {declared / 2**20:.1f} MiB, more than the "
+            f"file itself or the {MAX_EXPANDED_BYTES / 2**20:.0f} MiB a compressed checkpoint may expand to "
+            "(efficienttrack.core.npyfile.MAX_EXPANDED_BYTES)"
+        )
     try:
         with warnings.catch_warnings():  # a damaged file can make torch warn about its pickle protocol before failing
             warnings.simplefilter("ignore", UserWarning)
