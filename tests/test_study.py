@@ -265,6 +265,21 @@ def test_process_pool_runs_jobs_in_spawned_workers(refs, tmp_path):
     assert maes[0] == maes[1]
 
 
+@pytest.mark.slow
+def test_a_worker_that_dies_fails_no_job_and_its_jobs_run_once_more_alone(refs, tmp_path, monkeypatch):
+    from toy_system import DIE_ONCE
+
+    marker = tmp_path / "die"
+    marker.touch()
+    monkeypatch.setenv(DIE_ONCE, str(marker))
+    train, test = refs
+    study = make_study(SystemSpec(system="toy_system:make_dying"), train, test, budget=2 * 59, preset="tiny", run_config=FAST)
+    jobs = [Job("pd", "closed", seed, study) for seed in (0, 1)]
+    result = run_study(study, jobs, tmp_path / "out", workers=2, log=lambda line: None)
+    assert not marker.exists()  # a worker took it and died, breaking the pool
+    assert sorted(result.ran) == ["pd-closed-s0", "pd-closed-s1"] and not result.failed
+
+
 def test_a_stop_signal_to_a_local_study_stops_its_workers_instead_of_waiting_for_them(default_stop_signals):
     with pytest.raises(KeyboardInterrupt), process_pool(2) as pool:
         assert signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL  # else the kill below ends the test run

@@ -58,6 +58,26 @@ def make(gain: float = 0.4, batched: bool = True, delay: int = 0) -> LagSystem:
     return LagSystem(gain=gain, batched=batched, delay=delay)
 
 
+DIE_ONCE = "EFFICIENTTRACK_TEST_DIE_ONCE"
+"""Environment variable naming a marker file: the first process to open :func:`make_dying` while it exists removes it
+and dies at once, as a worker killed by the kernel would (spawned workers inherit the variable)."""
+
+
+def make_dying() -> LagSystem:
+    """The toy system, or the death of the opening process when the :data:`DIE_ONCE` marker is there to take."""
+    import os
+
+    marker = os.environ.get(DIE_ONCE)
+    if marker:
+        try:
+            os.unlink(marker)
+        except FileNotFoundError:
+            pass
+        else:
+            os._exit(1)
+    return make()
+
+
 def sine_refs(lengths: list[int], seed: int = 0) -> list[Reference]:
     """Smooth multi-sine references of the given lengths (20 Hz, amplitudes 0.2–0.5 rad), named ref_00, ref_01, …"""
     rng = np.random.default_rng(seed)

@@ -14,6 +14,7 @@ import time
 import traceback
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager, redirect_stderr, redirect_stdout
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -161,6 +162,9 @@ def process_pool(workers: int) -> Iterator[ProcessPoolExecutor]:
 def run_local(jobs: Sequence[Job], out: Path, workers: int, threads: int, on_done: Callable[[Outcome], None]) -> list[Outcome]:
     """Run the jobs here (``workers`` = 1) or in a pool of ``workers`` processes (:func:`process_pool`).
 
+    A worker process that dies (killed, out of memory) breaks the pool, which fails every job it holds: those jobs
+    run once more, each alone in a fresh worker, so that only the job that kills its worker again fails.
+
     Args:
         jobs: the jobs.
         out: the study folder.
@@ -177,15 +181,28 @@ def run_local(jobs: Sequence[Job], out: Path, workers: int, threads: int, on_don
             outcomes.append(execute(job, out, threads))
             on_done(outcomes[-1])
         return outcomes
+    taken_down = []
     with process_pool(min(workers, len(jobs))) as pool:
         futures = {pool.submit(execute, job, out, threads): job for job in jobs}
         for future in as_completed(futures):
             try:
                 outcome = future.result()
-            except Exception as exc:  # the worker process died (killed, out of memory)
+            except BrokenProcessPool:  # a worker died (killed, out of memory): the pool fails every job it holds
+                taken_down.append(futures[future])
+                continue
+            except Exception as exc:
                 outcome = Outcome(futures[future].name, None, f"its worker process failed: {type(exc).__name__}: {exc}")
             outcomes.append(outcome)
             on_done(outcome)
+    # once more, each alone in a fresh worker: the job whose worker dies again fails by itself, the others finish
+    for job in sorted(taken_down, key=lambda job: job.name):
+        with process_pool(1) as pool:
+            try:
+                outcome = pool.submit(execute, job, out, threads).result()
+            except Exception as exc:
+                outcome = Outcome(job.name, None, f"its worker process failed twice: {type(exc).__name__}: {exc}")
+        outcomes.append(outcome)
+        on_done(outcome)
     return outcomes
 
 
