@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import errno
 import functools
+import inspect
 import json
 import math
 import os
@@ -31,7 +32,7 @@ import typer
 
 from efficienttrack import cli
 from efficienttrack.core.errors import EfficientTrackError
-from efficienttrack.core.fileio import atomic_write
+from efficienttrack.core.fileio import atomic_write, output_lock
 from efficienttrack.data.records import save_records
 from efficienttrack.data.references import Reference, save_references
 from efficienttrack.learn import checkpoints
@@ -558,6 +559,33 @@ def test_every_registered_command_is_in_the_sweep():
     assert len(registered) >= 20 and "config show" in registered
     assert registered == set(COMMANDS), f"missing from COMMANDS: {registered - set(COMMANDS)}"
     assert {command for command, *_ in OPTIONS} == set(COMMANDS) - FILE_OPTIONS_ONLY
+
+
+def _registered(app, prefix=""):
+    """(name, function) of every command registered on a Typer app and its groups."""
+    for command in app.registered_commands:
+        yield f"{prefix}{command.name or command.callback.__name__}", command.callback
+    for group in app.registered_groups:
+        yield from _registered(group.typer_instance, f"{prefix}{group.name} ")
+
+
+WRITERS = sorted(name for name, function in _registered(cli.app) if "_lock(" in inspect.getsource(function))
+"""The registered commands that lock their output (their function takes the lock): found, not listed by hand."""
+
+
+def test_the_writers_are_found():
+    assert {"collect", "run", "train-model", "round", "convert", "import-rosbag", "study", "deploy"} <= set(WRITERS)
+
+
+@pytest.mark.parametrize("command", WRITERS)
+def test_every_writer_refuses_an_output_another_process_is_writing(command, good, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    paths = {**good, **{slot: tmp_path / "out" / name for slot, name in OUTPUTS.items()}}
+    argv = [arg.format(**paths) for arg in COMMANDS[command].split()]
+    slot = next(slot for slot in ("out_folder", "out_pt") if f"{{{slot}}}" in COMMANDS[command])
+    with output_lock(paths[slot], folder=slot == "out_folder"):
+        line = one_line_error(*run_main(argv, monkeypatch, capsys))
+    assert f"{paths[slot]}: another efficienttrack process" in line and "is writing it" in line, line
 
 
 @pytest.mark.parametrize(("command", "option", "value"), [pytest.param(*case, id=" ".join(case)) for case in OPTIONS])
