@@ -1,5 +1,7 @@
 """rosbag2 logs → episode records (efficienttrack.data.rosbag): bags written here with the rosbags writer, no ROS needed."""
 
+import time
+
 import numpy as np
 import pytest
 from rosbags.rosbag2 import Writer
@@ -346,3 +348,17 @@ def test_bad_joint_trajectories_are_refused_in_one_line(tmp_path):
         with pytest.raises(EfficientTrackError, match=expected) as caught:
             read_rosbag(path, "/cmd", **options)
         assert str(path) in str(caught.value) and "\n" not in str(caught.value), name
+
+
+def test_a_log_longer_than_a_record_is_refused_before_it_is_built(tmp_path):
+    far = T0 + 1e6  # two messages a topic, 10^6 s apart: 20 million control steps, some 3 GB of arrays
+    q = OFFSET + np.zeros((1, 4))
+    topics = {
+        "/joint_states": [(T0 + 0.002, joint_state(T0, q[0], SLOPE)), (far + 0.002, joint_state(far, q[0], SLOPE))],
+        "/cmd": [(T0 + 0.01, array(np.zeros(4))), (far + 0.01, array(np.zeros(4)))],
+    }
+    bag = write_bag(tmp_path / "long", topics)
+    started = time.perf_counter()
+    with pytest.raises(EfficientTrackError, match=r"long: the log spans 1000000 s, 20,000,000 control steps, more than"):
+        read_rosbag(bag, "/cmd", max_gap=1e9)
+    assert time.perf_counter() - started < 5

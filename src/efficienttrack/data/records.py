@@ -37,7 +37,7 @@ import numpy as np
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import atomic_write, check_file_name, finite_json
 from efficienttrack.core.joints import JOINT_NAMES, MAX_ABS_ANGLE, MAX_ABS_VELOCITY
-from efficienttrack.core.npyfile import read_npz, read_pickled_npy
+from efficienttrack.core.npyfile import MAX_EXPANDED_BYTES, read_npz, read_pickled_npy
 
 JOINT_FIELDS = ("q", "qd", "q_ref", "q_des", "u")
 ANGLE_FIELDS = ("q", "q_ref", "q_des")
@@ -49,6 +49,10 @@ RECORD_SUFFIXES = (".npz", ".npy", ".csv")
 UPSTREAM_KEYS = {"js": "q", "jv": "qd", "target": "q_ref", "real_target": "q_des", "action": "u", "time": "t"}
 """Keys of the original repository's episode dict → our field names."""
 CSV_COLUMNS = ("t", *(f"{name}_{joint}" for name in JOINT_FIELDS for joint in JOINT_NAMES))
+MAX_RECORD_STEPS = MAX_EXPANDED_BYTES // (8 * (len(JOINT_FIELDS) * 4 + 1))
+"""Most steps one record may hold: what its float64 arrays (five (T, 4) and ``t``) fit into the read cap
+(:data:`~efficienttrack.core.npyfile.MAX_EXPANDED_BYTES`, 128 MiB): 798,915 steps, 11 h at 20 Hz. Importers refuse a
+longer log before building it, so that nothing is written that the loaders would refuse."""
 """Header of our CSV format (the ``u_*`` columns are left out when u is None)."""
 
 

@@ -183,7 +183,7 @@ def read_rosbag(
 
     start = max(float(topic.stamps[0]) for topic in topics.values())
     end = min(float(topic.stamps[-1]) for topic in topics.values())
-    grid = control_grid(start, end)
+    grid = control_grid(start, end, str(bag))
     if len(grid) < 2:
         spans = ", ".join(f"{wanted[r]} {t.stamps[0]:.3f}…{t.stamps[-1]:.3f} s" for r, t in topics.items())
         raise EfficientTrackError(

@@ -59,6 +59,7 @@ from efficienttrack.data.records import (
     ANGLE_FIELDS,
     CSV_COLUMNS,
     JOINT_FIELDS,
+    MAX_RECORD_STEPS,
     UPSTREAM_KEYS,
     EpisodeRecord,
     parse_meta,
@@ -112,17 +113,27 @@ def check_max_gap(max_gap: float) -> float:
     return float(max_gap)
 
 
-def control_grid(start: float, end: float) -> np.ndarray:
+def control_grid(start: float, end: float, source: str) -> np.ndarray:
     """The 20 Hz grid ``t_k = start + k·dt`` over ``[start, end]`` (1e-9 s of slack at the end).
 
     Args:
         start: the first grid time, s.
         end: the last time the samples cover, s.
+        source: the log, named in the error.
 
     Returns:
         (T,) s; empty when ``end < start``.
+
+    Raises:
+        EfficientTrackError: the grid would hold more than :data:`~efficienttrack.data.records.MAX_RECORD_STEPS` steps
+            (checked before it is built).
     """
     steps = math.floor((end - start) / DT + 1e-9) + 1 if end >= start else 0
+    if steps > MAX_RECORD_STEPS:
+        raise EfficientTrackError(
+            f"{source}: the log spans {end - start:.0f} s, {steps:,} control steps, more than one record holds "
+            f"({MAX_RECORD_STEPS:,} steps, {MAX_RECORD_STEPS * DT / 3600:.1f} h at 20 Hz); split it into shorter logs"
+        )
     return start + DT * np.arange(steps)
 
 
@@ -446,7 +457,7 @@ def read_table(
 
     start = max(float(stamps[0]) for stamps, _ in samples.values())
     end = min(float(stamps[-1]) for stamps, _ in samples.values())
-    grid = control_grid(start, end)
+    grid = control_grid(start, end, str(path))
     if len(grid) < 2:
         spans = ", ".join(f"{name} {stamps[0]:.3f}…{stamps[-1]:.3f} s" for name, (stamps, _) in samples.items())
         raise EfficientTrackError(f"{path}: the fields overlap for fewer than 2 control steps of {DT} s ({spans})")
