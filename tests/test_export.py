@@ -271,3 +271,17 @@ def test_a_checkpoint_saved_without_a_fingerprint_still_loads_and_exports(logged
     result = CliRunner().invoke(app, ["export", "--policy", str(checkpoint), "--out", str(tmp_path / "export")])
     assert result.exit_code == 0, result.output
     assert json.loads((tmp_path / "export" / CONTRACT_FILE).read_text())["source"]["training_fingerprint"] is None
+
+
+def test_the_command_line_on_the_torch_free_install_says_what_it_needs_in_one_line(tmp_path):
+    script = tmp_path / "cli.py"
+    blocker = BLOCK_TORCH.replace('name == "torch" or name.startswith("torch.")', 'name.split(".")[0] in ("torch", "typer")')
+    blocker = blocker.replace(
+        """raise ModuleNotFoundError("No module named 'torch' (blocked by the test)")""",
+        """raise ModuleNotFoundError(f"No module named {name!r} (blocked by the test)", name=name)""",
+    )
+    script.write_text(blocker + "from efficienttrack.__main__ import main\nmain()\n")
+    env = {**os.environ, "PYTHONPATH": str(SRC)}
+    done = subprocess.run([sys.executable, str(script), "--help"], capture_output=True, text=True, env=env, timeout=60)
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    assert done.stderr.count("\n") == 1 and "the efficienttrack command line needs the full install" in done.stderr
