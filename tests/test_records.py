@@ -238,6 +238,20 @@ def test_time_problems_only_warn(tmp_path):
         load_record(tmp_path / "fine.npz")
 
 
+def test_the_subfolder_hint_counts_episodes_only(tmp_path):
+    run = tmp_path / "run"
+    (run / "refs" / "train").mkdir(parents=True)
+    np.save(run / "refs" / "train" / "ref_00.npy", np.zeros((5, 4)))
+    (run / "logs").mkdir()
+    (run / "logs" / "scalars.csv").write_text("step,tag,value\n1,train/loss,0.5\n")
+    with pytest.raises(EfficientTrackError, match="run: folder holds no episode files"):
+        load_records(run)  # a reference and a log of scalars are not episodes
+    save_records([make_record(name="a"), make_record(name="b")], run / "records" / "pass_000")
+    save_records([make_record(name="c")], run / "records" / "pass_001", fmt="csv")
+    with pytest.raises(EfficientTrackError, match=r"run: no episode files directly .* but 3 in 2 subfolder\(s\) \("):
+        load_records(run)
+
+
 def test_missing_and_empty_paths(tmp_path):
     with pytest.raises(EfficientTrackError, match="nowhere: no such file or folder"):
         load_records([tmp_path / "nowhere"])

@@ -445,6 +445,34 @@ def find_record_files(folder: Path, recursive: bool = False) -> list[Path]:
     return sorted(chosen.values())
 
 
+HEAD_BYTES = 4096
+"""What :func:`looks_like_episode` reads of a file: enough for a ``.npy`` header or a CSV header line."""
+
+
+def looks_like_episode(path: Path) -> bool:
+    """Whether a file, by its first bytes, is an episode rather than another ``.npy``/``.csv`` in a run folder.
+
+    A ``.npz`` is; a ``.npy`` is when it holds a pickled object (the research repository's episodes; a reference is a
+    float array); a ``.csv`` when its header is ours (``t``, ``q_boom``, …) or the repository's. Used to count the
+    episodes of subfolders in a hint, never to refuse a file that is loaded.
+
+    Args:
+        path: a file with one of :data:`RECORD_SUFFIXES`.
+    """
+    if path.suffix == ".npz":
+        return True
+    try:
+        with open(path, "rb") as f:
+            head = f.read(HEAD_BYTES)
+    except OSError:
+        return False
+    if path.suffix == ".npy":
+        return b"'descr': '|O'" in head
+    lines = [line.strip() for line in head.decode("utf-8", "replace").splitlines() if line.strip() and line[0] != "#"]
+    header = {name.strip() for name in lines[0].split(",")} if lines else set()
+    return header == set(UPSTREAM_KEYS) or {"t", "q_boom"} <= header
+
+
 def record_files(path: str | Path, recursive: bool = False) -> list[Path]:
     """The episode files ``path`` stands for: itself when a file, else the folder's (:func:`find_record_files`).
 
@@ -467,7 +495,7 @@ def record_files(path: str | Path, recursive: bool = False) -> list[Path]:
     files = find_record_files(path, recursive)
     if files:
         return files
-    nested = [] if recursive else find_record_files(path, recursive=True)
+    nested = [] if recursive else [file for file in find_record_files(path, recursive=True) if looks_like_episode(file)]
     if nested:
         subfolders = sorted({str(file.parent.relative_to(path)) for file in nested})
         shown = ", ".join(f"{name}/" for name in subfolders[:3]) + (", ..." if len(subfolders) > 3 else "")
