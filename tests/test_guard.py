@@ -334,3 +334,19 @@ def test_cli_limits_file_refuses_references_outside_before_any_work(tmp_path):
     (tmp_path / "limits.yaml").write_text("max_adjust: 0.1\n")
     message = "max_adjust must be a list of finite numbers"
     refused(invoke("evaluate", *system, "--refs", refs, "--out", tmp_path / "eval"), message)
+
+
+def test_a_limits_file_with_an_adjustment_over_half_a_joints_range_needs_its_own_switch(tmp_path):
+    path = tmp_path / "limits.yaml"
+    path.write_text("max_adjust: [10, 0.3, 0.4, 0.4]\n")  # the reviewer's 10 rad let 2.6 rad adjustments through
+    with pytest.raises(EfficientTrackError) as caught:
+        SystemSpec(limits=str(path)).open()
+    message = str(caught.value)
+    assert message.startswith(f"{path}: max_adjust of the boom, 10.0 rad, is more than half its range [-0.55, 0.65]")
+    assert "add 'accept_implausible: true' to the file" in message and "\n" not in message
+    path.write_text("max_adjust: [10, 0.3, 0.4, 0.4]\naccept_implausible: true\n")
+    assert SystemSpec(limits=str(path)).open().limits.max_adjust[0] == 10
+    path.write_text("accept_implausible: yes please\n")
+    with pytest.raises(EfficientTrackError, match="accept_implausible must be true or false"):
+        GuardLimits.load(path)
+    assert not XE75.implausible() and GuardLimits.load("xe75") == XE75

@@ -16,7 +16,7 @@ from efficienttrack import cli
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.joints import DT, MAX_ABS_ANGLE, SWING
 from efficienttrack.data.records import EpisodeRecord, load_records, save_records
-from efficienttrack.systems.limits import XE75_MAX_ADJUST, GuardLimits, limits_preset_path
+from efficienttrack.systems.limits import GuardLimits, limits_preset_path
 from efficienttrack.systems.limits_from_logs import log_stats, propose_limits
 from efficienttrack.systems.spec import SystemSpec, load_system
 from test_records import make_record
@@ -65,8 +65,11 @@ def test_joint_range_is_the_range_seen_widened_by_the_margin():
     limits, _ = propose_limits([rec], margin=0.0)  # exactly the range seen; the swing's wrapped −0.2 is a hair below
     assert limits.q_min[:3] == (-0.2, -0.4, -0.2) and limits.q_min[SWING] == pytest.approx(-0.2, abs=1e-4)
     assert not limits.outside(np.concatenate([rec.q, rec.q_ref])).any()
-    assert (limits.q_max[:3], limits.max_adjust) == ((0.3,) * 3, XE75_MAX_ADJUST)
-    assert limits.max_adjust_rate == tuple(b / 2 for b in XE75_MAX_ADJUST)
+    assert limits.q_max[:3] == (0.3,) * 3
+    # the XE75's bound kept, but at most half the range: the bucket's and swing's 0.4 rad lowered to 0.25
+    assert limits.max_adjust[:3] == (0.15, 0.3, 0.25) and limits.max_adjust[SWING] == pytest.approx(0.25, abs=1e-4)
+    assert limits.max_adjust_rate == tuple(b / 2 for b in limits.max_adjust) and not limits.implausible()
+    assert "lowered to half the joint's range at the bucket, swing" in reasons[4]
     assert [line.split(":")[0] for line in reasons] == [
         "q_min", "q_max", "swing", "max_speed", "max_adjust", "max_adjust_rate", "stale_steps"
     ]  # fmt: skip
@@ -111,7 +114,7 @@ def test_adjustments_seen_beyond_the_kept_bound_are_named():
     rec = record(ramp(-0.2, 0.3))
     rec.q_ref = rec.q_des + np.array([0.2, 0.0, 0.0, 0.0])
     limits, reasons = propose_limits([rec])
-    assert limits.max_adjust == XE75_MAX_ADJUST
+    assert limits.max_adjust == (0.15, 0.3, 0.3, 0.3)  # the XE75's, at most half of each range seen (±0.05 margin)
     assert "largest |q_ref − q_des| seen [0.2000, 0.0000, 0.0000, 0.0000] rad, beyond the bound at the boom" in reasons[4]
 
 

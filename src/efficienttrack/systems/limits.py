@@ -70,6 +70,10 @@ def resolve_limits_path(spec: str | Path) -> Path:
     return path
 
 
+ACCEPT_IMPLAUSIBLE = "accept_implausible"
+"""A limits file's own switch (not a guard field): ``true`` keeps values :meth:`GuardLimits.implausible` doubts."""
+
+
 @dataclass(frozen=True)
 class GuardLimits:
     """The limits the runtime guard enforces on every reference it sends (per joint: boom, arm, bucket, swing)."""
@@ -130,12 +134,34 @@ class GuardLimits:
         data = read_mapping_file(path)
         if not isinstance(data, dict):
             raise EfficientTrackError(f"{path}: expected a mapping of limits fields, got {type(data).__name__}")
+        accepted = data.pop(ACCEPT_IMPLAUSIBLE, False)
+        if not isinstance(accepted, bool):
+            raise EfficientTrackError(f"{path}: {ACCEPT_IMPLAUSIBLE} must be true or false, got {accepted!r}")
         merged = {**(base or DEFAULT_LIMITS).to_dict(), **data}
         try:
-            return settings_from_dict(cls, merged, str(path))
+            limits = settings_from_dict(cls, merged, str(path))
         except EfficientTrackError as exc:
             message = str(exc)
             raise EfficientTrackError(message if message.startswith(str(path)) else f"{path}: {message}") from exc
+        doubts = limits.implausible()
+        if doubts and not accepted:
+            raise EfficientTrackError(
+                f"{path}: {'; '.join(doubts)}: a typo or not radians? If the machine really allows it, add "
+                f"'{ACCEPT_IMPLAUSIBLE}: true' to the file"
+            )
+        return limits
+
+    def implausible(self) -> list[str]:
+        """What in these limits is no excavator's: an adjustment bound larger than half its joint's range.
+
+        Returns:
+            One line per doubtful joint, empty when none.
+        """
+        return [
+            f"max_adjust of the {joint}, {bound} rad, is more than half its range [{lo}, {hi}]"
+            for joint, bound, lo, hi in zip(JOINT_NAMES, self.max_adjust, self.q_min, self.q_max, strict=True)
+            if bound > (hi - lo) / 2
+        ]
 
     @classmethod
     def coerce(cls, value: Any, source: str) -> GuardLimits:

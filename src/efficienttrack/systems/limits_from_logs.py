@@ -12,7 +12,9 @@ Every rule works on all the logs' samples at once (joint order boom, arm, bucket
   ``|Δq| / DT``: the guard takes an observation that moved more than ``max_speed · DT`` for a sensor fault, and the
   logged moves include the sampling jitter.
 - **max_adjust**: kept (the XE75 deployment's bound by default): a safety choice the logs cannot show, as the logs'
-  ``q_ref − q_des`` is whatever noise or policy ran. The largest ``|q_ref − q_des|`` seen is reported.
+  ``q_ref − q_des`` is whatever noise or policy ran; lowered to half the proposed range where that is smaller (what
+  :meth:`~efficienttrack.systems.limits.GuardLimits.implausible` doubts). The largest ``|q_ref − q_des|`` seen is
+  reported.
 - **max_adjust_rate**: ``max_adjust / 2`` per control period, the package's rule; the largest step change of
   ``q_ref − q_des`` seen is reported.
 - **stale_steps**: twice (the longest run of steps whose observation, all 8 channels of ``q`` and ``qd``, repeats the
@@ -233,7 +235,9 @@ def propose_limits(
             f"limits: the {', '.join(still)} never moved in the logs (|qd| and |Δq| are 0 throughout): no max_speed"
         )
     max_speed = _up(speed_factor * top, exact=speed_factor == 1)
-    bound = np.asarray(max_adjust, dtype=np.float64)
+    kept = np.asarray(max_adjust, dtype=np.float64)
+    bound = np.minimum(kept, (q_max - q_min) / 2)  # no more than half the range (GuardLimits.implausible)
+    halved = [JOINT_NAMES[j] for j in range(N_JOINTS) if bound[j] < kept[j]]
     stale = max(2, STALE_FACTOR * (stats.longest_repeat + 1))
     limits = GuardLimits(
         q_min=tuple(float(v) for v in q_min),
@@ -254,7 +258,9 @@ def propose_limits(
         f"max_speed: {_vec(limits.max_speed)} rad/s = factor {speed_factor:g} × top speed seen {_vec(top)} rad/s, the "
         f"larger of |qd| {_vec(stats.top_qd)} and the move |Δq|/{DT:g} s {_vec(stats.top_move)} the guard checks",
         f"max_adjust: {_vec(limits.max_adjust)} rad, kept (the XE75 deployment's bound: a safety choice the logs cannot "
-        f"show); largest |q_ref − q_des| seen {_vec(stats.top_adjust)} rad"
+        f"show)"
+        + (f", lowered to half the joint's range at the {', '.join(halved)}" if halved else "")
+        + f"; largest |q_ref − q_des| seen {_vec(stats.top_adjust)} rad"
         + (f", beyond the bound at the {', '.join(beyond)}" if beyond else ""),
         f"max_adjust_rate: {_vec(limits.max_adjust_rate)} rad per step = max_adjust / 2 (the package's rule); largest "
         f"step change of q_ref − q_des seen {_vec(stats.top_adjust_step)} rad"
