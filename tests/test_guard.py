@@ -349,4 +349,7 @@ def test_a_limits_file_with_an_adjustment_over_half_a_joints_range_needs_its_own
     path.write_text("accept_implausible: yes please\n")
     with pytest.raises(EfficientTrackError, match="accept_implausible must be true or false"):
         GuardLimits.load(path)
+    path.write_text("max_speed: [1, 1, 25, 1]\n")
+    with pytest.raises(EfficientTrackError, match=r"max_speed of the bucket, 25.0 rad/s, is beyond any excavator's 20 rad/s"):
+        GuardLimits.load(path)
     assert not XE75.implausible() and GuardLimits.load("xe75") == XE75

@@ -27,7 +27,7 @@ import numpy as np
 from efficienttrack.core.angles import wrap
 from efficienttrack.core.configfile import read_mapping_file
 from efficienttrack.core.errors import EfficientTrackError
-from efficienttrack.core.joints import JOINT_NAMES, MAX_ABS_ANGLE, N_JOINTS, SWING
+from efficienttrack.core.joints import JOINT_NAMES, MAX_ABS_ANGLE, MAX_ABS_VELOCITY, N_JOINTS, SWING
 from efficienttrack.core.settings import settings_from_dict
 
 XE75_MAX_ADJUST = (0.15, 0.30, 0.40, 0.40)
@@ -152,16 +152,21 @@ class GuardLimits:
         return limits
 
     def implausible(self) -> list[str]:
-        """What in these limits is no excavator's: an adjustment bound larger than half its joint's range.
+        """What in these limits is no excavator's: an adjustment over half a joint's range, or a speed no record may hold.
+
+        The speed bound is :data:`~efficienttrack.core.joints.MAX_ABS_VELOCITY`, beyond which records are refused.
 
         Returns:
-            One line per doubtful joint, empty when none.
+            One line per doubt, empty when none.
         """
-        return [
-            f"max_adjust of the {joint}, {bound} rad, is more than half its range [{lo}, {hi}]"
-            for joint, bound, lo, hi in zip(JOINT_NAMES, self.max_adjust, self.q_min, self.q_max, strict=True)
-            if bound > (hi - lo) / 2
-        ]
+        joints = zip(JOINT_NAMES, self.max_adjust, self.q_min, self.q_max, self.max_speed, strict=True)
+        doubts = []
+        for joint, bound, lo, hi, speed in joints:
+            if bound > (hi - lo) / 2:
+                doubts.append(f"max_adjust of the {joint}, {bound} rad, is more than half its range [{lo}, {hi}]")
+            if speed > MAX_ABS_VELOCITY:
+                doubts.append(f"max_speed of the {joint}, {speed} rad/s, is beyond any excavator's {MAX_ABS_VELOCITY:g} rad/s")
+        return doubts
 
     @classmethod
     def coerce(cls, value: Any, source: str) -> GuardLimits:

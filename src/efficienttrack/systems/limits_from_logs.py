@@ -41,7 +41,7 @@ import yaml
 from efficienttrack.core.angles import wrap
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import atomic_write
-from efficienttrack.core.joints import DT, JOINT_NAMES, MAX_ABS_ANGLE, N_JOINTS, SWING
+from efficienttrack.core.joints import DT, JOINT_NAMES, MAX_ABS_ANGLE, MAX_ABS_VELOCITY, N_JOINTS, SWING
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.systems.limits import XE75_MAX_ADJUST, GuardLimits
 
@@ -234,7 +234,7 @@ def propose_limits(
         raise EfficientTrackError(
             f"limits: the {', '.join(still)} never moved in the logs (|qd| and |Δq| are 0 throughout): no max_speed"
         )
-    max_speed = _up(speed_factor * top, exact=speed_factor == 1)
+    max_speed = np.minimum(_up(speed_factor * top, exact=speed_factor == 1), MAX_ABS_VELOCITY)  # GuardLimits.implausible
     kept = np.asarray(max_adjust, dtype=np.float64)
     bound = np.minimum(kept, (q_max - q_min) / 2)  # no more than half the range (GuardLimits.implausible)
     halved = [JOINT_NAMES[j] for j in range(N_JOINTS) if bound[j] < kept[j]]
