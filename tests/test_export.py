@@ -285,3 +285,9 @@ def test_the_command_line_on_the_torch_free_install_says_what_it_needs_in_one_li
     done = subprocess.run([sys.executable, str(script), "--help"], capture_output=True, text=True, env=env, timeout=60)
     assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
     assert done.stderr.count("\n") == 1 and "the efficienttrack command line needs the full install" in done.stderr
+
+
+def test_the_torch_free_runtime_given_a_checkpoint_says_to_export_it(tmp_path):
+    (tmp_path / "policy.pt").write_bytes(b"PK\x03\x04")
+    with pytest.raises(EfficientTrackError, match=r"policy.pt: a torch checkpoint, .*\(efficienttrack export --policy"):
+        load_onnx_policy(tmp_path / "policy.pt")

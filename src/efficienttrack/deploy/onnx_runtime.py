@@ -228,5 +228,13 @@ def load_onnx_policy(folder: str | Path, threads: int = 1) -> OnnxPolicy:
 
     Returns:
         The policy, callable on numpy histories.
+
+    Raises:
+        EfficientTrackError: ``folder`` is a torch checkpoint (``policy.pt``: export it first), or not an export folder.
     """
+    if Path(folder).is_file() and Path(folder).suffix == ".pt":
+        raise EfficientTrackError(
+            f"{folder}: a torch checkpoint, which this runtime does not read; export it where the full install is "
+            f"(efficienttrack export --policy {folder} --out DIR) and load DIR"
+        )
     return OnnxPolicy(folder, threads)
