@@ -388,10 +388,10 @@ def load_csv(path: str | Path) -> EpisodeRecord:
     body = [line for line in lines if line.strip() and not line.startswith("#")]
     if not body:
         raise EfficientTrackError(f"{path}: empty CSV, no header")
-    header = {name.strip() for name in body[0].split(",")}
-    if header == set(UPSTREAM_KEYS):
+    kind = csv_kind(body[0])
+    if kind == "upstream":
         return _load_upstream_csv(path, body)
-    if "t" in header and "q_boom" in header:
+    if kind == "ours":
         return _load_csv_ours(path, [line for line in lines if line.strip()])
     raise EfficientTrackError(
         f"{path}: unknown CSV header '{body[0][:80]}'; expected ours (t, q_boom, ...) or the upstream "
@@ -445,6 +445,18 @@ def find_record_files(folder: Path, recursive: bool = False) -> list[Path]:
     return sorted(chosen.values())
 
 
+def csv_kind(header: str) -> str | None:
+    """Which episode CSV a header line starts: ``"ours"``, ``"upstream"`` (the research repository's), or None.
+
+    Args:
+        header: the first line that is not a comment.
+    """
+    names = {name.strip() for name in header.split(",")}
+    if names == set(UPSTREAM_KEYS):
+        return "upstream"
+    return "ours" if {"t", "q_boom"} <= names else None
+
+
 HEAD_BYTES = 4096
 """What :func:`looks_like_episode` reads of a file: enough for a ``.npy`` header or a CSV header line."""
 
@@ -468,9 +480,8 @@ def looks_like_episode(path: Path) -> bool:
         return False
     if path.suffix == ".npy":
         return b"'descr': '|O'" in head
-    lines = [line.strip() for line in head.decode("utf-8", "replace").splitlines() if line.strip() and line[0] != "#"]
-    header = {name.strip() for name in lines[0].split(",")} if lines else set()
-    return header == set(UPSTREAM_KEYS) or {"t", "q_boom"} <= header
+    lines = [line for line in head.decode("utf-8", "replace").splitlines() if line.strip() and not line.startswith("#")]
+    return bool(lines) and csv_kind(lines[0]) is not None
 
 
 def record_files(path: str | Path, recursive: bool = False) -> list[Path]:
