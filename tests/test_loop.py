@@ -159,7 +159,9 @@ def test_a_shadow_runs_records_are_those_of_the_controller_alone(ref, tmp_path):
     record = track(BatchedSystem(make()), None, [ref], progress=False)[0]
     for name in ("q", "qd", "q_ref", "q_des", "t"):
         np.testing.assert_allclose(getattr(from_log, name), getattr(record, name), atol=1e-12, err_msg=name)
-    assert from_log.meta == {"name": "log", "reference": "log", "source": "deploy", "first_tick": 0, "shadow": True}
+    assert from_log.meta == {
+        "name": "log", "reference": "log", "source": "deploy", "first_tick": 0, "shadow": True, "guard": {}, "loop_events": {}
+    }  # fmt: skip
 
 
 def test_records_from_a_log_leave_out_missing_stale_and_skipped_ticks(ref, tmp_path):
@@ -327,6 +329,9 @@ def test_a_machine_that_clamps_is_logged_and_the_history_follows(ref, tmp_path):
     result, machine, ticks, end, _ = run(ref, tmp_path, clamp=ref.q[:, 0].min() + 0.05)
     assert end["send_changed"] > 0 and result.reason == "done"
     np.testing.assert_array_equal([t["q_ref"] for t in ticks], np.array(machine.sent))
+    [record] = records_from_log(tmp_path / "log.jsonl")  # the record says at which rows the machine clamped
+    changed = [t["tick"] for t in ticks if "send_changed" in t["events"]]
+    assert record.meta["loop_events"]["send_changed"] == changed and len(changed) == end["send_changed"]
 
 
 @pytest.mark.parametrize(
@@ -511,12 +516,13 @@ def test_deploy_exits_1_when_a_watchdog_stops_a_run(tmp_path):
 
 DEPLOY_WITHOUT_TORCH = """
 import json
-from efficienttrack.deploy.deployment import deploy, deployment_parts
+from efficienttrack.deploy.deployment import deploy, machine_parts, policy_runtime
 from efficienttrack.data.references import load_references
 from efficienttrack.systems.spec import SystemSpec
 
 export, refs, out = sys.argv[1:4]
-runtime, make_machine, limits, clock = deployment_parts(SystemSpec(), None, {}, export, "cpu", True)
+make_machine, limits, clock = machine_parts(SystemSpec(), None, {}, True)
+runtime = policy_runtime(export, limits, "cpu")
 results = deploy(load_references(refs), runtime, make_machine, limits, out, clock=clock, shadow=True)
 print(json.dumps([r.reason for r in results]))
 assert "torch" not in sys.modules, "deploying an export imported torch"

@@ -48,6 +48,14 @@ PdOpt = Annotated[
 
 SystemOpts = Annotated[list[str] | None, typer.Option("--system-opt", help="key=value option of the system (repeatable).")]
 
+MachineOpt = Annotated[
+    str | None, typer.Option("--machine", help="A real machine's adapter, module.path:callable (needs --limits).")
+]
+MachineOpts = Annotated[list[str] | None, typer.Option("--machine-opt", help="key=value option of the adapter (repeatable).")]
+ArmOpt = Annotated[bool, typer.Option("--arm", help="Allow the machine to move (nothing is sent without it).")]
+FastOpt = Annotated[
+    bool, typer.Option("--fast", help="Simulator only: a simulated clock, as fast as it computes (no real-time timing).")
+]
 LimitsOpt = Annotated[
     Path | None,
     typer.Option(

@@ -9,6 +9,11 @@ from typing import Annotated
 import typer
 
 from efficienttrack.cli.common import (
+    ArmOpt,
+    FastOpt,
+    LimitsOpt,
+    MachineOpt,
+    MachineOpts,
     PdOpt,
     PlantOpt,
     RecursiveOpt,
@@ -17,6 +22,7 @@ from efficienttrack.cli.common import (
     _lock,
     _system_spec,
     app,
+    parse_options,
     wide_console,
 )
 from efficienttrack.core.errors import EfficientTrackError
@@ -240,22 +246,51 @@ def collect_command(
     plant: PlantOpt = None,
     pd: PdOpt = None,
     system_opt: SystemOpts = None,
+    limits: LimitsOpt = None,
+    machine: MachineOpt = None,
+    machine_opt: MachineOpts = None,
+    loop: Annotated[
+        bool,
+        typer.Option("--loop", help="Drive the simulator through the fixed-rate loop, one episode at a time, as --machine."),
+    ] = False,
+    arm: ArmOpt = False,
+    fast: FastOpt = False,
     passes: Annotated[int, typer.Option("--passes", help="Passes over the references.")] = COLLECT.passes,
     noise_ratio: Annotated[str, typer.Option("--noise-ratio", help="Noisy:clean episodes.")] = COLLECT.noise_ratio_text,
     sigma_max: Annotated[float, typer.Option("--sigma-max", help="Largest noise level σ_max, rad.")] = COLLECT.sigma_max,
     seed: Annotated[int, typer.Option("--seed", help="Noise seed.")] = COLLECT.seed,
 ) -> None:
-    """Algorithm 1: track the references with the position controller, with and without noise, and record it."""
+    """Algorithm 1: track the references with the position controller, with and without noise, and record it.
+
+    On a machine (--machine, with --limits and --arm) every episode runs through the loop that deploy runs:
+    deadlines, watchdogs, no noise at the first tick and none at the end, the noise's change per tick limited by the
+    limits' max_adjust_rate, a tick log per episode in OUT/logs/. --loop runs the simulator the same way.
+    """
     from efficienttrack.data.references import load_references
-    from efficienttrack.workflow.collect import collect
+    from efficienttrack.workflow.collect import LoopMachine, collect
 
     check_output_folder(out)
     ratio = CollectConfig.parse_noise_ratio(noise_ratio)
     cfg = CollectConfig(sigma_max=sigma_max, noise_ratio=ratio, passes=passes, seed=seed)
-    spec = _system_spec(system, plant, pd, system_opt)
+    spec = _system_spec(system, plant, pd, system_opt, limits)
     references = load_references(refs)
+    looped = loop or machine is not None
+    if fast and not looped:
+        raise EfficientTrackError("--fast sets the clock of the loop: add --loop (the simulator) or leave --fast out")
+    if looped and not arm:
+        raise EfficientTrackError(
+            "collect through the loop sends references to the machine: add --arm to allow motion "
+            "(the noise is an adjustment within the limits' max_adjust, ramped in and out)"
+        )
+    if looped:
+        from efficienttrack.deploy.deployment import machine_parts
+
+        options = parse_options(machine_opt, "--machine-opt")
+        make_machine, machine_limits, clock = machine_parts(spec, machine, options, fast)
+        simulator = f"simulator {spec.plant or spec.system_name}"
+        driven = LoopMachine(make_machine, machine_limits, clock, machine or simulator)
     _lock(ctx, out)
-    result = collect(spec.open(), references, cfg, out)
+    result = collect(driven if looped else spec.open(), references, cfg, out)
     typer.echo(
         f"collected {len(result.records)} episodes, {result.interaction_steps} interaction steps "
         f"({result.resumed_passes} pass(es) resumed) into {out}"

@@ -8,7 +8,11 @@ from typing import Annotated
 import typer
 
 from efficienttrack.cli.common import (
+    ArmOpt,
+    FastOpt,
     LimitsOpt,
+    MachineOpt,
+    MachineOpts,
     PdOpt,
     PlantOpt,
     SystemOpt,
@@ -61,7 +65,7 @@ def deploy_command(
             "CPU); without, the raw reference (a = 0).",
         ),
     ] = None,
-    arm: Annotated[bool, typer.Option("--arm", help="Allow the machine to move (nothing is sent without it).")] = False,
+    arm: ArmOpt = False,
     shadow: Annotated[
         bool, typer.Option("--shadow", help="Compute and log the adjustment, send the raw reference (run this first).")
     ] = False,
@@ -70,15 +74,9 @@ def deploy_command(
     pd: PdOpt = None,
     system_opt: SystemOpts = None,
     limits: LimitsOpt = None,
-    machine: Annotated[
-        str | None, typer.Option("--machine", help="A real machine's adapter, module.path:callable (needs --limits).")
-    ] = None,
-    machine_opt: Annotated[
-        list[str] | None, typer.Option("--machine-opt", help="key=value option of the adapter (repeatable).")
-    ] = None,
-    fast: Annotated[
-        bool, typer.Option("--fast", help="Simulator only: a simulated clock, as fast as it computes (no real-time timing).")
-    ] = False,
+    machine: MachineOpt = None,
+    machine_opt: MachineOpts = None,
+    fast: FastOpt = False,
     hold_after: Annotated[int, typer.Option("--hold-after", help="Overruns in a row from which a = 0.")] = LOOP.hold_after,
     stop_after: Annotated[int, typer.Option("--stop-after", help="Overruns in a row that stop the run.")] = LOOP.stop_after,
     stale_ticks: Annotated[
@@ -97,7 +95,14 @@ def deploy_command(
     written as episode records in OUT/records/, the data of the next round (efficienttrack round --data OUT/records).
     """
     from efficienttrack.data.references import load_references
-    from efficienttrack.deploy.deployment import DEPLOY_OUTPUTS, deploy, deployment_parts, recorded_verdict
+    from efficienttrack.deploy.deployment import (
+        DEPLOY_OUTPUTS,
+        deploy,
+        deployed_tracking,
+        machine_parts,
+        policy_runtime,
+        recorded_verdict,
+    )
 
     if not arm:
         raise EfficientTrackError(
@@ -108,9 +113,8 @@ def deploy_command(
     cfg = LoopConfig(hold_after=hold_after, stop_after=stop_after, stale_ticks=stale_ticks, stop_stale_ticks=stop_stale_ticks)
     references = load_references(refs)
     spec = _system_spec(system, plant, pd, system_opt, limits)
-    runtime, make_machine, machine_limits, clock = deployment_parts(
-        spec, machine, parse_options(machine_opt, "--machine-opt"), policy, device, fast
-    )
+    make_machine, machine_limits, clock = machine_parts(spec, machine, parse_options(machine_opt, "--machine-opt"), fast)
+    runtime = policy_runtime(policy, machine_limits, device)
     verdict = recorded_verdict(policy)
     if verdict is not None:
         typer.secho(f"warning: {policy}: {verdict}", fg=typer.colors.RED, err=True)
@@ -131,4 +135,11 @@ def deploy_command(
     if results[-1].stopped:
         typer.secho(f"stopped: {results[-1].name}: {results[-1].reason}; logs in {out}", fg=typer.colors.RED, err=True)
         raise typer.Exit(1)
+    tracking = deployed_tracking(out)
+    if tracking is not None:
+        sent = "the raw reference (the controller alone)" if shadow else "the policy's references"
+        typer.echo(
+            f"tracking with {sent}: MAE {tracking['mae_deg']:.3f}°, RMSE {tracking['rmse_deg']:.3f}° over "
+            f"{tracking['episodes']} record(s) (deploy.json; efficienttrack metrics {out / 'records'})"
+        )
     typer.echo(f"{len(results)} run(s) done ({'shadow' if shadow else 'armed'}); logs in {out}")

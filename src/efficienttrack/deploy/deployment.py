@@ -24,7 +24,8 @@ import numpy as np
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import write_json
 from efficienttrack.core.joints import DT
-from efficienttrack.data.records import EpisodeRecord
+from efficienttrack.data.metrics import MIN_STEPS, compute_metrics
+from efficienttrack.data.records import EpisodeRecord, load_records
 from efficienttrack.data.references import Reference
 from efficienttrack.deploy.loop import MONOTONIC, Clock, Loop, LoopConfig, LoopResult, LoopRuntime, Machine, Reading, TickLog
 from efficienttrack.systems.limits import GuardLimits
@@ -151,7 +152,8 @@ def deploy(
         make_machine: reference → its machine adapter (opened and closed by the loop).
         limits: the machine's limits (joint limits of every reference sent, the rate of the adjustment).
         out: the output folder (created): ``<reference>.jsonl`` per run, :data:`DEPLOY_JSON`, and the runs' episode
-            records in :data:`DEPLOY_RECORDS` (:func:`records_from_log`).
+            records in :data:`DEPLOY_RECORDS` (:func:`records_from_log`); :data:`DEPLOY_JSON` holds their tracking
+            metrics (:func:`deployed_tracking`).
         cfg: the loop's timing and watchdogs.
         clock: the loop's clock.
         shadow: send the raw reference; only log the adjustment.
@@ -173,7 +175,8 @@ def deploy(
             result = Loop(runtime, make_machine(ref), limits, cfg, clock, log, shadow).run(ref.q, ref.name)
         results.append(result)
         _save_run_records(log.path, out / DEPLOY_RECORDS, shadow)
-        write_json(out / DEPLOY_JSON, {**header, "runs": [r.summary() for r in results]})
+        runs = {"runs": [r.summary() for r in results], "tracking": deployed_tracking(out)}
+        write_json(out / DEPLOY_JSON, {**header, **runs})
         if on_done is not None:
             on_done(result)
         if result.stopped:
@@ -181,15 +184,36 @@ def deploy(
     return results
 
 
+def deployed_tracking(out: str | Path) -> dict[str, Any] | None:
+    """The paper's metrics (:func:`~efficienttrack.data.metrics.compute_metrics`) of a deployment's records so far.
+
+    In shadow mode they are the position controller's own tracking, armed the policy's: the two side by side are the
+    machine's evaluation.
+
+    Args:
+        out: the deployment's output folder.
+
+    Returns:
+        The metrics, or None while no record is long enough to measure.
+    """
+    folder = Path(out) / DEPLOY_RECORDS
+    records = [r for r in load_records(folder) if len(r) >= MIN_STEPS] if folder.is_dir() else []
+    return compute_metrics(records) if records else None
+
+
 def records_from_log(path: str | Path, shadow: bool | None = None) -> list[EpisodeRecord]:
     """The episode records of one run's tick log (``OUT/<reference>.jsonl``), to train the next round on.
 
     Row k of a record is tick k of the run: ``q``, ``qd`` of its reading, ``q_ref`` the reference the machine took,
-    ``q_des`` = q*_{k+1}, ``t`` its deadline (s after the start), ``u`` None. Only ticks on the 20 Hz grid with a fresh
-    reading make rows: a tick whose reading was missing, not finite or old (:data:`UNUSABLE_TICK_EVENTS`), or that
-    follows skipped periods, ends a record, and the next usable tick starts another. Records are named after the
-    reference, the second and later ones ``<reference>-2``, ``-3``, …; stretches shorter than 2 ticks are dropped. A
-    log cut short by a crash gives the ticks it has (a last line cut in the middle is left out).
+    ``q_des`` = q*_{k+1}, ``t`` its deadline (s after the start), ``u`` None. ``meta["guard"]`` and
+    ``meta["loop_events"]`` give, per guard reason and loop event (``ramped``, ``hold``, ``fallback``, …), the rows it
+    happened at, as :func:`~efficienttrack.deploy.episodes.rollout`'s records do for the guard.
+
+    Only ticks on the 20 Hz grid with a fresh reading make rows: a tick whose reading was missing, not finite or old
+    (:data:`UNUSABLE_TICK_EVENTS`), or that follows skipped periods, ends a record, and the next usable tick starts
+    another. Records are named after the reference, the second and later ones ``<reference>-2``, ``-3``, …; stretches
+    shorter than 2 ticks are dropped. A log cut short by a crash gives the ticks it has (a last line cut in the middle
+    is left out).
 
     Args:
         path: the run's log.
@@ -235,7 +259,15 @@ def records_from_log(path: str | Path, shadow: bool | None = None) -> list[Episo
     for stretch in (part for part in stretches if len(part) >= 2):
         label = name if not records else f"{name}-{len(records) + 1}"
         obs = np.array([entry["obs"] for entry in stretch], dtype=np.float64)
-        meta = {"name": label, "reference": name, "source": "deploy", "first_tick": stretch[0]["tick"], "shadow": shadow}
+        meta = {
+            "name": label,
+            "reference": name,
+            "source": "deploy",
+            "first_tick": stretch[0]["tick"],
+            "shadow": shadow,
+            "guard": _rows_with(stretch, "guard"),
+            "loop_events": _rows_with(stretch, "events"),
+        }
         record = EpisodeRecord(
             q=obs[:, :4],
             qd=obs[:, 4:],
@@ -247,6 +279,20 @@ def records_from_log(path: str | Path, shadow: bool | None = None) -> list[Episo
         )
         records.append(record.validate(f"{path} (ticks {stretch[0]['tick']}–{stretch[-1]['tick']})"))
     return records
+
+
+def _rows_with(stretch: list[dict[str, Any]], key: str) -> dict[str, list[int]]:
+    """Name → the rows of ``stretch`` whose ``key`` list holds it (the runtime's guard reasons, the loop's events).
+
+    The events of a whole run (``start``, ``shadow``: the record's meta says so) are left out; a log without ``key``
+    gives none.
+    """
+    rows: dict[str, list[int]] = {}
+    for row, entry in enumerate(stretch):
+        for name in entry.get(key) or ():
+            if isinstance(name, str) and name not in ("start", "shadow"):
+                rows.setdefault(name, []).append(row)
+    return rows
 
 
 TICK_VECTORS = {"obs": 8, "q_ref": 4, "q_des": 4}
@@ -316,30 +362,20 @@ def recorded_verdict(policy: str | Path | None) -> str | None:
     return None
 
 
-def deployment_parts(
-    spec: SystemSpec,
-    machine: str | None,
-    machine_options: dict[str, Any],
-    policy: str | Path | None,
-    device: str,
-    fast: bool,
-) -> tuple[LoopRuntime, Callable[[Reference], Machine], GuardLimits, Clock]:
-    """What ``efficienttrack deploy`` runs: the runtime, the machine factory, the limits and the clock.
+def machine_parts(
+    spec: SystemSpec, machine: str | None, machine_options: dict[str, Any], fast: bool
+) -> tuple[Callable[[Reference], Machine], GuardLimits, Clock]:
+    """The machine that ``deploy`` and ``collect`` drive through the loop: its factory, its limits and the clock.
 
     Args:
         spec: the simulated system (used when ``machine`` is None); with ``machine``, only its limits file counts.
         machine: a user's adapter ``module:callable``, or None for the simulator.
         machine_options: the adapter's keyword options.
-        policy: a policy checkpoint (``policy.pt``, run by the torch runtime), an export folder (``policy.onnx`` and
-            ``policy.json`` of ``efficienttrack export``, run by the torch-free
-            :class:`~efficienttrack.deploy.onnx_runtime.OnnxRuntime` on the CPU), or None for the raw reference alone (a = 0).
-        device: where a checkpoint runs (an export runs on the CPU).
         fast: run the simulator on a simulated clock, as fast as it computes (refused for a user's machine).
 
     Returns:
-        The runtime, reference → machine adapter, the machine's limits, and the clock.
+        Reference → machine adapter (a simulator is reset at the reference's start), the machine's limits, the clock.
     """
-    clock: Clock
     if machine is not None:
         if fast:
             raise EfficientTrackError(
@@ -349,17 +385,28 @@ def deployment_parts(
             raise EfficientTrackError("--machine needs --limits FILE: the joint limits and adjustment bounds of that machine")
         if spec.system is not None or spec.plant is not None:
             raise EfficientTrackError("give --machine SPEC or a simulated --system/--plant, not both")
-        limits, make_machine, clock = GuardLimits.load(spec.limits), load_machine(machine, machine_options), MONOTONIC
-    else:
-        system = spec.open()
-        if system.dt != DT:
-            raise EfficientTrackError(f"{system.name}: runs at dt = {system.dt} s; the loop runs at {DT} s (20 Hz)")
-        clock = SimulatedClock() if fast else MONOTONIC
-        limits = system.limits
+        return load_machine(machine, machine_options), GuardLimits.load(spec.limits), MONOTONIC
+    system = spec.open()
+    if system.dt != DT:
+        raise EfficientTrackError(f"{system.name}: runs at dt = {system.dt} s; the loop runs at {DT} s (20 Hz)")
+    clock: Clock = SimulatedClock() if fast else MONOTONIC
 
-        def make_machine(ref: Reference) -> Machine:
-            return SimulatedMachine(system, ref.q[0], clock)
+    def make_machine(ref: Reference) -> Machine:
+        return SimulatedMachine(system, ref.q[0], clock)
 
+    return make_machine, system.limits, clock
+
+
+def policy_runtime(policy: str | Path | None, limits: GuardLimits, device: str) -> LoopRuntime:
+    """The runtime that ``deploy`` runs a policy in.
+
+    Args:
+        policy: a policy checkpoint (``policy.pt``, run by the torch runtime), an export folder (``policy.onnx`` and
+            ``policy.json`` of ``efficienttrack export``, run by the torch-free
+            :class:`~efficienttrack.deploy.onnx_runtime.OnnxRuntime` on the CPU), or None for the raw reference alone (a = 0).
+        limits: the machine's limits, for the runtime's guard.
+        device: where a checkpoint runs (an export runs on the CPU).
+    """
     if policy is not None and Path(policy).is_dir():
         from efficienttrack.deploy.onnx_runtime import OnnxRuntime, load_onnx_policy
 
@@ -368,9 +415,8 @@ def deployment_parts(
             raise EfficientTrackError(
                 f"{policy}: the export was made for dt = {exported.contract.dt} s; the loop runs at {DT} s (20 Hz)"
             )
-        return OnnxRuntime(exported, limits=limits), make_machine, limits, clock
+        return OnnxRuntime(exported, limits=limits)
     from efficienttrack.deploy.runtime import Runtime
     from efficienttrack.learn.policy import load_policy  # torch: only here, the loop itself runs without it
 
-    runtime = Runtime(None if policy is None else load_policy(policy, device), limits=limits)
-    return runtime, make_machine, limits, clock
+    return Runtime(None if policy is None else load_policy(policy, device), limits=limits)

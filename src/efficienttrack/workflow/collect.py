@@ -14,6 +14,12 @@ Every episode is flushed to ``out/.pass_<k>.partial/`` as soon as it (or its bat
 the folder becomes ``out/pass_<k>/`` when the pass is complete: an interrupted collection resumes
 with the first episode not yet recorded. The noise of pass k, reference i, comes from its own
 seeded generator, so a resumed or re-batched collection is identical to an uninterrupted one.
+
+A real machine (a :class:`~efficienttrack.deploy.loop.Machine` adapter, the one ``deploy`` drives) is collected on through
+the same fixed-rate loop as a deployed policy (:class:`LoopMachine`, :func:`run_pass_through_loop`): deadlines,
+watchdogs, a = 0 at the first tick and ramped back to 0 at the end, the noise's change per tick limited to the
+machine's ``max_adjust_rate``, one tick log per episode (``out/logs/pass_<k>/<reference>.jsonl``) made into its
+record as ``deploy`` does. A simulator runs the same path on a simulated clock, as fast as it computes.
 """
 
 from __future__ import annotations
@@ -36,9 +42,11 @@ from efficienttrack.core.joints import JOINT_NAMES
 from efficienttrack.core.progress import ProgressDisplay
 from efficienttrack.core.provenance import claim_folder
 from efficienttrack.core.settings import check_fields, setting
-from efficienttrack.data.records import EpisodeRecord, load_named_records, load_records, save_records
+from efficienttrack.data.records import EpisodeRecord, load_records, save_records
 from efficienttrack.data.references import Reference
+from efficienttrack.deploy.deployment import records_from_log
 from efficienttrack.deploy.episodes import Guard, Sent, batches, rollout
+from efficienttrack.deploy.loop import Clock, Loop, LoopConfig, Machine, TickLog
 from efficienttrack.systems.limits import GuardLimits
 from efficienttrack.systems.protocol import BatchedSystem
 
@@ -154,10 +162,16 @@ class CollectResult(NamedTuple):
 class NoiseDriver:
     """Collection references ``q*_{t+1} + d_t`` for N episodes with fixed per-episode noise, clamped into the limits.
 
+    A driver of :func:`~efficienttrack.deploy.episodes.rollout` and, for one machine (N = 1), a runtime of the
+    fixed-rate loop (:class:`~efficienttrack.deploy.loop.LoopRuntime`).
+
     Args:
         noise: (T_max, N, 4) rad, the clipped noise d_t of every step (zeros for clean episodes).
         limits: the machine's joint limits; a noisy reference beyond them is clamped into them.
     """
+
+    future_length = 1
+    """F: the noise needs only ``q*_{t+1}``."""
 
     def __init__(self, noise: np.ndarray, limits: GuardLimits) -> None:
         self.noise = noise
@@ -190,6 +204,9 @@ class NoiseDriver:
         clamped = np.any(q_ref != wanted, axis=1)
         guard = np.where(clamped, Guard.CLAMPED.value, 0).astype(np.uint16)
         return Sent(q_ref=q_ref, adjustment=wrap(q_ref - q_des), fallback=np.zeros(len(q_ref), dtype=bool), guard=guard)
+
+    def stop(self) -> None:
+        """End the episodes (nothing to release)."""
 
 
 def episode_noise(cfg: CollectConfig, pass_index: int, ref_index: int, steps: int) -> tuple[float, np.ndarray]:
@@ -264,6 +281,129 @@ def run_pass(
     return [finished.get(ref.name) or new[ref.name] for ref in references]
 
 
+@dataclass(frozen=True)
+class LoopMachine:
+    """A machine that collection drives through the fixed-rate loop, as ``deploy`` does (``collect --machine``).
+
+    Attributes:
+        make: reference → a new adapter for its episode (:func:`~efficienttrack.deploy.deployment.machine_parts`).
+        limits: the machine's limits.
+        clock: the loop's clock (``MONOTONIC`` on a machine; a simulated one runs a simulator as fast as it computes).
+        name: what ``collect.json`` calls the machine (the adapter's import path, or the simulator's name).
+        loop: the loop's timing and watchdogs.
+    """
+
+    make: Callable[[Reference], Machine]
+    limits: GuardLimits
+    clock: Clock
+    name: str
+    loop: LoopConfig = LoopConfig()
+
+
+def run_pass_through_loop(
+    machine: LoopMachine,
+    references: Sequence[Reference],
+    cfg: CollectConfig,
+    pass_index: int,
+    logs: Path,
+    progress: ProgressDisplay | None = None,
+    finished: Mapping[str, list[EpisodeRecord]] | None = None,
+    on_done: Callable[[list[EpisodeRecord]], None] | None = None,
+) -> list[EpisodeRecord]:
+    """One pass of Algorithm 1 through the fixed-rate loop, one reference after the other, each with its tick log.
+
+    The episode of reference i has the noise of :func:`run_pass` (the same seeded draws), sent as the loop sends a
+    policy's adjustment: none at the first tick, its change per tick limited to ``max_adjust_rate``, ramped to 0 at the
+    end, clamped into the joint limits. Its records are made from its log (:func:`records_from_log`: a reading that
+    was missing or old splits the episode, ``<reference>-2`` …).
+
+    Args:
+        machine: the machine and its loop.
+        references: the references (``.name``, ``.q`` (L_i, 4) rad).
+        cfg: collection settings.
+        pass_index: k, which decides the noisy episodes and seeds the noise.
+        logs: the folder of this pass's tick logs (created); the log of an episode that a watchdog stopped is kept
+            as ``<reference>.stopped-<n>.jsonl`` when the episode is run again.
+        progress: progress display for the episodes, or None.
+        finished: records of the episodes of this pass already recorded, by reference name; not run again.
+        on_done: called with each episode's records as soon as it has run (to flush them).
+
+    Returns:
+        The records, episode by episode (meta: name, reference, sigma, pass, noisy, guard, loop_events; source
+        ``collect``).
+
+    Raises:
+        EfficientTrackError: a watchdog stopped an episode (its reason; the episodes before it are kept, a rerun resumes
+            with it), or its log gave no record.
+        KeyboardInterrupt: Ctrl-C or a stop signal during an episode (the loop sent the raw reference and closed the
+            machine first).
+    """
+    noisy = cfg.noisy_episodes(pass_index, len(references))
+    finished = finished or {}
+    logs.mkdir(parents=True, exist_ok=True)
+    task = None if progress is None else progress.add_task(f"pass {pass_index + 1} (episodes)", total=len(references))
+    records: list[EpisodeRecord] = []
+    for i, ref in enumerate(references):
+        if ref.name in finished:
+            records += finished[ref.name]
+        else:
+            sigma, noise = episode_noise(cfg, pass_index, i, ref.steps) if noisy[i] else (0.0, np.zeros((ref.steps, 4)))
+            log_path = _fresh_log(logs, ref.name)
+            with TickLog(log_path, machine.loop.fsync_every) as log:
+                loop = Loop(
+                    NoiseDriver(noise[:, None], machine.limits),
+                    machine.make(ref),
+                    machine.limits,
+                    machine.loop,
+                    machine.clock,
+                    log,
+                )
+                result = loop.run(ref.q, ref.name)
+            if result.reason == "interrupted":
+                raise KeyboardInterrupt(result.error)
+            if result.stopped:
+                raise EfficientTrackError(
+                    f"collect: pass {pass_index + 1}, reference {ref.name}: the loop stopped it at tick {result.ticks} "
+                    f"({result.reason}: {result.error}); the episodes recorded before it are kept and its log is "
+                    f"{log_path}; rerun the same command to resume with {ref.name}"
+                )
+            episode = records_from_log(log_path, shadow=False)
+            if not episode:
+                raise EfficientTrackError(f"collect: {log_path}: no two usable ticks in a row, no record (see its events)")
+            for record in episode:
+                record.meta.update(source="collect", sigma=float(sigma), noisy=bool(noisy[i]))
+                record.meta["pass"] = pass_index
+            if on_done is not None:
+                on_done(episode)
+            records += episode
+        if progress is not None and task is not None:
+            progress.advance(task)
+    return records
+
+
+def _fresh_log(logs: Path, name: str) -> Path:
+    """``logs/<name>.jsonl``, once an earlier try's log there is moved to the first free ``<name>.stopped-<n>.jsonl``."""
+    path = logs / f"{name}.jsonl"
+    if path.exists():
+        n = 1
+        while (logs / f"{name}.stopped-{n}.jsonl").exists():
+            n += 1
+        os.replace(path, logs / f"{name}.stopped-{n}.jsonl")
+    return path
+
+
+def by_reference(records: Sequence[EpisodeRecord]) -> dict[str, list[EpisodeRecord]]:
+    """Records grouped by the reference they tracked (``meta["reference"]``, else their name), in their order.
+
+    Args:
+        records: episodes of one pass (the loop's may be several per reference).
+    """
+    groups: dict[str, list[EpisodeRecord]] = {}
+    for record in sorted(records, key=lambda r: r.meta.get("first_tick", 0)):
+        groups.setdefault(str(record.meta.get("reference", record.meta["name"])), []).append(record)
+    return groups
+
+
 def check_noise_level(sigma_max: float, limits: GuardLimits) -> None:
     """Refuse a noise level the machine's adjustment bound cannot hold, naming the joint and the bound.
 
@@ -293,7 +433,7 @@ def _flush(records: list[EpisodeRecord], folder: Path) -> None:
 
 
 def collect(
-    system: BatchedSystem,
+    system: BatchedSystem | LoopMachine,
     references: Sequence[Reference],
     cfg: CollectConfig,
     out: str | Path | None = None,
@@ -302,11 +442,13 @@ def collect(
     """Algorithm 1: ``cfg.passes`` passes over the references, written to ``out`` pass by pass.
 
     Args:
-        system: the closed-loop system (``load_system``).
+        system: the closed-loop system (``load_system``), run batched; or a machine driven through the fixed-rate loop
+            (:class:`LoopMachine`), one episode after the other.
         references: the references (``.name``, ``.q`` (L_i, 4) rad of desired positions), unique names.
         cfg: collection settings.
-        out: folder for the records (``pass_<k>/<name>.npz`` plus ``collect.json``); passes
-            already there are read back instead of run. None keeps everything in memory.
+        out: folder for the records (``pass_<k>/<name>.npz`` plus ``collect.json``, and ``logs/`` of a
+            :class:`LoopMachine`); passes already there are read back instead of run. None keeps everything in memory
+            (a :class:`LoopMachine` needs a folder for its logs).
         progress: show progress (bars on a terminal, plain lines otherwise).
 
     Returns:
@@ -318,6 +460,9 @@ def collect(
     """
     if not references:
         raise EfficientTrackError("collect: no references given")
+    looped = isinstance(system, LoopMachine)
+    if looped and out is None:
+        raise EfficientTrackError("collect: a machine driven through the loop needs an output folder for its tick logs")
     check_noise_level(cfg.sigma_max, system.limits)
     for ref in references:
         system.limits.check_reference(ref.q, ref.name)
@@ -332,6 +477,8 @@ def collect(
     if folder is not None:
         steps = [ref.steps for ref in references]
         manifest = {"config": asdict(cfg), "noise_mix": NOISE_MIX, "references": names, "steps": steps}
+        if isinstance(system, LoopMachine):
+            manifest["loop"] = dict(asdict(system.loop), machine=system.name)
         manifest = json.loads(json.dumps(manifest))  # tuples as lists, as read back
         claim_folder(folder / "collect.json", manifest, "this folder holds a collection with other settings or references")
     records: list[EpisodeRecord] = []
@@ -340,14 +487,32 @@ def collect(
         passes = bar.add_task("collecting (passes)", total=cfg.passes)
         for k in range(cfg.passes):
             if folder is not None and _pass_dir(folder, k).is_dir():
-                records += load_named_records(_pass_dir(folder, k), names)
+                records += _pass_records(_pass_dir(folder, k), names)
                 resumed += 1
             elif folder is None:
+                assert not isinstance(system, LoopMachine)  # refused above
                 records += run_pass(system, references, cfg, k, bar)
             else:
                 partial = _pass_dir(folder, k).with_name(f".{_pass_dir(folder, k).name}.partial")
-                finished = {r.meta["name"]: r for r in load_records(partial)} if partial.is_dir() else {}
-                records += run_pass(system, references, cfg, k, bar, finished, functools.partial(_flush, folder=partial))
+                finished = by_reference(load_records(partial)) if partial.is_dir() else {}
+                flush = functools.partial(_flush, folder=partial)
+                if isinstance(system, LoopMachine):
+                    logs = folder / "logs" / _pass_dir(folder, k).name
+                    records += run_pass_through_loop(system, references, cfg, k, logs, bar, finished, flush)
+                else:
+                    done = {name: group[0] for name, group in finished.items()}
+                    records += run_pass(system, references, cfg, k, bar, done, flush)
                 os.replace(partial, _pass_dir(folder, k))
             bar.advance(passes)
     return CollectResult(records=records, interaction_steps=sum(len(r) for r in records), resumed_passes=resumed)
+
+
+def _pass_records(folder: Path, names: Sequence[str]) -> list[EpisodeRecord]:
+    """The records of a finished pass, reference by reference in the order of ``names`` (all of a reference's)."""
+    groups = by_reference(load_records(folder))
+    missing = [name for name in names if name not in groups]
+    if missing:
+        raise EfficientTrackError(
+            f"{folder}: episode(s) {', '.join(missing[:5])} missing from a finished pass; delete the folder to redo it"
+        )
+    return [record for name in names for record in groups[name]]
