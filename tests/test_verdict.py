@@ -33,9 +33,14 @@ def test_the_run_that_tested_a_policy_gives_its_verdict(inside, tmp_path, monkey
     assert recorded_verdict(run / inside) is None and recorded_verdict(None) is None
 
 
-def test_deploy_warns_before_arming_a_policy_worse_than_pd(deploy_inputs, tmp_path):  # noqa: F811
+def test_deploy_arms_a_policy_worse_than_pd_only_when_told_and_warns_in_shadow(deploy_inputs, tmp_path):  # noqa: F811
     refs, policy = deploy_inputs
     (policy.parent / "metrics.json").write_text(json.dumps({"policy": str(policy), "worse_than_pd": "it tracks worse"}))
-    result = invoke("deploy", "--refs", refs, "--policy", policy, "--out", tmp_path / "o", "--fast", "--arm", "--shadow")
-    assert result.exit_code == 0, result.output
-    assert f"warning: {policy}: it tracks worse" in result.stderr
+    args = ("deploy", "--refs", refs, "--policy", policy, "--fast", "--arm")
+    refused = invoke(*args, "--out", tmp_path / "armed")
+    assert "it tracks worse; its recorded evaluation tracked worse than PD" in str(refused.exception)
+    assert not (tmp_path / "armed").exists()
+    for extra in ("--shadow", "--accept-worse"):
+        result = invoke(*args, "--out", tmp_path / extra, extra)
+        assert result.exit_code == 0, result.output
+        assert f"warning: {policy}: it tracks worse" in result.stderr

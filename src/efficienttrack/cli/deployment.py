@@ -85,6 +85,10 @@ def deploy_command(
     stop_stale_ticks: Annotated[
         float, typer.Option("--stop-stale-ticks", help="The last good reading older than this many periods: stop.")
     ] = LOOP.stop_stale_ticks,
+    accept_worse: Annotated[
+        bool,
+        typer.Option("--accept-worse", help="Arm a policy whose recorded evaluation tracked worse than PD (refused without)."),
+    ] = False,
     device: Annotated[str, typer.Option("--device", help="cpu, cuda or auto.")] = "cpu",
     force: Annotated[bool, typer.Option("--force", help="Write into a non-empty OUT: first delete its logs.")] = False,
 ) -> None:
@@ -116,6 +120,11 @@ def deploy_command(
     make_machine, machine_limits, clock = machine_parts(spec, machine, parse_options(machine_opt, "--machine-opt"), fast)
     runtime = policy_runtime(policy, machine_limits, device)
     verdict = recorded_verdict(policy)
+    if verdict is not None and not (shadow or accept_worse):
+        raise EfficientTrackError(
+            f"{policy}: {verdict}; its recorded evaluation tracked worse than PD, so it is not armed: run it with --shadow, "
+            "or add --accept-worse to move the machine with it all the same"
+        )
     if verdict is not None:
         typer.secho(f"warning: {policy}: {verdict}", fg=typer.colors.RED, err=True)
     _lock(ctx, out, resumable=False)  # the loop stops the machine and says what it wrote
