@@ -106,6 +106,13 @@ def test_sent_reference_is_clamped_into_the_joint_limits():
     assert runtime.counts["clamped"].tolist() == [1] and runtime.fallbacks.tolist() == [0]
 
 
+def test_the_rate_limit_bounds_each_joints_change_from_the_last_adjustment_sent():
+    rate = np.asarray(XE75.max_adjust_rate)
+    last = np.array([[0.0, 0.1, -0.1, 0.0]])
+    wanted = np.array([[1.0, 0.1, -1.0, 0.01]])
+    np.testing.assert_allclose(XE75.rate_limit(wanted, last), [[rate[0], 0.1, -0.1 - rate[2], 0.01]])
+
+
 def test_swing_is_unlimited_but_wrapped_for_the_check():
     limits = XE75.replace(q_min=(*XE75.q_min[:3], -1.0), q_max=(*XE75.q_max[:3], 1.0))
     np.testing.assert_array_equal(limits.clamp(np.array([0.0, 0.0, 0.0, 2 * math.pi + 0.5])), [0, 0, 0, 2 * math.pi + 0.5])

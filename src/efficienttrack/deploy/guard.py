@@ -99,7 +99,6 @@ class GuardedRuntime:
         """The limits the guard enforces."""
         self.max_adjust = np.zeros(4) if act is None else self.limits.adjust_bound(policy_max_adjust)
         """(4,) rad, the bound of |a| enforced: the machine's, tightened (never widened) by the policy file's."""
-        self._rate = np.asarray(self.limits.max_adjust_rate, dtype=np.float64)
         self._max_move = np.asarray(self.limits.max_speed, dtype=np.float64) * dt
         self.fallbacks = np.zeros(0, dtype=np.int64)
         """(N,) number of steps per machine since ``start`` that fell back to the raw desired position."""
@@ -203,7 +202,7 @@ class GuardedRuntime:
         fallback = (guard & FALLBACK) != 0
         a = np.where(fallback[:, None], 0.0, a)
         # rate limit (from the adjustment sent last step; a fallback's a = 0 is not limited)
-        limited = np.clip(a, self._a_prev - self._rate, self._a_prev + self._rate)
+        limited = self.limits.rate_limit(a, self._a_prev)
         guard |= _bits(~fallback & np.any(limited != a, axis=1), Guard.RATE_LIMITED)
         a = np.where(fallback[:, None], 0.0, limited)
         # joint limits

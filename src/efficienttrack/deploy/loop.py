@@ -524,7 +524,7 @@ class Loop:
         if not np.any(a_target):
             return np.zeros(4)
         bound = self._rate * ticks_left
-        return np.clip(np.clip(a_target, a_last - self._rate, a_last + self._rate), -bound, bound)
+        return np.clip(self.limits.rate_limit(a_target, a_last), -bound, bound)
 
     def _send(self, q_ref: np.ndarray) -> np.ndarray:
         """Send ``q_ref`` (4,) rad; the machine's answer, checked; a fault stops the run (nothing more is sent)."""

@@ -208,6 +208,21 @@ class GuardLimits:
             return bound
         return np.minimum(bound, np.asarray(policy_max_adjust, dtype=np.float64))
 
+    def rate_limit(self, a: np.ndarray, a_last: np.ndarray) -> np.ndarray:
+        """An adjustment whose change from the last one sent is at most ``max_adjust_rate`` per joint.
+
+        The runtime guard and the fixed-rate loop both limit the adjustment this way (each from what it sent last).
+
+        Args:
+            a: (..., 4) rad, the adjustment wanted.
+            a_last: (..., 4) rad, the adjustment sent the step before.
+
+        Returns:
+            (..., 4) rad.
+        """
+        rate = np.asarray(self.max_adjust_rate, dtype=np.float64)
+        return np.clip(a, a_last - rate, a_last + rate)
+
     def clamp(self, q: np.ndarray) -> np.ndarray:
         """Positions clamped into the joint limits; the swing only where its wrapped angle is outside them.
 
