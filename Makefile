@@ -10,9 +10,9 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	# torch first and pinned: the CPU wheel of 2.13.0 lies on disk; anything looser pulls a CUDA build.
 	$(BIN)/pip install --quiet torch==2.13.0
-	# onnx, onnxruntime, gymnasium, stable-baselines3 and ray come with the package's dependencies (SB3 needs torch, pinned above).
+	# Every extra (pyproject.toml): training, the study's Gymnasium, SB3 and Ray, rosbags, Parquet.
 	# pip must not replace the pinned torch: check it afterwards.
-	$(BIN)/pip install --quiet -e '.[test]'
+	$(BIN)/pip install --quiet -e '.[all,test]'
 	$(BIN)/python -c "import torch, sys; sys.exit(0 if torch.__version__.startswith('2.13.0') else 'pip replaced torch 2.13.0 by ' + torch.__version__)"
 	touch $(STAMP)
 

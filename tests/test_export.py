@@ -12,7 +12,7 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from efficienttrack.cli import app
+from efficienttrack.cli import EXTRAS, app
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.joints import DT, JOINT_NAMES
 from efficienttrack.data.dataset import Sequences
@@ -273,18 +273,31 @@ def test_a_checkpoint_saved_without_a_fingerprint_still_loads_and_exports(logged
     assert json.loads((tmp_path / "export" / CONTRACT_FILE).read_text())["source"]["training_fingerprint"] is None
 
 
-def test_the_command_line_on_the_torch_free_install_says_what_it_needs_in_one_line(tmp_path):
+EXTRA_LIBRARIES = tuple(EXTRAS)
+"""What the core install leaves out: the libraries of pyproject.toml's extras (tests/test_wheel.py checks both)."""
+
+
+def test_the_command_line_on_the_core_install_names_the_extra_a_command_needs_in_one_line(tmp_path):
     script = tmp_path / "cli.py"
-    blocker = BLOCK_TORCH.replace('name == "torch" or name.startswith("torch.")', 'name.split(".")[0] in ("torch", "typer")')
+    blocker = BLOCK_TORCH.replace('name == "torch" or name.startswith("torch.")', f'name.split(".")[0] in {EXTRA_LIBRARIES}')
     blocker = blocker.replace(
         """raise ModuleNotFoundError("No module named 'torch' (blocked by the test)")""",
         """raise ModuleNotFoundError(f"No module named {name!r} (blocked by the test)", name=name)""",
     )
     script.write_text(blocker + "from efficienttrack.__main__ import main\nmain()\n")
     env = {**os.environ, "PYTHONPATH": str(SRC)}
-    done = subprocess.run([sys.executable, str(script), "--help"], capture_output=True, text=True, env=env, timeout=60)
-    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
-    assert done.stderr.count("\n") == 1 and "the efficienttrack command line needs the full install" in done.stderr
+
+    def cli(*args):
+        return subprocess.run([sys.executable, str(script), *args], capture_output=True, text=True, env=env, timeout=60)
+
+    assert cli("--help").returncode == 0
+    for args, extra in (
+        (("export", "--policy", str(tmp_path / "policy.pt"), "--out", str(tmp_path / "export")), "train"),
+        (("import-rosbag", str(tmp_path / "bag"), "--reference", "/ref", "--out", str(tmp_path / "records")), "ros"),
+    ):
+        done = cli(*args)
+        assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+        assert done.stderr.count("\n") == 1 and f"pip install 'efficienttrack[{extra}]'" in done.stderr, done.stderr
 
 
 def test_the_torch_free_runtime_given_a_checkpoint_says_to_export_it(tmp_path):

@@ -7,6 +7,9 @@ limits from its logs, checked), :mod:`~efficienttrack.cli.sim` (the simulator's 
 (the comparative study), :mod:`~efficienttrack.cli.ablate` (the ablations), :mod:`~efficienttrack.cli.config` (the
 settings tree); :mod:`~efficienttrack.cli.common` holds the app and what several commands share. Importing a module
 registers its commands, in the order ``--help`` lists them.
+
+The command line imports only the core install's libraries: a command that needs an extra's (torch, Ray…) imports
+them in its body, and :func:`main` turns a missing one into one line naming the extra to install.
 """
 
 from __future__ import annotations
@@ -59,11 +62,35 @@ def _one_line_warning(
     return f"warning: {message}\n"
 
 
+EXTRAS = {
+    "torch": "train",
+    "tensorboard": "train",
+    "onnx": "train",
+    "matplotlib": "train",
+    "scipy": "train",
+    "gymnasium": "study",
+    "stable_baselines3": "study",
+    "ray": "study",
+    "rosbags": "ros",
+}
+"""The extra (pyproject.toml) that installs each library the core install leaves out and a command imports."""
+
+
 def main() -> None:
-    """Entry point: run the app; user-facing errors and a disk or folder refusing a file give one line and exit code 2."""
+    """Entry point: run the app; user-facing errors, a file the system refuses and a missing extra: one line, exit code 2."""
     warnings.formatwarning = _one_line_warning
     try:
         app()
+    except ModuleNotFoundError as exc:
+        library = (exc.name or "").split(".")[0]
+        if library not in EXTRAS:  # a module of the core install or of the package itself: a broken install or a bug
+            raise
+        typer.secho(
+            f"error: this command needs {library}, which is not installed: pip install 'efficienttrack[{EXTRAS[library]}]'",
+            fg=typer.colors.RED,
+            err=True,
+        )
+        sys.exit(2)
     except (EfficientTrackError, OSError) as exc:
         if isinstance(exc, OSError) and exc.errno is None:  # not the system refusing a file: a bug, keep its traceback
             raise

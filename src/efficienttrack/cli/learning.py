@@ -24,8 +24,8 @@ from efficienttrack.cli.common import (
 )
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import check_output_file, check_output_folder, finite_json, prepare_output_folder
+from efficienttrack.data.metrics import MPE_STEPS
 from efficienttrack.data.records import load_records
-from efficienttrack.learn.dynamics import MPE_STEPS
 
 DataOpt = Annotated[
     list[Path], typer.Option("--data", help="Episode files or folders (repeatable; a folder's own episodes, see --recursive).")

@@ -14,14 +14,16 @@ import subprocess
 import sys
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
 import efficienttrack
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import write_json
+
+if TYPE_CHECKING:
+    import torch
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 """The package's source folder: its git commit is the one recorded."""
@@ -81,6 +83,15 @@ def git_dirty(folder: str | Path | None = None) -> bool | None:
     return None if status is None else bool(status)
 
 
+def _torch_version() -> str | None:
+    """The installed torch's version, or None on the core install, which leaves torch out."""
+    try:
+        import torch
+    except ModuleNotFoundError:
+        return None
+    return torch.__version__
+
+
 def describe_device(device: str | torch.device | None) -> str | None:
     """A device as recorded in provenance: ``"cpu"``, or ``"cuda:0 (NVIDIA H100 80GB HBM3)"`` with the GPU's name.
 
@@ -92,6 +103,8 @@ def describe_device(device: str | torch.device | None) -> str | None:
     """
     if device is None:
         return None
+    import torch  # here: a device is named only by work in torch, and the core install has none
+
     device = torch.device(device)
     if device.type == "cuda" and torch.cuda.is_available():
         index = device.index if device.index is not None else torch.cuda.current_device()
@@ -108,8 +121,9 @@ def provenance(device: str | torch.device | None = None, wall_seconds: float | N
 
     Returns:
         ``{"version": package version, "git_commit": str | None, "git_dirty": bool | None (sources changed since
-        that commit), "command": the command line (``sys.argv``), "python", "numpy", "torch": versions,
-        "device": str | None, "created": ISO 8601 UTC time to the second, "wall_seconds": float | None}``.
+        that commit), "command": the command line (``sys.argv``), "python", "numpy", "torch": versions
+        (torch None where it is not installed), "device": str | None, "created": ISO 8601 UTC time to the second,
+        "wall_seconds": float | None}``.
     """
     return {
         "version": efficienttrack.__version__,
@@ -118,7 +132,7 @@ def provenance(device: str | torch.device | None = None, wall_seconds: float | N
         "command": shlex.join(sys.argv),
         "python": platform.python_version(),
         "numpy": np.__version__,
-        "torch": torch.__version__,
+        "torch": _torch_version(),
         "device": describe_device(device),
         "created": datetime.now(UTC).isoformat(timespec="seconds"),
         "wall_seconds": None if wall_seconds is None else round(float(wall_seconds), 2),

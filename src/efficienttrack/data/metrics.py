@@ -17,10 +17,9 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
-import torch
 from rich.table import Table
 
 from efficienttrack.core.angles import wrap
@@ -29,6 +28,9 @@ from efficienttrack.core.fileio import write_csv
 from efficienttrack.core.joints import CONTROL_RATE_HZ, JOINT_NAMES
 from efficienttrack.data.kinematics import tip_position
 from efficienttrack.data.records import EpisodeRecord, load_record, record_files
+
+if TYPE_CHECKING:
+    import torch
 
 METRIC_KEYS = (
     "episodes",
@@ -45,7 +47,9 @@ METRIC_KEYS = (
 """Keys of the dict returned by :func:`compute_metrics`."""
 MIN_STEPS = 4
 """Shortest episode with every metric defined (the 2nd-order smoothness needs q[1], q[2], q[3])."""
-ArrayT = TypeVar("ArrayT", np.ndarray, torch.Tensor)
+MPE_STEPS = 20
+"""Prediction horizon of the model's multi-step error (the paper's Tr./Te.MPE: 20 steps, 1 s)."""
+ArrayT = TypeVar("ArrayT", np.ndarray, "torch.Tensor")
 
 
 def tracking_error(q: np.ndarray, q_des: np.ndarray) -> np.ndarray:

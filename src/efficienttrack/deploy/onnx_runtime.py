@@ -18,8 +18,9 @@ optional time stamps ``t``) around the exported graph::
             sent = rt.step(read_obs(), q_des[None, t + 1 : t + 1 + rt.future_length])
             send_reference(sent.q_ref[0])
 
-Installing ``efficienttrack[runtime]`` needs numpy, PyYAML, rich and onnxruntime; importing this module imports
-no torch (``tests/test_export.py`` runs it with torch made unimportable).
+The core install (``pip install efficienttrack``: numpy, PyYAML, rich, Typer, onnxruntime) runs it; importing this
+module imports no torch (``tests/test_export.py`` runs it with torch made unimportable, ``tests/test_wheel.py`` on the
+core install).
 """
 
 from __future__ import annotations
@@ -234,7 +235,7 @@ def load_onnx_policy(folder: str | Path, threads: int = 1) -> OnnxPolicy:
     """
     if Path(folder).is_file() and Path(folder).suffix == ".pt":
         raise EfficientTrackError(
-            f"{folder}: a torch checkpoint, which this runtime does not read; export it where the full install is "
+            f"{folder}: a torch checkpoint, which this runtime does not read; export it where the train extra is installed "
             f"(efficienttrack export --policy {folder} --out DIR) and load DIR"
         )
     return OnnxPolicy(folder, threads)

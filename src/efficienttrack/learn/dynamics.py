@@ -41,7 +41,7 @@ from efficienttrack.core.joints import MAX_HORIZON
 from efficienttrack.core.settings import inherit, setting
 from efficienttrack.data.dataset import Sequences
 from efficienttrack.data.features import feature_width, relative_features
-from efficienttrack.data.metrics import position_error
+from efficienttrack.data.metrics import MPE_STEPS, position_error
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.data.windows import push
 from efficienttrack.learn.checkpoints import load_checkpoint, save_checkpoint, warm_start
@@ -341,10 +341,6 @@ class MPE(NamedTuple):
     per_joint_deg: list[float]
     per_step_deg: list[float]
     windows: int
-
-
-MPE_STEPS = 20
-"""Prediction horizon of the model's multi-step error (the paper's Tr./Te.MPE: 20 steps, 1 s)."""
 
 
 @torch.inference_mode()
