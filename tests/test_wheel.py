@@ -110,6 +110,22 @@ def test_the_core_install_deploys_an_export_without_torch(tmp_path):
     ticks = [json.loads(line) for line in (out / "ref_01.jsonl").read_text().splitlines()[1:-1]]
     assert max(max(map(abs, tick["a"])) for tick in ticks) > 0  # the graph ran: it adjusted, in shadow mode only logged
 
+    # round 1's collection on the machine's computer: through the loop, on the core install alone
+    args = (
+        "collect",
+        "--refs",
+        tmp_path / "refs",
+        "--out",
+        tmp_path / "collected",
+        "--loop",
+        "--fast",
+        "--arm",
+        "--passes",
+        "1",
+    )
+    done = run(python, "-c", f"LEFT_OUT = {EXTRA_LIBRARIES!r}\n{IN_PROCESS}", *args)
+    assert "collected 2 episodes" in done.stdout and done.stdout.splitlines()[-1] == "imported: ", done.stdout
+
     # a command that needs the train extra says so in one line
     done = run(efficienttrack, "export", "--policy", tmp_path / "policy.pt", "--out", tmp_path / "again", code=2)
     assert done.stderr.count("\n") == 1, done.stderr
