@@ -1,8 +1,10 @@
-"""The study runner: the job list, a tiny study locally, in a process pool and on Ray, reruns, reports, failures, the CLI."""
+"""The study runner: the job list, a tiny study locally, in a process pool and on Ray, reruns, reports, failures, the CLI;
+the validation split and the point selected on it."""
 
 import json
 import math
 import os
+import re
 import shutil
 import signal
 import time
@@ -18,10 +20,12 @@ from efficienttrack.data.cycles import generate_references
 from efficienttrack.data.references import Reference, save_references
 from efficienttrack.envs.core import LOOPS
 from efficienttrack.study import METHODS, Job, Study, available_methods, make_jobs, make_study, report, run_study
-from efficienttrack.study.executors import process_pool
+from efficienttrack.study.executors import Outcome, process_pool
+from efficienttrack.study.jobs import default_validation, split_validation
 from efficienttrack.study.methods import Method, point
 from efficienttrack.study.paper_table import is_paper_system, paper_row
 from efficienttrack.study.report import FIELDS, METRICS, log_mae_axis, markdown_table, summarize
+from efficienttrack.study.run import progress_line
 from efficienttrack.systems.spec import SystemSpec
 from efficienttrack.workflow.collect import pass_counts
 from efficienttrack.workflow.config import PRESETS
@@ -41,6 +45,25 @@ def refs():
 def tiny_study(refs, budget=None):
     train, test = refs
     return make_study(SystemSpec(), train, test, budget=budget or 2 * 59, preset="tiny", run_config=FAST)
+
+
+@pytest.fixture(scope="module")
+def refs3(refs):
+    """``refs`` with a third training reference, ``val_01``: the one a validation split of 1 holds out of the three."""
+    extra = Reference("val_01", generate_references(1, seed=7)[0].q[:60])
+    return [*refs[0], extra], refs[1]
+
+
+@pytest.fixture(scope="module")
+def validated(tmp_path_factory, refs3):
+    """As ``finished``, with ``val_01`` held out for validation: PD, EfficientTrack (both loops), PPO (closed) and ILC."""
+    out = tmp_path_factory.mktemp("validated")
+    train, test = refs3
+    study = make_study(SystemSpec(), train, test, budget=2 * 59, preset="tiny", run_config=FAST, validation=1)
+    jobs = make_jobs(study, ["pd", "efficienttrack", "ilc"], ["closed", "open"]) + make_jobs(study, ["ppo"])
+    lines = []
+    result = run_study(study, jobs, out, log=lines.append)
+    return out, study, result, lines
 
 
 @pytest.fixture(scope="module")
@@ -331,12 +354,14 @@ def test_cli_study(refs, tmp_path, monkeypatch):
         (["--methods", "pd", "--seeds", "a"], "--seeds 'a'"),
         (["--methods", "pd", "--method-budget", "sac"], "--method-budget 'sac': expected METHOD=STEPS"),
         (["--methods", "pd", "--budget", "5000"], "holds a study of another system, references, budget"),
+        (["--methods", "pd", "--validation", "1"], "--validation 1: would hold out 1 of the 2 training references"),
     ]:
         refused = CliRunner().invoke(app, [str(a) for a in [*common, *extra]])
         assert isinstance(refused.exception, EfficientTrackError) and message in str(refused.exception), refused.output
     forced = CliRunner().invoke(app, [str(a) for a in [*common, "--methods", "pd", "--budget", "5000", "--force"]])
     assert forced.exit_code == 0 and json.loads((out / "study_config.json").read_text())["budget"] == 5000
     assert not (out / "jobs" / "boom-closed-s0").exists()
+    assert "validation" not in json.loads((out / "study_config.json").read_text())  # two references: none held out
 
 
 def test_a_method_budget_replaces_the_study_budget_for_that_method(refs):
@@ -371,3 +396,110 @@ def test_the_quick_preset_gives_td_mpc_a_smaller_budget_that_the_user_may_overri
 def test_a_study_refuses_an_unknown_preset(refs):
     with pytest.raises(EfficientTrackError, match="--preset 'huge': unknown"):
         Study(SystemSpec(), tuple(refs[0]), tuple(refs[1]), 118, "huge", FAST)
+
+
+def test_the_validation_split_is_fixed_disjoint_and_leaves_most_references_for_training(refs3):
+    refs = [Reference(f"ref_{i:02d}", np.full((5, 4), 0.01 * i)) for i in range(10)]
+    kept, held = split_validation(refs, 3)
+    assert [r.name for r in held] == ["ref_02", "ref_04", "ref_06"]  # the first 3 of a fixed permutation, in order
+    assert [r.name for r in kept] == [r.name for r in refs if r not in held]
+    assert split_validation(refs[::-1], 3) == (kept[::-1], held[::-1])  # the same ones, whatever the order given
+    assert split_validation(refs, 0) == (tuple(refs), ())
+    assert [default_validation(n) for n in (40, 10, 9, 2)] == [4, 1, 0, 0]  # a tenth, rounded down
+    assert split_validation(refs, 4)[1][:3] == held  # one more held out keeps the first ones
+    for count, message in [
+        (5, "--validation 5: would hold out 5 of the 10 training references; hold out fewer than half (at most 4 here)"),
+        (-1, "--validation -1: expected a number of training references ≥ 0"),
+        (1.5, "--validation 1.5: expected"),
+    ]:
+        with pytest.raises(EfficientTrackError, match=re.escape(message)):
+            split_validation(refs, count)
+    train, test = refs3
+    study = make_study(SystemSpec(), train, test, budget=2 * 59, preset="tiny", run_config=FAST, validation=1)
+    assert [r.name for r in study.validation] == ["val_01"] and [r.name for r in study.train] == ["ref_01", "ref_02"]
+    validation, others = ({r.q.tobytes() for r in part} for part in (study.validation, (*study.train, *study.test)))
+    assert validation and not validation & others  # disjoint from the training and the test references
+    assert study.steps_per_pass == 2 * 59  # the held-out reference is not collected on
+    identity = study.identity()
+    assert identity["validation"] == 1 and identity["validation_references"] == {"val_01": 60}
+    assert list(identity["train_references"]) == ["ref_01", "ref_02", "val_01"]  # every training reference given
+    plain = make_study(SystemSpec(), train, test, budget=3 * 59, preset="tiny", run_config=FAST).identity()  # 3: none
+    assert "validation" not in plain and "validation_references" not in plain  # as before the setting
+    with pytest.raises(EfficientTrackError, match="--validation 1: would hold out 1 of the 2 training references"):
+        make_study(SystemSpec(), train[:2], test, preset="tiny", validation=1)
+
+
+def test_a_study_folder_with_another_validation_split_is_refused_naming_it(refs3, tmp_path):
+    train, test = refs3
+    studies = {n: make_study(SystemSpec(), train, test, 2 * 59, "tiny", FAST, validation=n) for n in (0, 1)}
+    for made, rerun, difference in [(0, 1, "validation: absent here, 1 now"), (1, 0, "validation: 1 here, absent now")]:
+        out = tmp_path / f"made-with-{made}"
+        run_study(studies[made], make_jobs(studies[made], ["pd"]), out, log=lambda line: None)
+        with pytest.raises(EfficientTrackError, match=f"study_config.json: this folder holds a study of .*{difference}"):
+            run_study(studies[rerun], make_jobs(studies[rerun], ["pd"]), out)
+        again = run_study(studies[made], make_jobs(studies[made], ["pd"]), out, log=lambda line: None)
+        assert again.skipped == ("pd-closed-s0",)  # the same setting resumes
+
+
+def test_the_report_selects_each_seeds_point_on_validation_and_gives_its_test_mae():
+    def result(seed, maes, validation, method="efficienttrack"):
+        points = [{"interaction_steps": 10 * i, "wall_seconds": i, "metrics": {**dict.fromkeys(METRICS, 1.0), "mae_deg": m,
+                   "per_joint_mae_deg": [m] * 4}} for i, m in enumerate(maes)]  # fmt: skip
+        for p, v in zip(points, validation or [], strict=False):
+            p["validation"] = {**p["metrics"], "mae_deg": v}
+        return {"method": method, "loop": "closed", "seed": seed, "curve": points, "wall_seconds": 1.0}
+
+    seed0 = result(0, [3.0, 1.0, 2.0], [2.5, 1.8, 1.2])  # validation chooses the last point; test's best is the middle
+    seed1 = result(1, [3.0, 2.0, 4.0], [3.0, 1.0, 1.0])  # a tie on validation: the earlier point
+    partial = result(1, [3.0, 2.0], [3.0])  # a point without validation: no choice for the seed
+    et, ppo = summarize([seed0, seed1, result(0, [5.0, 4.0], None, "ppo"), {**partial, "method": "ppo"}])
+    assert [p["interaction_steps"] for p in et["selected"]] == [20, 10] and [p["seed"] for p in et["selected"]] == [0, 1]
+    assert [p["mae_deg"] for p in et["selected"]] == [2.0, 2.0] and et["selected"][0]["validation_mae_deg"] == 1.2
+    assert et["selected_mae_deg"] == 2.0 and et["selected_mae_deg_std"] == 0.0
+    assert et["selected_interaction_steps"] == 15
+    assert et["selected_interaction_steps_std"] == pytest.approx(np.std([20, 10], ddof=1))
+    assert et["mae_deg"] == 3.0 and et["best_mae_deg"] == 1.5  # the final and the optimistic points, unchanged
+    assert et["curves"][0]["points"][2]["validation_mae_deg"] == 1.2
+    assert ppo["selected"] is None and ppo["selected_mae_deg"] is None and ppo["selected_mae_deg_std"] is None
+    table = markdown_table([et, ppo], {})
+    assert "selected on validation" in table.splitlines()[0] and "mean ± sample std over seeds" in table.splitlines()[0]
+    assert "| selected MAE (°) | I.S. selected | best MAE (°) | I.S. at best |" in table
+    assert "| 2.00 ± 0.00 | 15 ± 7 | 1.50 ± 0.71 | 10 ± 0 |" in table  # EfficientTrack: selected, then best
+    assert "| – | – | 3.00 ± 1.41 | 10 ± 0 |" in table  # PPO: a seed without validation, so no selection
+    line = progress_line(Outcome("efficienttrack-closed-s0", seed0, None), 1, 2)
+    assert line.endswith("final MAE 2.00° at 20 interaction steps; selected on validation: 2.00° at 20")
+    assert progress_line(Outcome("ppo-closed-s1", partial, None), 2, 2).endswith("final MAE 2.00° at 10 interaction steps")
+
+
+@pytest.mark.slow
+def test_a_study_with_validation_measures_every_point_on_it_and_reports_the_selected_point(validated, finished):
+    out, study, result, lines = validated
+    assert not result.failed and len(result.ran) == 5
+    config = json.loads((out / "study_config.json").read_text())
+    assert config["validation"] == 1 and config["validation_references"] == {"val_01": 60}
+    for name in result.ran:
+        job = json.loads((out / "jobs" / name / "result.json").read_text())
+        if job["method"] == "ilc":  # the oracle learns on the test references: nothing to validate
+            assert all("validation" not in p for p in job["curve"])
+            continue
+        assert all(p["validation"]["episodes"] == 1 and p["validation"]["mae_deg"] > 0 for p in job["curve"]), name
+    # EfficientTrack trained on the two references left, and its policy was scored on the held-out one
+    run = json.loads((out / "jobs" / "efficienttrack-closed-s0" / "passes_1" / "run.json").read_text())
+    assert list(run["train_references"]) == ["ref_01", "ref_02"]
+    assert (out / "jobs" / "efficienttrack-closed-s0" / "validation" / "passes_1" / "metrics.json").is_file()
+    entries = {(e["method"], e["loop"]): e for e in result.report.entries}
+    for key, entry in entries.items():
+        curve = json.loads((out / "jobs" / f"{key[0]}-{key[1]}-s0" / "result.json").read_text())["curve"]
+        if key[0] == "ilc":
+            assert entry["selected"] is None
+            continue
+        chosen = min(curve, key=lambda p: p["validation"]["mae_deg"])
+        assert entry["selected_mae_deg"] == chosen["metrics"]["mae_deg"], key
+        assert entry["selected_interaction_steps"] == chosen["interaction_steps"], key
+    assert "; selected on validation: " in lines[2]
+    assert "| EfficientTrack | closed | 1 | 118 |" in result.report.markdown
+    # the same training references and seeds as the study without validation: the same test figures, point by point
+    plain = {(e["method"], e["loop"]): e["curves"] for e in finished[2].report.entries}
+    for key in [("pd", "closed"), ("efficienttrack", "closed"), ("efficienttrack", "open"), ("ppo", "closed")]:
+        ours = [p["mae_deg"] for p in entries[key]["curves"][0]["points"]]
+        assert ours == pytest.approx([p["mae_deg"] for p in plain[key][0]["points"]]), key

@@ -106,6 +106,14 @@ def study_command(
         list[str] | None,
         typer.Option("--method-budget", help="METHOD=N: that method's interaction steps instead of --budget (repeatable)."),
     ] = None,
+    validation: Annotated[
+        int | None,
+        typer.Option(
+            "--validation",
+            help="Training references held out of every method's training, on which the report selects each curve's "
+            "point (default: a tenth of them, rounded down, e.g. 4 of 40; 0: none, no selection).",
+        ),
+    ] = None,
     preset_name: StudyPresetOpt = "cpu",
     overrides: StudySetOpt = None,
     executor: ExecutorOpt = "local",
@@ -141,7 +149,9 @@ def study_command(
     spec.open()  # a bad system spec or limits file is refused here, not by every job
     budgets = _method_budgets(method_budget or [])
     settings = _study_settings(preset_name, overrides)
-    study = make_study(spec, load_references(train_refs), load_references(test_refs), budget, preset_name, settings, budgets)
+    study = make_study(
+        spec, load_references(train_refs), load_references(test_refs), budget, preset_name, settings, budgets, validation
+    )
     names = None if methods is None else comma_names(methods, "--methods")
     job_list = make_jobs(study, names, comma_names(loops, "--loops"), parse_ints(seeds, "--seeds"))
     _lock(ctx, out)

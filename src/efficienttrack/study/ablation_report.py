@@ -142,7 +142,7 @@ def markdown_table(
         f"# Ablation `{ablation.name}`: {ablation.title}",
         "",
         f"Preset `{facts['preset']}`, {facts['passes']} collection pass{'' if facts['passes'] == 1 else 'es'} for every "
-        "variant (equal data); mean ± std over seeds.",
+        "variant (equal data); mean ± sample std over seeds.",
         "",
         "| " + " | ".join(headers) + " |",
         "|" + "|".join("---" if i == 0 else "---:" for i in range(len(headers))) + "|",

@@ -202,7 +202,8 @@ def make_ablation_study(
     """The study an ablation's variants share: the preset's EfficientTrack settings with ``passes`` collection passes.
 
     Its budget is the interaction steps of those passes (Σ (L_i − 1) over the training references × passes), the
-    same for every variant.
+    same for every variant. Every training reference is trained on: an ablation reports each variant after its
+    passes, with no point to select, so it holds none out for validation.
 
     Args:
         system: the closed-loop system.
@@ -221,7 +222,7 @@ def make_ablation_study(
     preset = canonical_preset(preset)
     if preset not in STUDY_PRESETS:
         raise EfficientTrackError(f"--preset '{preset}': unknown, choose one of {', '.join(STUDY_PRESETS)}")
-    base = make_study(system, train, test, 1, preset, run_config)
+    base = make_study(system, train, test, 1, preset, run_config, validation=0)
     if passes is not None:
         try:
             base = replace(base, run_config=replace(base.run_config, collect=replace(base.run_config.collect, passes=passes)))

@@ -2,7 +2,9 @@
 
 A job is one method trained with one seed in one loop (``closed``: the policy adjusts the PD controller's
 reference; ``open``: the policy sends PWM), evaluated on the held-out references at regular interaction counts,
-giving a curve of test metrics against interaction steps. Each job owns the folder ``OUT/jobs/<method>-<loop>-s<seed>/``.
+giving a curve of test metrics against interaction steps. A study may hold some of its training references out of
+every method's training (:func:`split_validation`): each point is then measured on them too, and the report chooses
+each curve's point by them, never by the test references. Each job owns the folder ``OUT/jobs/<method>-<loop>-s<seed>/``.
 A job of an ablation (:mod:`~efficienttrack.study.ablations`) also carries a :class:`Variant` of EfficientTrack's
 settings, and owns ``OUT/jobs/<method>-<variant>-s<seed>/``.
 """
@@ -13,6 +15,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from efficienttrack.core.configfile import check_seed
 from efficienttrack.core.errors import EfficientTrackError
@@ -31,6 +35,11 @@ ERROR = "error.json"
 """Written by a failed job (removed when it succeeds on a rerun)."""
 Point = dict[str, Any]
 """One point of a method's curve: ``{"interaction_steps", "wall_seconds", "metrics", ...}`` (:func:`point`)."""
+VALIDATION_SHARE = 10
+"""Unless told, a study holds out one in this many of its training references for validation, rounded down
+(:func:`default_validation`)."""
+VALIDATION_SEED = 0
+"""Seed of the permutation that picks a study's validation references (:func:`split_validation`)."""
 
 
 @dataclass(frozen=True)
@@ -55,19 +64,70 @@ STUDY_PRESETS: dict[str, StudyPreset] = {
 ``cpu``: the ``cpu`` preset, and the baselines' ``cpu`` settings (earlier names ``quick`` and ``full`` are read too)."""
 
 
+def default_validation(count: int) -> int:
+    """How many training references a study holds out for validation unless told (``--validation``).
+
+    A tenth (:data:`VALIDATION_SHARE`), rounded down: 4 of the paper's 40, and none below 10 references, where even
+    one held out would take a large share of a small training set (such a study reports no selected point).
+
+    Args:
+        count: the training references given.
+
+    Returns:
+        The number to hold out.
+    """
+    return count // VALIDATION_SHARE
+
+
+def split_validation(
+    train: list[Reference] | tuple[Reference, ...], count: int
+) -> tuple[tuple[Reference, ...], tuple[Reference, ...]]:
+    """Hold ``count`` of the training references out of training, for validation.
+
+    Which ones: the references sorted by name, permuted by a generator seeded with :data:`VALIDATION_SEED`, the first
+    ``count``. The choice is fixed per study: the same for every method and every seed (it does not depend on the
+    jobs' seeds), and for any order the references are given in. A permutation rather than the last ``count`` by name:
+    reference folders are numbered in the order they were recorded or generated, and the last ones may share a session
+    or a kind of cycle; drawn over the whole set, the validation references are like the others.
+
+    Args:
+        train: the training references given, each q (L_i, 4) rad.
+        count: how many to hold out (0: none).
+
+    Returns:
+        (the references left for training, the validation references), each in the order given.
+
+    Raises:
+        EfficientTrackError: ``count`` is not an integer ≥ 0, or would not leave the methods most of the training
+            references (naming ``--validation``).
+    """
+    if not isinstance(count, int) or isinstance(count, bool) or count < 0:
+        raise EfficientTrackError(f"--validation {count!r}: expected a number of training references ≥ 0")
+    if count and 2 * count >= len(train):
+        raise EfficientTrackError(
+            f"--validation {count}: would hold out {count} of the {len(train)} training references; hold out fewer than "
+            f"half (at most {max(len(train) - 1, 0) // 2} here) so that the methods train on most of them, or 0 for none"
+        )
+    by_name = sorted(range(len(train)), key=lambda i: train[i].name)
+    held = {by_name[i] for i in np.random.default_rng(VALIDATION_SEED).permutation(len(train))[:count]}
+    return (tuple(ref for i, ref in enumerate(train) if i not in held), tuple(ref for i, ref in enumerate(train) if i in held))
+
+
 @dataclass(frozen=True, eq=False)
 class Study:
     """One system, one train/test split, an interaction budget per job, and the settings of the methods.
 
     Attributes:
         system: the closed-loop system (and the plant under it, for the open loop).
-        train: the training references, each q (L_i, 4) rad.
+        train: the references the methods train on, each q (L_i, 4) rad (the validation references are not among them).
         test: the held-out references the methods are scored on.
         budget: interaction steps each job may spend (training interactions with the system).
         preset: a name of :data:`STUDY_PRESETS`.
         run_config: EfficientTrack's settings (the preset's ``run`` preset; its seed and passes are set per job).
         method_budgets: (method, interaction steps) pairs that replace ``budget`` for those methods' jobs (a costly
             baseline stopped earlier, a sample-hungry one given more).
+        validation: training references held out of every method's training (:func:`split_validation`); each curve
+            point is measured on them too, and the report chooses each curve's point by them. Empty: no validation.
     """
 
     system: SystemSpec
@@ -77,6 +137,7 @@ class Study:
     preset: str
     run_config: RunConfig
     method_budgets: tuple[tuple[str, int], ...] = ()
+    validation: tuple[Reference, ...] = ()
 
     def __post_init__(self) -> None:
         """Check the references, the budgets and the preset (EfficientTrackError naming the option)."""
@@ -112,17 +173,23 @@ class Study:
     def identity(self) -> dict[str, Any]:
         """What the study is, as ``study_config.json`` records it (a rerun into the same folder must match).
 
-        Methods, loops and seeds are not part of it: a rerun may add jobs to a study.
+        Methods, loops and seeds are not part of it: a rerun may add jobs to a study. A study without validation has
+        no ``validation`` fields, as before the setting existed: a folder made then resumes with none (``--validation
+        0``), and one made with another count is refused, the refusal naming ``validation``.
 
         Returns:
-            ``{"system", "train_references", "test_references": {name: length}, "references_sha256", "budget",
-            "method_budgets": {method: steps}, "preset", "run_config"}``.
+            ``{"system", "validation": count held out, "validation_references": {name: length} (these two only with a
+            validation split), "train_references": {name: length} of every training reference given, the validation
+            ones included, "test_references": {name: length}, "references_sha256", "budget", "method_budgets":
+            {method: steps}, "preset", "run_config"}``.
         """
+        validation = {"validation": len(self.validation), "validation_references": {r.name: len(r) for r in self.validation}}
         return {
             "system": self.system.to_dict(),
-            "train_references": {ref.name: len(ref) for ref in self.train},
+            **(validation if self.validation else {}),
+            "train_references": {ref.name: len(ref) for ref in (*self.train, *self.validation)},
             "test_references": {ref.name: len(ref) for ref in self.test},
-            "references_sha256": references_sha256((*self.train, *self.test)),
+            "references_sha256": references_sha256((*self.train, *self.validation, *self.test)),
             "budget": self.budget,
             "method_budgets": dict(self.method_budgets),
             "preset": self.preset,
@@ -138,37 +205,42 @@ def make_study(
     preset: str = "cpu",
     run_config: RunConfig | None = None,
     method_budgets: dict[str, int] | None = None,
+    validation: int | None = None,
 ) -> Study:
-    """A study with the preset's defaults filled in.
+    """A study with the preset's defaults filled in, and ``validation`` of the training references held out.
 
     Args:
         system: the closed-loop system.
-        train: training references, each q (L_i, 4) rad.
+        train: training references, each q (L_i, 4) rad (the validation references are taken from them).
         test: held-out references.
         budget: interaction steps per job (None: the preset's).
         preset: ``tiny`` or ``cpu`` (:data:`STUDY_PRESETS`; ``quick``, ``full``: their earlier names).
         run_config: EfficientTrack's settings (None: the preset's ``run`` preset).
         method_budgets: method name → interaction steps for that method's jobs instead of ``budget`` (added to, and
             overriding, the preset's own).
+        validation: training references to hold out for validation (:func:`split_validation`; 0: none; None:
+            :func:`default_validation`, a tenth of them).
 
     Returns:
         The study.
 
     Raises:
-        EfficientTrackError: an unknown preset, a budget < 1, no references.
+        EfficientTrackError: an unknown preset, a budget < 1, no references, a bad ``validation`` count.
     """
     preset = canonical_preset(preset)
     if preset not in STUDY_PRESETS:
         raise EfficientTrackError(f"--preset '{preset}': unknown, choose one of {', '.join(STUDY_PRESETS)}")
     sizes = STUDY_PRESETS[preset]
+    kept, held = split_validation(tuple(train), default_validation(len(train)) if validation is None else validation)
     return Study(
         system=system,
-        train=tuple(train),
+        train=kept,
         test=tuple(test),
         budget=sizes.budget if budget is None else budget,
         preset=preset,
         run_config=PRESETS[sizes.run] if run_config is None else run_config,
         method_budgets=tuple(sorted({**dict(sizes.method_budgets), **(method_budgets or {})}.items())),
+        validation=held,
     )
 
 

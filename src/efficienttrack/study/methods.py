@@ -4,7 +4,13 @@ A method is a function ``run(job, folder) -> curve``: it trains with ``job.seed`
 ``job.budget`` interaction steps, writing what it likes under ``folder``, and returns the test metrics of the
 held-out references at regular interaction counts, as a list of points::
 
-    {"interaction_steps": int, "wall_seconds": float, "metrics": compute_metrics(...) of the test episodes, ...}
+    {"interaction_steps": int, "wall_seconds": float, "metrics": compute_metrics(...) of the test episodes,
+     "validation": compute_metrics(...) of the validation episodes (a study with validation references), ...}
+
+Each point is measured on the study's validation references by the path that measures it on the test references:
+the PD controller's and EfficientTrack's runtime (:func:`~efficienttrack.deploy.runtime.track`, through
+:func:`~efficienttrack.workflow.pipeline.evaluate` for a trained policy), a baseline's own recorder
+(:mod:`efficienttrack.study.validation`). The ILC oracle learns on the test references themselves and has none.
 
 ``pd`` (the PD controller alone, one point at 0 interactions), ``efficienttrack`` (the whole pipeline after 1, 2, 5,
 10 … collection passes; in the open loop a plant model and a PWM policy, :mod:`efficienttrack.baselines.openloop`),
@@ -20,6 +26,7 @@ import importlib.util
 import json
 import time
 from collections.abc import Callable, Sequence
+from contextlib import nullcontext
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -33,8 +40,9 @@ from efficienttrack.deploy.runtime import track
 from efficienttrack.envs.core import LOOPS
 from efficienttrack.study.ablations import run_variant
 from efficienttrack.study.jobs import STUDY_PRESETS, Job, Point, Study, check_seeds, point
+from efficienttrack.study.validation import measuring_validation, require_validation
 from efficienttrack.workflow.collect import pass_counts
-from efficienttrack.workflow.pipeline import run_pipeline
+from efficienttrack.workflow.pipeline import evaluate, run_pipeline
 
 
 @dataclass(frozen=True)
@@ -72,18 +80,24 @@ class Method:
 
 
 def run_pd(job: Job, folder: Path) -> list[Point]:
-    """The PD controller alone on the test references: one point at 0 interaction steps.
+    """The PD controller alone on the test references (and the validation references): one point at 0 interaction steps.
 
     Args:
-        job: the job (its study's system and test references).
+        job: the job (its study's system, test and validation references).
         folder: the job's folder (nothing is written there but the result).
 
     Returns:
-        One point.
+        One point (its wall time that of the test references).
     """
+    study = job.study
     start = time.perf_counter()
-    records = track(job.study.system.open(), None, job.study.test, progress=False, description="pd")
-    return [point(0, time.perf_counter() - start, rounded(compute_metrics(records)))]
+    system = study.system.open()
+    metrics = rounded(compute_metrics(track(system, None, study.test, progress=False, description="pd")))
+    wall = time.perf_counter() - start
+    if not study.validation:
+        return [point(0, wall, metrics)]
+    validation = rounded(compute_metrics(track(system, None, study.validation, progress=False, description="pd")))
+    return [point(0, wall, metrics, validation=validation)]
 
 
 def check_passes(study: Study) -> None:
@@ -113,16 +127,18 @@ def run_efficienttrack(job: Job, folder: Path) -> list[Point]:
 
     ``folder/passes_<p>/`` is a run folder (:func:`~efficienttrack.workflow.pipeline.run_pipeline`, which resumes) with the
     study's ``run_config``, ``job.seed`` as the seed of training and of the collection noise, and ``p`` collection
-    passes; its point is written to ``folder/passes_<p>/point.json`` when the run is finished, and read from there on a
-    rerun.
+    passes; with validation references, its policy is then scored on them in ``folder/validation/passes_<p>/``
+    (:func:`~efficienttrack.workflow.pipeline.evaluate`, which resumes too). The point is written to
+    ``folder/passes_<p>/point.json`` when both are finished, and read from there on a rerun.
 
     Args:
         job: the job.
         folder: the job's folder.
 
     Returns:
-        One point per pass count: the test metrics of EfficientTrack at the run's interaction steps, with ``passes``
-        and the run's guard ``warning`` (None, or why the figures are mostly the PD controller's).
+        One point per pass count: the test metrics of EfficientTrack at the run's interaction steps, with ``passes``,
+        the run's guard ``warning`` (None, or why the figures are mostly the PD controller's) and, with validation
+        references, ``validation``: the policy's metrics on them. Its wall time is the run's, without the validation.
 
     Raises:
         EfficientTrackError: the budget allows not even one collection pass.
@@ -144,30 +160,42 @@ def run_efficienttrack(job: Job, folder: Path) -> list[Point]:
         start = time.perf_counter()
         cfg = replace(base, collect=replace(base.collect, passes=passes))
         result = run_pipeline(study.system, study.train, study.test, run_folder, cfg, Console(quiet=True), 0, "study")
-        m = result.metrics
-        curve.append(point(m["interaction_steps"], time.perf_counter() - start, m["efficienttrack"], passes=passes,
-                           warning=m["warning"]))  # fmt: skip
+        m, wall = result.metrics, time.perf_counter() - start
+        extra = {}
+        if study.validation:
+            scored = evaluate(study.system, study.validation, folder / "validation" / f"passes_{passes}", m["policy"],
+                              cfg.device, Console(quiet=True), 0)  # fmt: skip
+            extra["validation"] = scored["efficienttrack"]
+        curve.append(point(m["interaction_steps"], wall, m["efficienttrack"], passes=passes, warning=m["warning"], **extra))
         write_json(done, curve[-1])
     return curve
 
 
-def _baseline(job: Job, folder: Path, module: str, function: str, **method: str) -> list[Point]:
+def _baseline(job: Job, folder: Path, module: str, function: str, validate: bool = True, **method: str) -> list[Point]:
     """Run a baseline's ``train_*(loop, system, train_refs, test_refs, budget, seed, folder, preset, progress)``.
+
+    With the study's validation references (and ``validate``), every point is measured on them too
+    (:func:`~efficienttrack.study.validation.measuring_validation`).
 
     Args:
         job: the job.
         folder: the job's folder (the baseline's ``curve.json`` goes there).
         module: the module that defines the function (imported here: a job imports only what it runs).
         function: the function's name.
+        validate: measure the points on the validation references (False: the ILC oracle, which has no policy).
         **method: ``method=...`` for a function that trains several methods (the SB3 baselines).
 
     Returns:
         The baseline's curve.
+
+    Raises:
+        EfficientTrackError: a point that should have been measured on the validation references was not.
     """
     train = getattr(importlib.import_module(module), function)
     study = job.study
-    with ProgressDisplay() as progress:  # plain lines in the job's log
-        return train(
+    validation = study.validation if validate else ()
+    with ProgressDisplay() as progress, measuring_validation(train, validation) if validation else nullcontext():
+        curve = train(
             **method,
             loop=job.loop,
             system=study.system,
@@ -177,8 +205,9 @@ def _baseline(job: Job, folder: Path, module: str, function: str, **method: str)
             seed=job.seed,
             folder=folder,
             preset=STUDY_PRESETS[study.preset].baselines,
-            progress=progress,
+            progress=progress,  # plain lines in the job's log
         )
+    return require_validation(curve, job.method) if validation else curve
 
 
 def run_sb3(job: Job, folder: Path) -> list[Point]:
@@ -243,7 +272,7 @@ def run_ilc(job: Job, folder: Path) -> list[Point]:
     """The ILC oracle (:func:`efficienttrack.baselines.ilc.train_ilc`): trials on the test references themselves.
 
     It sees the test references, so it is a lower bound on the error a reference adjustment can reach, not a
-    competitor; its label says so.
+    competitor; its label says so. Its corrections belong to the test references, so it has no validation points.
 
     Args:
         job: the job.
@@ -252,7 +281,7 @@ def run_ilc(job: Job, folder: Path) -> list[Point]:
     Returns:
         One point per trial: the test metrics after k trials at k × one trial's interaction steps.
     """
-    return _baseline(job, folder, "efficienttrack.baselines.ilc", "train_ilc")
+    return _baseline(job, folder, "efficienttrack.baselines.ilc", "train_ilc", validate=False)
 
 
 SB3_MODULES = ("stable_baselines3", "efficienttrack.baselines.sb3")

@@ -4,8 +4,11 @@ Each method and loop is reported at its final point: for each seed the last poin
 budget, so that nothing is chosen by looking at the test references; then the mean and the standard deviation over
 the seeds (sample standard deviation; null with one seed) of that point's interaction steps (I.S.), interaction
 time (I.T. = I.S. / 20 Hz, hours), wall time and every metric of :func:`~efficienttrack.data.metrics.compute_metrics`.
-Beside it, the best point: the point with the lowest test MAE, as the paper's Table I reports ("when the model
-converges to the optimal value"); a choice made on the test set, so an optimistic figure, labelled so.
+Beside it, two chosen points. The selected point, in a study with validation references
+(:attr:`~efficienttrack.study.jobs.Study.validation`): for each seed the point of its curve with the lowest validation
+MAE, and its test metrics; a choice made without the test references, so an honest figure for "trained until it
+stopped improving". The best point: the point with the lowest test MAE, as the paper's Table I reports ("when the
+model converges to the optimal value"); a choice made on the test set, so an optimistic figure, labelled so.
 
 A study on the paper's simulator (``--system paper``) prints the paper's Table I row under each of its rows
 (:mod:`efficienttrack.study.paper_table`).
@@ -39,7 +42,7 @@ METRICS = METRIC_KEYS[2:-1]
 FIELDS = ("interaction_steps", "interaction_hours", "wall_seconds", *METRICS)
 """What the report gives as mean ± std over seeds, at each seed's final point."""
 BEST_FIELDS = ("interaction_steps", "mae_deg")
-"""What it gives at each seed's best point too (``best_<field>``, ``best_<field>_std``)."""
+"""What it gives at each seed's selected and best points too (``selected_<field>``, ``best_<field>`` and their ``_std``)."""
 COLUMNS = {
     "interaction_steps": ("I.S.", ",.0f"),
     "interaction_hours": ("I.T. (h)", ".3f"),
@@ -152,13 +155,32 @@ def _order(key: tuple[str, str]) -> tuple[int, str, int]:
 
 
 def _flat(p: dict[str, Any]) -> dict[str, Any]:
-    """A curve point as the report shows it: interaction steps and hours, wall time, then the metrics."""
+    """A curve point as the report shows it: interaction steps and hours, wall time, the test metrics, the validation MAE.
+
+    ``validation_mae_deg`` is None for a point not measured on validation references.
+    """
     return {
         "interaction_steps": p["interaction_steps"],
         "interaction_hours": interaction_hours(p["interaction_steps"]),
         "wall_seconds": p.get("wall_seconds"),
         **p["metrics"],
+        "validation_mae_deg": p["validation"]["mae_deg"] if "validation" in p else None,
     }
+
+
+def selected_point(curve: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
+    """The point of one seed's curve chosen on the validation references: the lowest validation MAE (the earlier on a tie).
+
+    Args:
+        curve: the points of a job's ``result.json``, by interaction steps.
+
+    Returns:
+        The point, or None when one of the points has no ``"validation"`` metrics (a study without validation
+        references, the ILC oracle): no choice is made on part of a curve.
+    """
+    if not curve or any("validation" not in p for p in curve):
+        return None
+    return min(curve, key=lambda p: p["validation"]["mae_deg"])
 
 
 def _mean_point(steps: int, maes: list[float]) -> dict[str, Any]:
@@ -169,7 +191,7 @@ def _mean_point(steps: int, maes: list[float]) -> dict[str, Any]:
 
 
 def summarize(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
-    """One entry per method and loop: the mean ± std over seeds of each seed's final and best points, and the curves.
+    """One entry per method and loop: the mean ± std over seeds of each seed's final, selected and best points; curves.
 
     Args:
         results: the jobs' ``result.json`` contents.
@@ -178,10 +200,13 @@ def summarize(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
         Entries ordered as :data:`~efficienttrack.study.methods.METHODS`, closed loop first: ``{"method", "loop",
         "seeds": [int], "interaction_steps", "interaction_hours", "wall_seconds", "mae_deg", "rmse_deg", "fmae_deg",
         "smt1_deg", "smt2_deg", "etd_mae_cm", "etd_fmae_cm" (means at the final points) and each with ``_std``,
-        "best_interaction_steps", "best_mae_deg" and their ``_std`` (at the best points), "per_joint_mae_deg": [4],
-        "episodes", "steps": the test set, "final", "best": [per seed: the point], "curve": [the mean over seeds at each
-        interaction count: {"interaction_steps", "interaction_hours", "mae_deg", "mae_deg_std", "seeds"}],
-        "curves": [{"seed", "points": [each point: interaction steps and hours, wall seconds, metrics]}]}``.
+        "selected_interaction_steps", "selected_mae_deg" and their ``_std`` (the test MAE at the points selected on
+        validation; None unless every seed has one), "best_interaction_steps", "best_mae_deg" and their ``_std`` (at
+        the best points on test), "per_joint_mae_deg": [4], "episodes", "steps": the test set, "final", "best": [per
+        seed: the point], "selected": [per seed: the point] or None, "curve": [the mean over seeds at each interaction
+        count: {"interaction_steps", "interaction_hours", "mae_deg", "mae_deg_std", "seeds"}], "curves": [{"seed",
+        "points": [each point: interaction steps and hours, wall seconds, test metrics, "validation_mae_deg"]}]}``;
+        a point of "final", "selected", "best" is ``{"seed", **that point}``.
     """
     groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for result in results:
@@ -192,14 +217,17 @@ def summarize(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
         curves = [{"seed": r["seed"], "points": [_flat(p) for p in r["curve"]]} for r in group]
         final = [{"seed": c["seed"], **max(c["points"], key=lambda p: p["interaction_steps"])} for c in curves]
         best = [{"seed": c["seed"], **min(c["points"], key=lambda p: p["mae_deg"])} for c in curves]
+        chosen = [{"seed": r["seed"], **_flat(s)} for r in group if (s := selected_point(r["curve"])) is not None]
+        selected = chosen if len(chosen) == len(group) else None  # no choice made on part of the seeds
         entry: dict[str, Any] = {"method": method, "loop": loop, "seeds": [c["seed"] for c in curves]}
         for field in FIELDS:
             entry[field], entry[f"{field}_std"] = stats([f[field] for f in final if f[field] is not None])
         for field in BEST_FIELDS:
+            entry[f"selected_{field}"], entry[f"selected_{field}_std"] = stats([p[field] for p in selected or []])
             entry[f"best_{field}"], entry[f"best_{field}_std"] = stats([b[field] for b in best])
         entry["per_joint_mae_deg"] = np.mean([f["per_joint_mae_deg"] for f in final], axis=0).tolist()
         entry["episodes"], entry["steps"] = final[0].get("episodes"), final[0].get("steps")
-        entry["final"], entry["best"] = final, best
+        entry["final"], entry["selected"], entry["best"] = final, selected, best
         by_steps: dict[int, list[float]] = {}
         for c in curves:
             for p in c["points"]:
@@ -237,9 +265,11 @@ def markdown_table(entries: Sequence[dict[str, Any]], failed: dict[str, str], pa
     Returns:
         The text of ``study.md``.
     """
-    headers = ["method", "loop", "seeds", *(COLUMNS[field][0] for field in FIELDS), "best MAE (°)", "I.S. at best"]
+    chosen = ["selected MAE (°)", "I.S. selected", "best MAE (°)", "I.S. at best"]
+    headers = ["method", "loop", "seeds", *(COLUMNS[field][0] for field in FIELDS), *chosen]
     lines = [
-        "# Study: each method at its final point (the end of its budget), mean ± std over seeds",
+        "# Study: each method at its final point (the end of its budget), then at the point selected on validation "
+        "references and at the best on test (optimistic); mean ± sample std over seeds",
         "",
         "| " + " | ".join(headers) + " |",
         "|" + "|".join("---" if i < 2 else "---:" for i in range(len(headers))) + "|",
@@ -247,19 +277,24 @@ def markdown_table(entries: Sequence[dict[str, Any]], failed: dict[str, str], pa
     for e in entries:
         cells = [_label(e["method"]), e["loop"], str(len(e["seeds"]))]
         cells += [cell(e[field], e[f"{field}_std"], COLUMNS[field][1]) for field in FIELDS]
-        cells += [cell(e["best_mae_deg"], e["best_mae_deg_std"], ".2f")]
-        cells += [cell(e["best_interaction_steps"], e["best_interaction_steps_std"], ",.0f")]
+        for which in ("selected", "best"):
+            cells += [cell(e[f"{which}_mae_deg"], e[f"{which}_mae_deg_std"], ".2f")]
+            cells += [cell(e[f"{which}_interaction_steps"], e[f"{which}_interaction_steps_std"], ",.0f")]
         lines.append("| " + " | ".join(cells) + " |")
         published = paper_row(e["method"], e["loop"]) if paper else None
         if published is not None:
             values = ["–" if published.get(field) is None else f"{published[field]:{COLUMNS[field][1]}}" for field in FIELDS]
-            lines.append("| " + " | ".join(["*paper, Table I*", e["loop"], "", *(f"*{v}*" for v in values), "", ""]) + " |")
+            row = ["*paper, Table I*", e["loop"], "", *(f"*{v}*" for v in values), *([""] * len(chosen))]
+            lines.append("| " + " | ".join(row) + " |")
     if not entries:
         lines.append("")
         lines.append("No job has finished yet.")
     lines += ["", "I.S.: training interaction steps; I.T.: I.S. at 20 Hz in hours; wall: time to the final point; "
-              "metrics on the held-out test references. Best MAE: each seed's lowest test MAE along its curve and "
-              "where it was reached, the paper's selection: chosen on the test set, an optimistic figure."]  # fmt: skip
+              "metrics on the held-out test references. Selected MAE: each seed's test MAE at the point of its curve "
+              "with the lowest MAE on the validation references (training references held out of every method's "
+              "training), and where it was; – without validation references (and for the ILC oracle). Best MAE: each "
+              "seed's lowest test MAE along its curve and where it was reached, the paper's selection: chosen on the "
+              "test set, an optimistic figure."]  # fmt: skip
     if paper:
         lines += ["", "*paper, Table I*: the published figures on the paper's simulator (Zou et al. 2025), each method "
                   "at its best point; I.S. of PPO summed over its 16 workers."]  # fmt: skip
@@ -359,7 +394,7 @@ def report(out: str | Path) -> Report:
     results, failed = read_jobs(out)
     entries = summarize(results)
     markdown = markdown_table(entries, failed, is_paper_system(_study_system(out)))
-    fields = (*FIELDS, *(f"best_{field}" for field in BEST_FIELDS))
+    fields = (*FIELDS, *(f"{which}_{field}" for which in ("selected", "best") for field in BEST_FIELDS))
     header = ["method", "loop", "seeds", *(name for field in fields for name in (field, f"{field}_std"))]
     rows = ([e["method"], e["loop"], " ".join(map(str, e["seeds"])), *(e[name] for name in header[3:])] for e in entries)
     paths = (
