@@ -319,11 +319,12 @@ def log_mae_axis(entries: Sequence[dict[str, Any]]) -> bool:
 
 
 def plot_study(entries: Sequence[dict[str, Any]], path: str | Path) -> Path:
-    """MAE against interaction time, as the paper's figure: one line per method and loop, a star at its minimum.
+    """MAE against interaction time, as the paper's figure: one line per method and loop (the mean over seeds).
 
     Closed loop in the dark, open loop in the light shade of the method's hue; a method evaluated only without
-    training (PD) is a horizontal line. The x axis is logarithmic, and so is the y axis when the MAEs span more than
-    :data:`LOG_MAE_SPAN` times.
+    training (PD) is a horizontal line. A star marks each seed's point chosen on the validation references (its test
+    MAE), where the study held some out; no point is marked by its test MAE. The x axis is logarithmic, and so is the
+    y axis when the MAEs span more than :data:`LOG_MAE_SPAN` times.
 
     Args:
         entries: :func:`summarize`'s entries (their ``curve``).
@@ -334,7 +335,7 @@ def plot_study(entries: Sequence[dict[str, Any]], path: str | Path) -> Path:
     """
     palette = plt.get_cmap("tab20")  # pairs of a dark and a light shade of each hue
     fig, ax = plt.subplots(figsize=(8, 4.8), layout="constrained")
-    drawn = False
+    drawn = starred = False
     for e in entries:
         trained = [p for p in e["curve"] if p["interaction_steps"] > 0]
         label = _label(e["method"])
@@ -347,7 +348,9 @@ def plot_study(entries: Sequence[dict[str, Any]], path: str | Path) -> Path:
         x = np.array([p["interaction_hours"] for p in trained])
         y = np.array([p["mae_deg"] for p in trained])
         ax.plot(x, y, "o-", color=color, ms=3, label=f"{label} ({e['loop']} loop)")
-        ax.plot(x[np.argmin(y)], y.min(), "*", color=color, ms=16, markeredgecolor="k", zorder=3)
+        for chosen in e.get("selected") or ():
+            ax.plot(chosen["interaction_hours"], chosen["mae_deg"], "*", color=color, ms=14, markeredgecolor="k", zorder=3)
+            starred = True
         drawn = True
     if drawn:
         ax.set_xscale("log")
@@ -358,7 +361,7 @@ def plot_study(entries: Sequence[dict[str, Any]], path: str | Path) -> Path:
         ax.set_ylim(bottom=0)
     ax.set_xlabel("interaction time (h, at 20 Hz)")
     ax.set_ylabel("test MAE (°, log)" if log_mae else "test MAE (°)")
-    ax.set_title("MAE against interaction time (★ the lowest test MAE)")
+    ax.set_title("MAE against interaction time" + (" (★ each seed's point chosen on validation)" if starred else ""))
     ax.grid(alpha=0.3, which="both")
     if entries:
         ax.legend(fontsize=8)
