@@ -33,6 +33,7 @@ import typer
 from efficienttrack import cli
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import atomic_write, output_lock
+from efficienttrack.data.metrics import compute_metrics
 from efficienttrack.data.records import save_records
 from efficienttrack.data.references import Reference, save_references
 from efficienttrack.learn import checkpoints
@@ -78,6 +79,7 @@ COMMANDS: dict[str, str] = {
     "--methods pd --budget 10",
     "ablate": "ablate history --train-refs {refs} --test-refs {refs2} --out {out_folder} --preset tiny --values 1 --passes 1",
     "config show": "config show tiny --config {config}",
+    "study-plot": "study-plot {study} --out {out_png}",
 }
 """Each command's arguments, a ``{slot}`` for every file or folder (a slot's kind: :data:`SLOTS`)."""
 
@@ -94,6 +96,7 @@ SLOTS: dict[str, str] = {
     "limits": "limits",
     "params": "params",
     "bag": "bag",
+    "study": "study",
     "out_folder": "out_folder",
     "out_pt": "out_checkpoint",
     "out_png": "out_file",
@@ -317,6 +320,7 @@ BAD: dict[str, dict[str, Variant]] = {
         }
         for kind, other in (("model", "policy"), ("policy", "model"))
     },
+    "study": {"missing": _missing, "empty folder": _directory, "a file": _write("study.json", "{}")},
     "config": {
         **MAPPING,
         "wrong-typed field": _write("typed.yaml", "model:\n  hidden: big\n"),
@@ -418,6 +422,11 @@ def good(tmp_path_factory) -> dict[str, Path]:
     save_model(g_theta, root / "model.pt")
     save_policy(pi_phi.policy, root / "policy.pt")
     (root / "config.yaml").write_text("seed: 1\n")
+    (root / "study" / "jobs" / "pd-closed-s0").mkdir(parents=True)
+    pd_point = {"interaction_steps": 0, "wall_seconds": 0.0, "metrics": compute_metrics(records)}
+    (root / "study" / "jobs" / "pd-closed-s0" / "result.json").write_text(
+        json.dumps({"method": "pd", "loop": "closed", "seed": 0, "curve": [pd_point]})
+    )
     (root / "limits.yaml").write_text("max_adjust: [0.1, 0.1, 0.1, 0.1]\n")
     (root / "pd.json").write_text(json.dumps(dataclasses.asdict(PD_PRESETS["xe75"])))
     shutil.copyfile(preset_path(), root / "params.json")
@@ -438,6 +447,7 @@ def good(tmp_path_factory) -> dict[str, Path]:
         "limits": root / "limits.yaml",
         "params": root / "params.json",
         "bomb": root / "bomb.pt",
+        "study": root / "study",
         "bag": write_bag(root / "cycle_01", {"/joint_states": states(), "/cmd": references()}),
     }
 
@@ -542,7 +552,7 @@ OPTIONS = [
 """Out-of-range and malformed option values, each added to a command's good arguments (the last value given counts)."""
 
 
-FILE_OPTIONS_ONLY = {"refs plot", "export", "import-rosbag", "deploy"}
+FILE_OPTIONS_ONLY = {"refs plot", "export", "import-rosbag", "deploy", "study-plot"}
 """Commands with no case in :data:`OPTIONS`: their value options are swept as files above or have their own tests
 (``import-rosbag --max-gap`` in test_rosbag, ``deploy``'s rates and modes in test_loop)."""
 

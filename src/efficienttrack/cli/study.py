@@ -164,3 +164,18 @@ def study_command(
     if result.failed:
         typer.secho(f"{len(result.failed)} job(s) failed: {', '.join(result.failed)}", fg=typer.colors.RED, err=True)
         raise typer.Exit(1)
+
+
+@app.command("study-plot")
+def study_plot_command(
+    folders: Annotated[list[Path], typer.Argument(help="Study folders (each a study's --out) of one system.")],
+    out: Annotated[Path, typer.Option("--out", help="The figure to write (PNG).")],
+) -> None:
+    """One table and one MAE-against-interaction-time figure of several study folders (a study run in several sittings)."""
+    from efficienttrack.core.fileio import check_output_file
+    from efficienttrack.study.report import combine
+
+    check_output_file(out)
+    result = combine(folders, out)
+    typer.echo(result.markdown)
+    typer.echo(f"figure: {out}")

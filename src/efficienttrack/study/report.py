@@ -112,7 +112,7 @@ def read_jobs(out: Path) -> tuple[list[dict[str, Any]], dict[str, str]]:
         EfficientTrackError: ``out`` holds no study (no ``jobs`` folder).
     """
     if not (out / JOBS).is_dir():
-        raise EfficientTrackError(f"--out {out}: no study here (no {JOBS}/ folder)")
+        raise EfficientTrackError(f"{out}: no study here (no {JOBS}/ folder)")
     results, failed = [], {}
     for folder in sorted(path for path in (out / JOBS).iterdir() if path.is_dir()):
         result = read_result(folder / RESULT)
@@ -190,6 +190,31 @@ def _mean_point(steps: int, maes: list[float]) -> dict[str, Any]:
             "seeds": len(maes)}  # fmt: skip
 
 
+def mean_curve(curves: Sequence[Sequence[dict[str, Any]]]) -> list[dict[str, Any]]:
+    """The mean over seeds of their curves, point by point.
+
+    Seeds with as many points each are averaged evaluation by evaluation, at their mean interaction count: a method
+    that stops at whole episodes reaches an evaluation point a few steps past it, differently on each seed. Otherwise
+    the points of equal interaction counts are averaged.
+
+    Args:
+        curves: each seed's points ("interaction_steps", "mae_deg"), in order.
+
+    Returns:
+        The mean points (:func:`_mean_point`), by interaction steps.
+    """
+    if len({len(points) for points in curves}) == 1:
+        return [
+            _mean_point(round(float(np.mean([p["interaction_steps"] for p in row]))), [p["mae_deg"] for p in row])
+            for row in zip(*curves, strict=True)
+        ]
+    by_steps: dict[int, list[float]] = {}
+    for points in curves:
+        for p in points:
+            by_steps.setdefault(p["interaction_steps"], []).append(p["mae_deg"])
+    return [_mean_point(steps, maes) for steps, maes in sorted(by_steps.items())]
+
+
 def summarize(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     """One entry per method and loop: the mean ± std over seeds of each seed's final, selected and best points; curves.
 
@@ -228,11 +253,7 @@ def summarize(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
         entry["per_joint_mae_deg"] = np.mean([f["per_joint_mae_deg"] for f in final], axis=0).tolist()
         entry["episodes"], entry["steps"] = final[0].get("episodes"), final[0].get("steps")
         entry["final"], entry["selected"], entry["best"] = final, selected, best
-        by_steps: dict[int, list[float]] = {}
-        for c in curves:
-            for p in c["points"]:
-                by_steps.setdefault(p["interaction_steps"], []).append(p["mae_deg"])
-        entry["curve"] = [_mean_point(steps, maes) for steps, maes in sorted(by_steps.items())]
+        entry["curve"] = mean_curve([c["points"] for c in curves])
         entry["curves"] = curves
         entries.append(entry)
     return entries
@@ -407,3 +428,41 @@ def report(out: str | Path) -> Report:
         plot_study(entries, out / "study.png"),
     )
     return Report(entries, failed, markdown, paths)
+
+
+def combine(folders: Sequence[str | Path], path: str | Path) -> Report:
+    """One table and one figure of several study folders (studies of one system run in several sittings).
+
+    Args:
+        folders: study folders (each ``jobs/<name>/result.json``); a method, loop and seed may be in one of them only.
+        path: the PNG to write (:func:`plot_study`).
+
+    Returns:
+        The combined report (its ``paths``: the figure alone).
+
+    Raises:
+        EfficientTrackError: a folder holds no study, two folders ran on different systems, or one job (method, loop,
+            seed) is in two folders.
+    """
+    results: list[dict[str, Any]] = []
+    failed: dict[str, str] = {}
+    owner: dict[tuple[str, str, int], Path] = {}
+    system: tuple[Path, dict[str, Any]] | None = None
+    for folder in map(Path, folders):
+        found, errors = read_jobs(folder)
+        here = _study_system(folder)
+        if system is not None and here != system[1]:
+            raise EfficientTrackError(
+                f"{folder}: ran on {here or 'an unknown system'}, {system[0]} on {system[1]}: one system only"
+            )
+        system = system or (folder, here)
+        for result in found:
+            key = (result["method"], result["loop"], result["seed"])
+            if key in owner:
+                raise EfficientTrackError(f"{folder} and {owner[key]} both hold {key[0]}-{key[1]}-s{key[2]}: give it once")
+            owner[key] = folder
+        results += found
+        failed |= {f"{folder}/{name}": error for name, error in errors.items()}
+    entries = summarize(results)
+    markdown = markdown_table(entries, failed, system is not None and is_paper_system(system[1]))
+    return Report(entries, failed, markdown, (plot_study(entries, path),))
