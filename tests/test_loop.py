@@ -409,6 +409,33 @@ def test_deploy_runs_references_in_turn_and_stops_after_a_stopped_run(tmp_path):
     assert [(r.meta["name"], len(r), r.meta["shadow"]) for r in records] == [("ref_00", 29, True), ("ref_01", 5, True)]
 
 
+def test_a_rerun_resumes_at_the_stopped_run_and_keeps_the_earlier_try(tmp_path):
+    refs = sine_refs([30, 40, 35], seed=5)
+    clock, opened = FakeClock(), []
+
+    def make_machine(ref, faults=None):
+        opened.append(ref.name)
+        return FaultyMachine(ref.q[0], clock, **(faults or {}).get(ref.name, {}))
+
+    def run_deploy(faults=None, shadow=True):
+        machine = lambda ref: make_machine(ref, faults)  # noqa: E731
+        return deploy(refs, Runtime(None, limits=None), machine, DEFAULT_LIMITS, tmp_path / "out", clock=clock, shadow=shadow)
+
+    assert [r.reason for r in run_deploy({"ref_01": {"raise_read": {5}}})] == ["done", "read_error"]
+    opened.clear()
+    assert [r.reason for r in run_deploy()] == ["done", "done"] and opened == ["ref_01", "ref_02"]
+    out = tmp_path / "out"
+    summary = json.loads((out / "deploy.json").read_text())
+    assert [(r["name"], r["reason"]) for r in summary["runs"]] == [("ref_00", "done"), ("ref_01", "done"), ("ref_02", "done")]
+    assert (out / "ref_01.stopped-1.jsonl").exists()  # the stopped try's log, and its records by that name
+    records = {r.meta["name"]: len(r) for r in load_records(out / "records")}
+    assert records == {"ref_00": 29, "ref_01.stopped-1": 5, "ref_01": 39, "ref_02": 34}
+    opened.clear()
+    assert run_deploy() == [] and opened == []  # all done: nothing is sent
+    with pytest.raises(EfficientTrackError, match=r"deploy.json: a deployment with other settings \(shadow: true here, false"):
+        run_deploy(shadow=False)
+
+
 def test_a_run_too_short_for_a_record_warns(tmp_path):
     clock = FakeClock()
     refs = sine_refs([30], seed=5)

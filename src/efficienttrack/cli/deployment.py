@@ -90,16 +90,21 @@ def deploy_command(
         typer.Option("--accept-worse", help="Arm a policy whose recorded evaluation tracked worse than PD (refused without)."),
     ] = False,
     device: Annotated[str, typer.Option("--device", help="cpu, cuda or auto.")] = "cpu",
-    force: Annotated[bool, typer.Option("--force", help="Write into a non-empty OUT: first delete its logs.")] = False,
+    force: Annotated[
+        bool, typer.Option("--force", help="Start afresh in a non-empty OUT: first delete its logs, records and deploy.json.")
+    ] = False,
 ) -> None:
     """The policy at 20 Hz on absolute deadlines against the simulator or a machine, with watchdogs; a log per tick.
 
     Nothing is sent without --arm, because even shadow mode moves the machine (along the raw reference). Start with
     --arm --shadow; every run starts and ends with a = 0. Exit code 1 when a watchdog stopped a run. Each run is also
     written as episode records in OUT/records/, the data of the next round (efficienttrack round --data OUT/records).
+    Rerun with the same settings to resume: the runs done are not repeated, a stopped run starts again (its earlier
+    log kept as <reference>.stopped-1.jsonl).
     """
     from efficienttrack.data.references import load_references
     from efficienttrack.deploy.deployment import (
+        DEPLOY_JSON,
         DEPLOY_OUTPUTS,
         deploy,
         deployed_tracking,
@@ -128,7 +133,8 @@ def deploy_command(
     if verdict is not None:
         typer.secho(f"warning: {policy}: {verdict}", fg=typer.colors.RED, err=True)
     _lock(ctx, out, resumable=False)  # the loop stops the machine and says what it wrote
-    prepare_output_folder(out, DEPLOY_OUTPUTS, force)
+    if force or not (out / DEPLOY_JSON).exists():  # an earlier deployment with the same settings resumes
+        prepare_output_folder(out, DEPLOY_OUTPUTS, force)
     settings = {"policy": None if policy is None else str(policy), "machine": machine, "system": spec.to_dict(), "fast": fast}
 
     def report(result) -> None:
@@ -141,6 +147,9 @@ def deploy_command(
         )
 
     results = deploy(references, runtime, make_machine, machine_limits, out, cfg, clock, shadow, settings, report)
+    if not results:
+        typer.echo(f"every run of {out} was done earlier; nothing was sent (--force starts afresh)")
+        return
     if results[-1].stopped:
         typer.secho(f"stopped: {results[-1].name}: {results[-1].reason}; logs in {out}", fg=typer.colors.RED, err=True)
         raise typer.Exit(1)
@@ -151,4 +160,6 @@ def deploy_command(
             f"tracking with {sent}: MAE {tracking['mae_deg']:.3f}°, RMSE {tracking['rmse_deg']:.3f}° over "
             f"{tracking['episodes']} record(s) (deploy.json; efficienttrack metrics {out / 'records'})"
         )
-    typer.echo(f"{len(results)} run(s) done ({'shadow' if shadow else 'armed'}); logs in {out}")
+    earlier = len(references) - len(results)
+    resumed = f" ({earlier} done earlier)" if earlier else ""
+    typer.echo(f"{len(results)} run(s) done{resumed} ({'shadow' if shadow else 'armed'}); logs in {out}")

@@ -24,10 +24,22 @@ import numpy as np
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import write_json
 from efficienttrack.core.joints import DT
+from efficienttrack.core.provenance import differences
 from efficienttrack.data.metrics import MIN_STEPS, compute_metrics
 from efficienttrack.data.records import EpisodeRecord, load_records
 from efficienttrack.data.references import Reference
-from efficienttrack.deploy.loop import MONOTONIC, Clock, Loop, LoopConfig, LoopResult, LoopRuntime, Machine, Reading, TickLog
+from efficienttrack.deploy.loop import (
+    MONOTONIC,
+    Clock,
+    Loop,
+    LoopConfig,
+    LoopResult,
+    LoopRuntime,
+    Machine,
+    Reading,
+    TickLog,
+    set_aside,
+)
 from efficienttrack.systems.limits import GuardLimits
 from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.systems.spec import SystemSpec, load_callable
@@ -161,7 +173,11 @@ def deploy(
         on_done: called with each run's result as soon as it ends.
 
     Returns:
-        One result per run started (the last one stopped early when ``results[-1].stopped``).
+        One result per run started (the last one stopped early when ``results[-1].stopped``); none when every run was
+        done earlier.
+
+    Raises:
+        EfficientTrackError: ``out`` holds a deployment with other settings (:func:`finished_runs`).
     """
     cfg = LoopConfig() if cfg is None else cfg
     for ref in references:
@@ -169,19 +185,66 @@ def deploy(
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     results: list[LoopResult] = []
-    header = {**(settings or {}), "shadow": shadow, "loop": vars(cfg), "limits": limits.to_dict()}
+    header = json.loads(json.dumps({**(settings or {}), "shadow": shadow, "loop": vars(cfg), "limits": limits.to_dict()}))
+    done = finished_runs(out, header)
     for ref in references:
-        with TickLog(out / f"{ref.name}.jsonl", cfg.fsync_every) as log:
+        if ref.name in done:
+            continue
+        log_path = out / f"{ref.name}.jsonl"
+        aside = set_aside(log_path)
+        if aside is not None:  # the earlier try's records go by the name its log now has
+            _rename_run_records(log_path, aside, out / DEPLOY_RECORDS, shadow)
+        with TickLog(log_path, cfg.fsync_every) as log:
             result = Loop(runtime, make_machine(ref), limits, cfg, clock, log, shadow).run(ref.q, ref.name)
         results.append(result)
         _save_run_records(log.path, out / DEPLOY_RECORDS, shadow)
-        runs = {"runs": [r.summary() for r in results], "tracking": deployed_tracking(out)}
-        write_json(out / DEPLOY_JSON, {**header, **runs})
+        summaries = {**done, **{r.name: r.summary() for r in results}}
+        runs = [summaries[r.name] for r in references if r.name in summaries]
+        write_json(out / DEPLOY_JSON, {**header, "runs": runs, "tracking": deployed_tracking(out)})
         if on_done is not None:
             on_done(result)
         if result.stopped:
             break
     return results
+
+
+def finished_runs(out: Path, header: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """The runs an earlier deployment into ``out`` finished, which a rerun with the same settings does not repeat.
+
+    Args:
+        out: the deployment's output folder.
+        header: this deployment's settings, as :data:`DEPLOY_JSON` holds them (without ``runs`` and ``tracking``).
+
+    Returns:
+        Reference name → its run's summary, for the runs that ran to their end (``reason`` ``done``).
+
+    Raises:
+        EfficientTrackError: :data:`DEPLOY_JSON` is unreadable, or records other settings (naming the fields).
+    """
+    path = out / DEPLOY_JSON
+    if not path.exists():
+        return {}
+    try:
+        earlier = json.loads(path.read_text())
+        runs = [run for run in earlier["runs"] if run["reason"] == "done"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise EfficientTrackError(f"{path}: cannot be read ({exc!r}); use another --out, or --force to start afresh") from exc
+    changed = differences({key: earlier.get(key) for key in header}, header)
+    if changed:
+        raise EfficientTrackError(
+            f"{path}: a deployment with other settings ({'; '.join(changed[:3])}); use another --out, or --force to start "
+            "afresh"
+        )
+    return {run["name"]: run for run in runs}
+
+
+def _rename_run_records(log: Path, aside: Path, folder: Path, shadow: bool) -> None:
+    """The records of the run logged in ``log`` (now ``aside``) renamed after ``aside``, so that a new run's keep theirs."""
+    folder.mkdir(exist_ok=True)
+    for record in records_from_log(aside, shadow):
+        stale = folder / f"{log.stem}{record.meta['name'].removeprefix(aside.stem)}.npz"
+        record.save(folder / f"{record.meta['name']}.npz")
+        stale.unlink(missing_ok=True)
 
 
 def deployed_tracking(out: str | Path) -> dict[str, Any] | None:

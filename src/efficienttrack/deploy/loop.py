@@ -252,6 +252,26 @@ class TickLog:
         self._unsynced = 0
 
 
+def set_aside(log: Path) -> Path | None:
+    """Move an earlier try's tick log out of the way of a new run: to the first free ``<name>.stopped-<n>.jsonl``.
+
+    A run that a watchdog stopped is run again from its start; its log is kept, under a name that says so.
+
+    Args:
+        log: ``<folder>/<name>.jsonl``, the log the new run will write.
+
+    Returns:
+        Where the earlier log now is, or None when there was none.
+    """
+    if not log.exists():
+        return None
+    n = 1
+    while (aside := log.with_name(f"{log.stem}.stopped-{n}.jsonl")).exists():
+        n += 1
+    os.replace(log, aside)
+    return aside
+
+
 def _jsonable(value: Any) -> Any:
     """``value`` with arrays as lists and NaN/±inf as None."""
     if isinstance(value, dict):

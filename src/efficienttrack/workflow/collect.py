@@ -46,7 +46,7 @@ from efficienttrack.data.records import EpisodeRecord, load_records, save_record
 from efficienttrack.data.references import Reference
 from efficienttrack.deploy.deployment import records_from_log
 from efficienttrack.deploy.episodes import Guard, Sent, batches, rollout
-from efficienttrack.deploy.loop import Clock, Loop, LoopConfig, Machine, TickLog
+from efficienttrack.deploy.loop import Clock, Loop, LoopConfig, Machine, TickLog, set_aside
 from efficienttrack.systems.limits import GuardLimits
 from efficienttrack.systems.protocol import BatchedSystem
 
@@ -348,7 +348,8 @@ def run_pass_through_loop(
             records += finished[ref.name]
         else:
             sigma, noise = episode_noise(cfg, pass_index, i, ref.steps) if noisy[i] else (0.0, np.zeros((ref.steps, 4)))
-            log_path = _fresh_log(logs, ref.name)
+            log_path = logs / f"{ref.name}.jsonl"
+            set_aside(log_path)
             with TickLog(log_path, machine.loop.fsync_every) as log:
                 loop = Loop(
                     NoiseDriver(noise[:, None], machine.limits),
@@ -379,17 +380,6 @@ def run_pass_through_loop(
         if progress is not None and task is not None:
             progress.advance(task)
     return records
-
-
-def _fresh_log(logs: Path, name: str) -> Path:
-    """``logs/<name>.jsonl``, once an earlier try's log there is moved to the first free ``<name>.stopped-<n>.jsonl``."""
-    path = logs / f"{name}.jsonl"
-    if path.exists():
-        n = 1
-        while (logs / f"{name}.stopped-{n}.jsonl").exists():
-            n += 1
-        os.replace(path, logs / f"{name}.stopped-{n}.jsonl")
-    return path
 
 
 def by_reference(records: Sequence[EpisodeRecord]) -> dict[str, list[EpisodeRecord]]:
