@@ -16,7 +16,7 @@ from pathlib import Path
 
 import torch
 
-from efficienttrack.baselines import method_settings, train_baseline
+from efficienttrack.baselines import method_settings, train_baseline, training_run
 from efficienttrack.core.progress import ProgressDisplay
 from efficienttrack.data.references import load_references
 from efficienttrack.systems.spec import SystemSpec
@@ -44,9 +44,8 @@ def main() -> None:
             settings = dataclasses.replace(method_settings(args.method, args.preset), inputs=inputs, device="cpu")
             system = SystemSpec(system=args.system)
             folder = args.out / inputs
-            curves[inputs] = train_baseline(
-                args.method, "closed", system, train, test, args.steps, args.seed, folder, settings, points, progress=bar
-            )
+            run = training_run("closed", system, train, test, args.steps, args.seed, folder, points)
+            curves[inputs] = train_baseline(args.method, run, settings, progress=bar)
     print(f"{args.method} ({args.preset}), closed loop on {args.system}, seed {args.seed}: test MAE °")
     print(f"{'steps':>8} {'relative':>9} {'raw':>9} {'wall s':>7}")
     for rel, raw in zip(curves["relative"], curves["raw"], strict=True):

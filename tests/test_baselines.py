@@ -11,6 +11,7 @@ from gymnasium.vector import SyncVectorEnv
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from efficienttrack.baselines import PPOSettings, SACSettings, SB3VecEnv, default_eval_points, method_settings, train_baseline
+from efficienttrack.baselines.curve import training_run
 from efficienttrack.baselines.resume import STATE_FILE
 from efficienttrack.baselines.sb3_state import restore_state, save_state
 from efficienttrack.core.errors import EfficientTrackError
@@ -90,7 +91,7 @@ QUICK_RUNS = [("ppo", [1, 64, 256], [4, 64, 256]), ("sac", [1, 60, 200], [1, 60,
 def test_quick_preset_trains_on_the_closed_loop(refs, tmp_path, method, eval_at, measured):
     train, test = refs
     budget = measured[-1]
-    curve = train_baseline(method, "closed", SystemSpec(), train, test, budget, 0, tmp_path, preset="tiny", eval_at=eval_at)
+    curve = train_baseline(method, training_run("closed", SystemSpec(), train, test, budget, 0, tmp_path, eval_at), "tiny")
     assert [p["interaction_steps"] for p in curve] == measured
     assert all(finite(p["metrics"]) and p["metrics"]["episodes"] == len(test) for p in curve)
     walls = [p["wall_seconds"] for p in curve]
@@ -106,7 +107,8 @@ def test_open_loop_trains_with_default_points_and_progress(refs, tmp_path):
     train, test = refs
     stream = io.StringIO()
     with ProgressDisplay(stream=stream, interval=0) as bar:
-        curve = train_baseline("ppo", "open", SystemSpec(plant="xe75"), train, test, 40, 1, tmp_path, TINY_PPO, progress=bar)
+        run = training_run("open", SystemSpec(plant="xe75"), train, test, 40, 1, tmp_path)
+        curve = train_baseline("ppo", run, TINY_PPO, progress=bar)
     # default points 1, 2, 5, 10, 20, 40, met when the count (2 environments) first reaches them
     assert [p["interaction_steps"] for p in curve] == [2, 6, 10, 20, 40]
     assert all(finite(p["metrics"]) for p in curve)
@@ -119,12 +121,40 @@ def test_same_seed_same_curve(refs, tmp_path, method):
     settings, budget = (TINY_PPO, 48) if method == "ppo" else (TINY_SAC, 40)  # past PPO's first update, SAC's first steps
 
     def metrics(seed, name):
-        curve = train_baseline(method, "closed", SystemSpec(), train, test, budget, seed, tmp_path / name, settings, [budget])
+        curve = train_baseline(
+            method, training_run("closed", SystemSpec(), train, test, budget, seed, tmp_path / name, [budget]), settings
+        )
         return curve[-1]["metrics"]
 
     first = metrics(3, "a")
     assert metrics(3, "b") == first
     assert metrics(4, "c") != first
+
+
+def test_a_run_with_validation_references_measures_every_point_on_them_too(refs, tmp_path):
+    train, test = refs
+    validation = [Reference("val", generate_references(1, seed=5)[0].q[:25])]
+
+    def curve(name, validation_refs):
+        run = training_run("closed", SystemSpec(), train, test, 40, 3, tmp_path / name, [1, 20, 40], validation_refs)
+        return train_baseline("sac", run, TINY_SAC)
+
+    plain, validated, on_test = curve("plain", ()), curve("validated", validation), curve("on_test", test)
+    # the test curve is the one without validation: the same agent met the test references first
+    assert [(p["interaction_steps"], p["metrics"]) for p in validated] == [
+        (p["interaction_steps"], p["metrics"]) for p in plain
+    ]
+    assert all("validation" not in p for p in plain)
+    assert all(set(p) == {"interaction_steps", "wall_seconds", "metrics", "validation"} for p in validated)
+    assert all(p["validation"]["episodes"] == 1 and finite(p["validation"]) for p in validated)
+    pd = compute_metrics(evaluate(lambda obs: np.zeros((len(obs), 4)), validation, "closed", SystemSpec()))
+    assert validated[0]["validation"]["mae_deg"] == pytest.approx(pd["mae_deg"], abs=1e-12)  # untrained: the PD controller
+    assert all(p["validation"] == p["metrics"] for p in on_test)  # each point's own agent, on the references given
+    assert json.loads((tmp_path / "validated" / "curve.json").read_text())["curve"] == json.loads(json.dumps(validated))
+    with pytest.raises(EfficientTrackError, match="validation_refs: reference 'short' has 2 steps, needs at least 4"):
+        training_run(
+            "closed", SystemSpec(), train, test, 40, 3, tmp_path, validation_refs=[Reference("short", np.zeros((2, 4)))]
+        )
 
 
 RESUMED_RUNS = [("ppo", TINY_PPO, [16, 48, 96], 64), ("sac", TINY_SAC, [10, 30, 60], 59)]
@@ -138,8 +168,8 @@ def test_an_interrupted_run_resumes_from_its_training_state(
     train, test = refs
 
     def run(seed=0):
-        return train_baseline(method, "closed", SystemSpec(), train, test, points[-1], seed, tmp_path, settings, points,
-                              save_every_seconds=0)  # fmt: skip
+        spec = training_run("closed", SystemSpec(), train, test, points[-1], seed, tmp_path, points)
+        return train_baseline(method, spec, settings, save_every_seconds=0)
 
     interrupt_at(points[-1])
     with pytest.raises(KeyboardInterrupt):
@@ -205,7 +235,7 @@ def test_bad_input_is_refused_before_training(refs, tmp_path, change, message):
     args = {"method": "ppo", "loop": "closed", "system": SystemSpec(), "train_refs": refs[0], "test_refs": refs[1]}
     args |= {"budget": 100, "seed": 0, "folder": tmp_path / "out", "preset": "tiny", "eval_at": None} | change
     with pytest.raises(EfficientTrackError, match=message):
-        train_baseline(**args)
+        train_baseline(args.pop("method"), preset=args.pop("preset"), run=training_run(**args))
     assert not (tmp_path / "out").exists()
 
 
@@ -243,7 +273,7 @@ def test_the_paper_presets_carry_the_research_codes_settings():
 def test_an_untrained_baseline_is_the_pd_controller(refs, tmp_path, method):
     train, test = refs
     settings = TINY_PPO if method == "ppo" else TINY_SAC
-    curve = train_baseline(method, "closed", SystemSpec(), train, test, 2, 0, tmp_path, settings, eval_at=[1])
+    curve = train_baseline(method, training_run("closed", SystemSpec(), train, test, 2, 0, tmp_path, eval_at=[1]), settings)
     pd = evaluate(lambda obs: np.zeros((len(obs), 4)), test, "closed", SystemSpec())
     assert curve[0]["metrics"]["mae_deg"] == pytest.approx(compute_metrics(pd)["mae_deg"], abs=1e-12)
 

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from efficienttrack.baselines.curve import CURVE_FILE
+from efficienttrack.baselines.curve import CURVE_FILE, training_run
 from efficienttrack.baselines.ilc import ILC_PRESETS, ILCSettings, ilc_settings, ilc_update, train_ilc, trial_steps
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.data.cycles import generate_references
@@ -37,7 +37,7 @@ def maes(curve):
 def test_toy_error_falls_trial_by_trial_to_near_zero(tmp_path):
     refs = toy_refs()
     settings = ILCSettings(gain=1.0, lead=DELAY, cutoff_hz=None, trials=12)
-    curve = train_ilc("closed", TOY_DELAYED, refs, refs, 10**6, 0, tmp_path, preset=settings)
+    curve = train_ilc(training_run("closed", TOY_DELAYED, refs, refs, 10**6, 0, tmp_path), preset=settings)
     mae = maes(curve)
     assert len(mae) == 13
     assert all(b < a for a, b in zip(mae, mae[1:], strict=False)), mae
@@ -47,16 +47,16 @@ def test_toy_error_falls_trial_by_trial_to_near_zero(tmp_path):
 
 def test_the_lead_matters_on_the_delayed_toy(tmp_path):
     refs = toy_refs()
-    right = train_ilc("closed", TOY_DELAYED, refs, refs, 10**6, 0, tmp_path / "a",
+    right = train_ilc(training_run("closed", TOY_DELAYED, refs, refs, 10**6, 0, tmp_path / "a"),
                       preset=ILCSettings(gain=1.0, lead=DELAY, cutoff_hz=None, trials=6))  # fmt: skip
-    none = train_ilc("closed", TOY_DELAYED, refs, refs, 10**6, 0, tmp_path / "b",
+    none = train_ilc(training_run("closed", TOY_DELAYED, refs, refs, 10**6, 0, tmp_path / "b"),
                      preset=ILCSettings(gain=1.0, lead=0, cutoff_hz=None, trials=6))  # fmt: skip
     assert maes(right)[-1] < 0.5 * maes(none)[-1]
 
 
 def test_xe75_trials_lower_the_error_and_trial_0_is_pd(tmp_path):
     refs = xe75_refs()
-    curve = train_ilc("closed", SystemSpec(), [], refs, 10**6, 0, tmp_path, preset="tiny")
+    curve = train_ilc(training_run("closed", SystemSpec(), refs, refs, 10**6, 0, tmp_path), preset="tiny")
     pd = compute_metrics(evaluate(lambda obs: np.zeros((len(obs), 4)), refs, system=SystemSpec()))
     assert curve[0]["metrics"]["mae_deg"] == pytest.approx(pd["mae_deg"], rel=1e-9)
     mae = maes(curve)
@@ -70,7 +70,9 @@ def test_curve_points_and_file(tmp_path):
     assert per_trial == 59 + 49
     settings = ILCSettings(gain=1.0, lead=DELAY, cutoff_hz=None, trials=10)
     # the budget allows 4 trials; points recorded at the first trial reaching 1 and 3 · per_trial, besides trial 0
-    curve = train_ilc("closed", TOY_DELAYED, refs[:1], refs, 4 * per_trial + 7, 5, tmp_path, settings, [1, 3 * per_trial])
+    curve = train_ilc(
+        training_run("closed", TOY_DELAYED, refs[:1], refs, 4 * per_trial + 7, 5, tmp_path, [1, 3 * per_trial]), settings
+    )
     assert [p["interaction_steps"] for p in curve] == [0, per_trial, 3 * per_trial]
     assert all(set(p) == {"interaction_steps", "wall_seconds", "metrics"} for p in curve)
     walls = [p["wall_seconds"] for p in curve]
@@ -79,15 +81,15 @@ def test_curve_points_and_file(tmp_path):
     assert saved["method"] == "ilc" and saved["oracle"] is True and saved["loop"] == "closed" and saved["seed"] == 5
     assert saved["settings"]["lead"] == [DELAY] * 4 and saved["budget"] == 4 * per_trial + 7
     assert [p["metrics"] for p in saved["curve"]] == [p["metrics"] for p in curve]
-    full = train_ilc("closed", TOY_DELAYED, refs[:1], refs, 4 * per_trial + 7, 5, tmp_path / "all", settings)
+    full = train_ilc(training_run("closed", TOY_DELAYED, refs[:1], refs, 4 * per_trial + 7, 5, tmp_path / "all"), settings)
     assert [p["interaction_steps"] for p in full] == [k * per_trial for k in range(5)]  # the budget ends it at trial 4
 
 
 def test_deterministic(tmp_path):
     refs = xe75_refs()
     settings = ILCSettings(trials=2)
-    one = train_ilc("closed", SystemSpec(), refs, refs, 10**6, 0, tmp_path / "a", settings)
-    two = train_ilc("closed", SystemSpec(), refs, refs, 10**6, 1, tmp_path / "b", settings)
+    one = train_ilc(training_run("closed", SystemSpec(), refs, refs, 10**6, 0, tmp_path / "a"), settings)
+    two = train_ilc(training_run("closed", SystemSpec(), refs, refs, 10**6, 1, tmp_path / "b"), settings)
     assert [p["metrics"] for p in one] == [p["metrics"] for p in two]
 
 
@@ -127,7 +129,8 @@ def test_bad_input(tmp_path):
     good = {"loop": "closed", "system": TOY_DELAYED, "train_refs": refs, "test_refs": refs, "budget": 10**6, "seed": 0,
             "folder": tmp_path, "preset": "tiny"}  # fmt: skip
     cases = [
-        ({"loop": "open"}, "closed loop only"),
+        ({"loop": "open", "system": SystemSpec()}, "closed loop only"),  # a system with a plant: the open loop can run
+        ({"validation_refs": refs}, "validation_refs: the ILC oracle learns its corrections on the test references"),
         ({"loop": "sideways"}, "unknown"),
         ({"preset": "huge"}, "preset 'huge'"),
         ({"budget": 50}, "less than one ILC trial"),
@@ -143,5 +146,6 @@ def test_bad_input(tmp_path):
     (tmp_path / CURVE_FILE).write_text("{}")
     for changes, message in cases:
         with pytest.raises(EfficientTrackError, match=message):
-            train_ilc(**{**good, **changes})
+            args = {**good, **changes}
+            train_ilc(preset=args.pop("preset"), run=training_run(**args))
     assert ilc_settings("cpu") is ILC_PRESETS["cpu"]

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from efficienttrack.baselines.agent import policy_act
-from efficienttrack.baselines.curve import CURVE_FILE
+from efficienttrack.baselines.curve import CURVE_FILE, training_run
 from efficienttrack.baselines.openloop import OPEN_PRESETS, imitate, pass_counts, train_efficienttrack_open
 from efficienttrack.baselines.resume import STATE_FILE
 from efficienttrack.baselines.supertrack import SUPERTRACK_PRESETS, train_supertrack
@@ -115,7 +115,7 @@ SUPERTRACK_SETTINGS = dataclasses.replace(SUPERTRACK_PRESETS["tiny"], steps_per_
 def open_run(tmp_path_factory):
     """Open-loop EfficientTrack, quick, seed 0, 1,000 steps (two pass counts), uninterrupted: ``(curve, folder)``."""
     folder = tmp_path_factory.mktemp("open") / "a"
-    return train_efficienttrack_open("open", SystemSpec(), TRAIN, TEST, 1000, 0, folder, preset="tiny"), folder
+    return train_efficienttrack_open(training_run("open", SystemSpec(), TRAIN, TEST, 1000, 0, folder), preset="tiny"), folder
 
 
 @pytest.fixture(scope="module")
@@ -127,8 +127,8 @@ def supertrack_run(tmp_path_factory):
     def run(loop):
         if loop not in runs:
             folder = tmp_path_factory.mktemp(f"supertrack_{loop}") / "a"
-            curve = train_supertrack(loop, SystemSpec(), TRAIN, TEST, 700, 3, folder, preset=SUPERTRACK_SETTINGS,
-                                     eval_at=[300, 700])  # fmt: skip
+            run = training_run(loop, SystemSpec(), TRAIN, TEST, 700, 3, folder, eval_at=[300, 700])
+            curve = train_supertrack(run, preset=SUPERTRACK_SETTINGS)
             runs[loop] = curve, folder
         return runs[loop]
 
@@ -142,7 +142,7 @@ def test_open_loop_efficienttrack_quick_curve_and_determinism(tmp_path, open_run
     assert all(np.isfinite(p["metrics"]["mae_deg"]) and p["wall_seconds"] > 0 for p in curve)
     saved = json.loads((folder / CURVE_FILE).read_text())
     assert saved["method"] == "efficienttrack" and saved["loop"] == "open" and len(saved["curve"]) == 2
-    again = train_efficienttrack_open("open", SystemSpec(), TRAIN, TEST, 400, 0, tmp_path / "b", preset="tiny")
+    again = train_efficienttrack_open(training_run("open", SystemSpec(), TRAIN, TEST, 400, 0, tmp_path / "b"), preset="tiny")
     assert again[0]["metrics"] == curve[0]["metrics"]
 
 
@@ -151,7 +151,7 @@ def test_an_interrupted_open_loop_efficienttrack_run_keeps_its_finished_pass_cou
     tmp_path, monkeypatch, interrupt_at, open_run
 ):
     def run(folder, seed=0, budget=1000):
-        return train_efficienttrack_open("open", SystemSpec(), TRAIN, TEST, budget, seed, folder, preset="tiny")
+        return train_efficienttrack_open(training_run("open", SystemSpec(), TRAIN, TEST, budget, seed, folder), preset="tiny")
 
     interrupt_at(632)  # killed when it would measure two passes
     with pytest.raises(KeyboardInterrupt):
@@ -172,14 +172,14 @@ def test_supertrack_quick_curve_and_determinism(tmp_path, loop, supertrack_run):
     assert all(np.isfinite(p["metrics"]["mae_deg"]) for p in curve)
     saved = json.loads((folder / CURVE_FILE).read_text())
     assert saved["method"] == "supertrack" and saved["loop"] == loop and len(saved["curve"]) == 2
-    again = train_supertrack(loop, SystemSpec(), TRAIN, TEST, 300, 3, tmp_path / "b", preset=SUPERTRACK_SETTINGS)
+    again = train_supertrack(training_run(loop, SystemSpec(), TRAIN, TEST, 300, 3, tmp_path / "b"), preset=SUPERTRACK_SETTINGS)
     assert again[0]["metrics"] == curve[0]["metrics"]
 
 
 def test_an_interrupted_supertrack_run_resumes_as_if_uninterrupted(tmp_path, monkeypatch, interrupt_at, supertrack_run):
     def run(folder, seed=3):
-        return train_supertrack("closed", SystemSpec(), TRAIN, TEST, 700, seed, folder, SUPERTRACK_SETTINGS, [300, 700],
-                                save_every_seconds=0)  # fmt: skip
+        spec = training_run("closed", SystemSpec(), TRAIN, TEST, 700, seed, folder, [300, 700])
+        return train_supertrack(spec, SUPERTRACK_SETTINGS, save_every_seconds=0)
 
     uninterrupted, _ = supertrack_run("closed")  # saved its state less often; seeded, the same curve
     interrupt_at(700)
@@ -202,18 +202,20 @@ def test_an_interrupted_supertrack_run_resumes_as_if_uninterrupted(tmp_path, mon
 
 def test_bad_input_is_refused(tmp_path):
     with pytest.raises(EfficientTrackError, match="open loop only"):
-        train_efficienttrack_open("closed", SystemSpec(), TRAIN, TEST, 1000, 0, tmp_path, preset="tiny")
+        train_efficienttrack_open(training_run("closed", SystemSpec(), TRAIN, TEST, 1000, 0, tmp_path), preset="tiny")
     with pytest.raises(EfficientTrackError, match="PWM-level plant"):
-        train_efficienttrack_open("open", SystemSpec(system="learned"), TRAIN, TEST, 1000, 0, tmp_path, preset="tiny")
+        train_efficienttrack_open(training_run("open", SystemSpec(system="learned"), TRAIN, TEST, 1000, 0, tmp_path))
     with pytest.raises(EfficientTrackError, match="less than one collection pass"):
-        train_efficienttrack_open("open", SystemSpec(), TRAIN, TEST, 100, 0, tmp_path, preset="tiny")
+        train_efficienttrack_open(training_run("open", SystemSpec(), TRAIN, TEST, 100, 0, tmp_path), preset="tiny")
     with pytest.raises(EfficientTrackError, match="PWM-level plant"):
-        train_supertrack("open", SystemSpec(system="learned"), TRAIN, TEST, 1000, 0, tmp_path, preset="tiny")
+        train_supertrack(training_run("open", SystemSpec(system="learned"), TRAIN, TEST, 1000, 0, tmp_path))
     with pytest.raises(EfficientTrackError, match="loop"):
-        train_supertrack("sideways", SystemSpec(), TRAIN, TEST, 1000, 0, tmp_path, preset="tiny")
+        train_supertrack(training_run("sideways", SystemSpec(), TRAIN, TEST, 1000, 0, tmp_path))
     with pytest.raises(EfficientTrackError, match="preset"):
-        train_supertrack("closed", SystemSpec(), TRAIN, TEST, 1000, 0, tmp_path, preset="huge")
+        train_supertrack(training_run("closed", SystemSpec(), TRAIN, TEST, 1000, 0, tmp_path), preset="huge")
     with pytest.raises(EfficientTrackError, match="budget"):
-        train_supertrack("closed", SystemSpec(), TRAIN, TEST, 0, 0, tmp_path, preset="tiny")
+        train_supertrack(training_run("closed", SystemSpec(), TRAIN, TEST, 0, 0, tmp_path))
+    with pytest.raises(EfficientTrackError, match="run: expected a TrainingRun"):
+        train_supertrack("closed")
     with pytest.raises(EfficientTrackError, match="imitation_steps"):
         dataclasses.replace(OPEN_PRESETS["tiny"], imitation_steps=-1)

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from efficienttrack.baselines.curve import training_run
 from efficienttrack.baselines.resume import STATE_FILE
 from efficienttrack.baselines.tdmpc import (
     PRESETS,
@@ -160,7 +161,7 @@ def finite(metrics):
 def test_quick_preset_trains_on_the_closed_loop(refs, tmp_path):
     train, test = refs
     settings = replace(tdmpc_settings("tiny"), device="cpu")
-    curve = train_tdmpc("closed", SystemSpec(), train, test, 70, 0, tmp_path, settings, eval_at=[1, 50, 70])
+    curve = train_tdmpc(training_run("closed", SystemSpec(), train, test, 70, 0, tmp_path, eval_at=[1, 50, 70]), settings)
     assert [p["interaction_steps"] for p in curve] == [1, 50, 70]
     assert all(finite(p["metrics"]) and p["metrics"]["episodes"] == len(test) for p in curve)
     walls = [p["wall_seconds"] for p in curve]
@@ -176,7 +177,7 @@ def test_quick_preset_trains_on_the_closed_loop(refs, tmp_path):
 def test_open_loop_trains_and_evaluates_with_the_planner(refs, tmp_path):
     train, test = refs
     settings = replace(TINY, evaluate_with="plan")
-    curve = train_tdmpc("open", SystemSpec(plant="xe75"), train, test, 30, 1, tmp_path, settings, eval_at=[30])
+    curve = train_tdmpc(training_run("open", SystemSpec(plant="xe75"), train, test, 30, 1, tmp_path, eval_at=[30]), settings)
     assert [p["interaction_steps"] for p in curve] == [30] and finite(curve[0]["metrics"])
 
 
@@ -187,7 +188,9 @@ def test_same_seed_same_curve(refs, tmp_path, evaluate_with):
     state = torch.get_rng_state()
 
     def metrics(seed, name):
-        return train_tdmpc("closed", SystemSpec(), train, test, 30, seed, tmp_path / name, settings, [30])[-1]["metrics"]
+        return train_tdmpc(training_run("closed", SystemSpec(), train, test, 30, seed, tmp_path / name, [30]), settings)[-1][
+            "metrics"
+        ]
 
     first = metrics(3, "a")
     assert metrics(3, "b") == first
@@ -195,12 +198,28 @@ def test_same_seed_same_curve(refs, tmp_path, evaluate_with):
     assert torch.equal(torch.get_rng_state(), state)  # the global generator is left alone
 
 
+def test_validation_leaves_the_planners_test_curve_alone(refs, tmp_path):
+    train, test = refs
+    settings = replace(TINY, evaluate_with="plan")  # an agent with a state: its generator
+    validation = [Reference("val", generate_references(1, seed=5)[0].q[:25])]
+
+    def curve(name, validation_refs):
+        return train_tdmpc(
+            training_run("closed", SystemSpec(), train, test, 30, 3, tmp_path / name, [1, 30], validation_refs), settings
+        )
+
+    plain, validated = curve("plain", ()), curve("validated", validation)
+    assert [p["metrics"] for p in validated] == [p["metrics"] for p in plain]
+    assert all(p["validation"]["episodes"] == 1 and finite(p["validation"]) for p in validated)
+
+
 def test_an_interrupted_run_resumes_as_if_uninterrupted(refs, tmp_path, monkeypatch, interrupt_at):
     train = [Reference(r.name, r.q[:11]) for r in generate_references(8, seed=2)]  # 10-step episodes, drawn at random
     test = refs[1]
 
     def run(folder, seed=3):
-        return train_tdmpc("closed", SystemSpec(), train, test, 120, seed, folder, TINY, [25, 50, 120], save_every_seconds=0)
+        spec = training_run("closed", SystemSpec(), train, test, 120, seed, folder, [25, 50, 120])
+        return train_tdmpc(spec, TINY, save_every_seconds=0)
 
     uninterrupted = run(tmp_path / "a")
     interrupt_at(50)
@@ -235,7 +254,7 @@ def test_bad_input_is_refused_before_training(refs, tmp_path, change, message):
     args = {"loop": "closed", "system": SystemSpec(), "train_refs": refs[0], "test_refs": refs[1], "budget": 100}
     args |= {"seed": 0, "folder": tmp_path / "out", "preset": "tiny", "eval_at": None} | change
     with pytest.raises(EfficientTrackError, match=message):
-        train_tdmpc(**args)
+        train_tdmpc(preset=args.pop("preset"), run=training_run(**args))
     assert not (tmp_path / "out").exists()
 
 
@@ -268,7 +287,7 @@ def test_presets_keep_the_papers_settings_and_schedules():
 def test_an_untrained_policy_is_the_pd_controller_and_sees_the_shared_input(refs, tmp_path):
     train, test = refs
     settings = replace(TINY, evaluate_with="policy")
-    curve = train_tdmpc("closed", SystemSpec(), train, test, 2, 0, tmp_path, settings, eval_at=[1])
+    curve = train_tdmpc(training_run("closed", SystemSpec(), train, test, 2, 0, tmp_path, eval_at=[1]), settings)
     pd = evaluate(lambda obs: np.zeros((len(obs), 4)), test, "closed", SystemSpec())
     assert curve[0]["metrics"]["mae_deg"] == pytest.approx(compute_metrics(pd)["mae_deg"], abs=1e-12)
     assert json.loads((tmp_path / "curve.json").read_text())["settings"]["inputs"] == "relative"

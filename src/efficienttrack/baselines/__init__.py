@@ -1,7 +1,8 @@
 """Baselines the study compares EfficientTrack with, and the ILC oracle (a lower bound, not a competitor).
 
 PPO and SAC through Stable-Baselines3 (:mod:`.sb3`); iterative learning control on the test references themselves
-(:mod:`.ilc`: it sees the test references, so it only says how much error is left to win).
+(:mod:`.ilc`: it sees the test references, so it only says how much error is left to win). Each ``train_<method>``
+takes one checked run, :func:`training_run` (:mod:`.curve`), and its settings.
 
 The names load their module when first used, so that the ILC oracle (numpy and scipy) does not import
 Stable-Baselines3.
@@ -14,7 +15,9 @@ from typing import Any
 
 _HOMES = {
     "CurveRecorder": "curve",
+    "TrainingRun": "curve",
     "default_eval_points": "curve",
+    "training_run": "curve",
     "ILC_PRESETS": "ilc",
     "ILCSettings": "ilc",
     "train_ilc": "ilc",

@@ -1,9 +1,12 @@
-"""What every baseline's curve shares: the evaluation points, the held-out measurement, and ``curve.json``.
+"""What every baseline shares: its run, the evaluation points, the held-out measurement, and ``curve.json``.
 
-A baseline trains for a budget of interaction steps and, when its count first reaches each evaluation point, runs its
+A baseline's ``train_<method>(run, settings)`` takes one checked :class:`TrainingRun` (:func:`training_run`): the loop,
+the system, the training, test and validation references, the budget, the seed, the output folder and the evaluation
+points. It trains for the budget of interaction steps and, when its count first reaches each evaluation point, runs its
 deterministic policy on the held-out references (:func:`efficienttrack.envs.evaluate`) and scores it with
-:func:`efficienttrack.data.metrics.compute_metrics`: the same episodes and metrics as EfficientTrack's evaluation.
-:class:`CurveRecorder` keeps those points and rewrites ``curve.json`` after each, so a long run loses nothing.
+:func:`efficienttrack.data.metrics.compute_metrics`: the same episodes and metrics as EfficientTrack's evaluation; with
+validation references, the same policy on them right after. :class:`CurveRecorder` keeps those points and rewrites
+``curve.json`` after each, so a long run loses nothing.
 """
 
 from __future__ import annotations
@@ -69,35 +72,34 @@ def check_eval_points(eval_at: Sequence[int] | None, budget: int) -> list[int]:
 
 
 class CurveRecorder:
-    """The curve of one training run: measures points, writes ``curve.json``, shows progress.
+    """The curve of one training run: measures points, writes ``folder/curve.json``, shows progress.
 
     Args:
+        run: the run (its loop, test and validation references, folder and budget).
         header: what the run is (``method``, ``loop``, ``seed``, ``budget``, ``system``, ``settings``), written with
             the curve.
-        path: the curve's file (``curve.json``), rewritten atomically after every point.
-        system: the checked system the test references run on (for the loop in ``header["loop"]``).
-        test_refs: the held-out references every point is measured on.
+        system: the checked system the references run on (the closed loop, or the plant for the open loop).
         progress: a display to show the interaction count and the last MAE on, or None.
-        budget: the run's budget in interaction steps (the progress bar's total).
+        total: the progress bar's total in interaction steps; None: the run's budget.
     """
 
     def __init__(
         self,
+        run: TrainingRun,
         header: dict[str, Any],
-        path: Path,
         system: BatchedSystem,
-        test_refs: list[Reference],
         progress: ProgressDisplay | None,
-        budget: int,
+        total: int | None = None,
     ) -> None:
-        self.header, self.path, self.system, self.test_refs, self.progress = header, path, system, test_refs, progress
+        self.run, self.header, self.system, self.progress = run, header, system, progress
+        self.path = run.folder / CURVE_FILE
         self.curve: list[dict[str, Any]] = []
         self.start = time.perf_counter()
         self.evaluating = 0.0
         """Seconds spent evaluating, left out of the wall time."""
-        label = f"{header['method']} {header['loop']} (steps)"
-        self.task = None if progress is None else progress.add_task(label, total=budget)
-        write_json(path, {**header, "curve": self.curve})
+        label = f"{header['method']} {run.loop} (steps)"
+        self.task = None if progress is None else progress.add_task(label, total=run.budget if total is None else total)
+        write_json(self.path, {**header, "curve": self.curve})
 
     @property
     def wall_seconds(self) -> float:
@@ -124,7 +126,11 @@ class CurveRecorder:
         wall_seconds: float | None = None,
         extra: dict[str, Any] | None = None,
     ) -> None:
-        """Run the deterministic policy ``act`` on the test references; append the point and write the file.
+        """Run the deterministic policy ``act`` on the test and validation references; append the point, write the file.
+
+        The validation references (when the run has them) come after the test references, so that an agent with a
+        state (TD-MPC's planner and its generator) meets the test references as it would without validation. Both
+        evaluations are left out of the wall time.
 
         Args:
             act: observations (N, 332) float32 → actions (N, 4) in [−1, 1] (:func:`efficienttrack.envs.evaluate`).
@@ -135,20 +141,28 @@ class CurveRecorder:
         """
         wall = self.wall_seconds if wall_seconds is None else wall_seconds
         began = time.perf_counter()
-        records = evaluate(act, self.test_refs, loop=self.header["loop"], system=self.system)
-        self.add(count, wall, compute_metrics(records), extra)
+        metrics = self._score(act, self.run.test_refs)
+        if self.run.validation_refs:
+            extra = {**(extra or {}), "validation": self._score(act, self.run.validation_refs)}
+        self.add(count, wall, metrics, extra)
         self.evaluating += time.perf_counter() - began
+
+    def _score(self, act: Callable[[np.ndarray], np.ndarray], refs: Sequence[Reference]) -> dict[str, Any]:
+        """:func:`~efficienttrack.data.metrics.compute_metrics` of ``act`` run on every reference of ``refs`` once."""
+        return compute_metrics(evaluate(act, refs, loop=self.run.loop, system=self.system))
 
     def add(self, count: int, wall_seconds: float, metrics: dict[str, Any], extra: dict[str, Any] | None = None) -> None:
         """Append a point measured by the caller and write the file (what :meth:`measure` does after evaluating).
 
-        For a method whose "policy" is no function of the observation (the ILC oracle's stored corrections).
+        For a method whose "policy" is no function of the observation (the ILC oracle's stored corrections, which has
+        no validation references).
 
         Args:
             count: the interaction steps trained so far.
             wall_seconds: the training wall time so far (evaluations excluded).
             metrics: :func:`~efficienttrack.data.metrics.compute_metrics` of the test episodes.
-            extra: further facts of the point (e.g. ``{"passes": 2}``), added to it.
+            extra: further facts of the point (e.g. ``{"passes": 2}``; :meth:`measure` puts ``"validation"`` here),
+                added to it.
         """
         point = {"interaction_steps": int(count), "wall_seconds": float(wall_seconds), "metrics": metrics}
         self.curve.append({**point, **(extra or {})})
@@ -218,25 +232,51 @@ def check_refs(refs: Sequence[Reference], name: str, min_steps: int = 2) -> list
     return refs
 
 
-class Run(NamedTuple):
-    """The checked arguments of a training run (:func:`check_run`).
+class TrainingRun(NamedTuple):
+    """One training run of a baseline, checked (build it with :func:`training_run`, which checks every field).
+
+    Every ``train_<method>(run, ...)`` of :mod:`efficienttrack.baselines` takes one. References are
+    :class:`~efficienttrack.data.references.Reference`: desired joint positions ``.q`` (T, 4) rad (boom, arm, bucket,
+    swing) at the system's control rate (20 Hz); an episode of a reference of T positions is T − 1 interaction steps.
 
     Attributes:
-        train_refs: the training references.
-        test_refs: the held-out references (each ≥ ``metrics.MIN_STEPS`` steps).
-        budget: interaction steps, ≥ 1.
-        points: the evaluation points (:func:`~efficienttrack.baselines.curve.check_eval_points`).
-        folder: the output folder (created).
+        loop: ``"closed"`` (the policy adjusts the PD reference) or ``"open"`` (the policy sends PWM / 1000 to the
+            PWM-level plant under ``system``).
+        system: the system spec training and evaluation run on.
+        train_refs: the training references, each ≥ 3 positions.
+        test_refs: the held-out references every point is measured on, each ≥ ``metrics.MIN_STEPS`` positions.
+        budget: interaction steps to train for, ≥ 1 (the paper's I.S.).
+        seed: the seed, an integer ≥ 0.
+        folder: the output folder (checked writable; created by the method when it writes).
+        eval_at: the interaction counts asked for, each in ``[1, budget]``, increasing without repeats; None: the
+            method's own default (:attr:`points` for most).
+        validation_refs: references every point is measured on too, right after the test references (each ≥
+            ``metrics.MIN_STEPS`` positions), added to the point as ``"validation"``; empty: none.
     """
 
-    train_refs: list[Reference]
-    test_refs: list[Reference]
+    loop: str
+    system: SystemSpec
+    train_refs: tuple[Reference, ...]
+    test_refs: tuple[Reference, ...]
     budget: int
-    points: list[int]
+    seed: int
     folder: Path
+    eval_at: tuple[int, ...] | None
+    validation_refs: tuple[Reference, ...]
+
+    @property
+    def points(self) -> list[int]:
+        """The evaluation points: ``eval_at``, or :func:`default_eval_points` of the budget when None."""
+        return default_eval_points(self.budget) if self.eval_at is None else list(self.eval_at)
+
+    @property
+    def reference_sets(self) -> tuple[tuple[Reference, ...], ...]:
+        """The reference sets that make the run what it is: training, test and, when there are any, validation."""
+        sets = (self.train_refs, self.test_refs)
+        return (*sets, self.validation_refs) if self.validation_refs else sets
 
 
-def check_run(
+def training_run(
     loop: str,
     system: SystemSpec,
     train_refs: Sequence[Reference],
@@ -244,22 +284,26 @@ def check_run(
     budget: int,
     seed: int,
     folder: str | Path,
-    eval_at: Sequence[int] | None,
-) -> Run:
-    """Check the arguments every ``train_<method>`` of this family takes, before any work.
+    eval_at: Sequence[int] | None = None,
+    validation_refs: Sequence[Reference] = (),
+) -> TrainingRun:
+    """The checked run every ``train_<method>`` of :mod:`efficienttrack.baselines` takes, checked before any work.
 
     Args:
-        loop: ``"closed"`` or ``"open"``; the open loop needs a plant under ``system``.
+        loop: ``"closed"`` or ``"open"``; the open loop needs a PWM-level plant under ``system``
+            (``SystemSpec(plant="xe75")`` or a built-in system that has one).
         system: the system spec.
-        train_refs: the training references.
-        test_refs: the held-out references.
+        train_refs: the training references (``.q`` (T, 4) rad, each ≥ 3 positions).
+        test_refs: the held-out references every point is measured on (each ≥ ``metrics.MIN_STEPS`` positions).
         budget: interaction steps, an integer ≥ 1.
-        seed: the seed.
-        folder: the output folder.
-        eval_at: interaction counts to evaluate at, or None.
+        seed: the seed, an integer ≥ 0.
+        folder: the output folder (not created here).
+        eval_at: interaction counts to evaluate at, each in ``[1, budget]``, or None for the method's default.
+        validation_refs: references to measure every point on too (each ≥ ``metrics.MIN_STEPS`` positions); empty:
+            none.
 
     Returns:
-        The checked arguments.
+        The run.
 
     Raises:
         EfficientTrackError: naming the argument and the problem.
@@ -267,8 +311,8 @@ def check_run(
     check_loop(loop)
     if not isinstance(budget, int | np.integer) or isinstance(budget, bool) or budget < 1:
         raise EfficientTrackError(f"budget: must be an integer ≥ 1 interaction step, got {budget!r}")
-    points = check_eval_points(eval_at, int(budget))
-    check_seed(seed, "seed")
+    points = None if eval_at is None else tuple(check_eval_points(eval_at, int(budget)))
+    seed = check_seed(seed, "seed")
     if not isinstance(system, SystemSpec):
         raise EfficientTrackError(f"system: expected a SystemSpec (efficienttrack.systems.spec), got {type(system).__name__}")
     if loop == "open" and system.open_plant() is None:
@@ -276,4 +320,26 @@ def check_run(
             f"system '{system.system_name}': the open loop needs a PWM-level plant under it; give SystemSpec(plant=...)"
         )
     train, test = check_refs(train_refs, "train_refs", 3), check_refs(test_refs, "test_refs", MIN_STEPS)
-    return Run(train, test, int(budget), points, check_output_folder(folder, "folder"))
+    validation = list(validation_refs)
+    validation = check_refs(validation, "validation_refs", MIN_STEPS) if validation else []
+    return TrainingRun(loop, system, tuple(train), tuple(test), int(budget), seed, check_output_folder(folder, "folder"),
+                       points, tuple(validation))  # fmt: skip
+
+
+def check_training_run(run: object) -> TrainingRun:
+    """``run``, once found to be a :class:`TrainingRun` (what every ``train_<method>`` checks first).
+
+    Args:
+        run: what a ``train_<method>`` was given as its run.
+
+    Returns:
+        The run.
+
+    Raises:
+        EfficientTrackError: something else than a TrainingRun.
+    """
+    if not isinstance(run, TrainingRun):
+        raise EfficientTrackError(
+            f"run: expected a TrainingRun (efficienttrack.baselines.curve.training_run), got {type(run).__name__}"
+        )
+    return run

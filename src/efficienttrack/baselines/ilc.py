@@ -28,26 +28,23 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 from scipy.signal import butter, filtfilt
 
-from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_eval_points, check_refs
+from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, TrainingRun, check_training_run
 from efficienttrack.core.angles import wrap
-from efficienttrack.core.configfile import check_seed
 from efficienttrack.core.errors import EfficientTrackError
-from efficienttrack.core.fileio import check_output_folder, output_lock
+from efficienttrack.core.fileio import output_lock
 from efficienttrack.core.joints import N_JOINTS
 from efficienttrack.core.progress import ProgressDisplay
 from efficienttrack.core.settings import canonical_preset
-from efficienttrack.data.metrics import MIN_STEPS, compute_metrics
+from efficienttrack.data.metrics import compute_metrics
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.data.references import Reference
 from efficienttrack.deploy.episodes import Sent, batches, rollout
 from efficienttrack.systems.protocol import BatchedSystem
-from efficienttrack.systems.spec import SystemSpec
 
 METHOD = "ilc"
 """The method's name in ``curve.json`` and the study (an oracle: it sees the test references)."""
@@ -248,16 +245,7 @@ def trial_steps(test_refs: Sequence[Reference]) -> int:
 
 
 def train_ilc(
-    loop: str,
-    system: SystemSpec,
-    train_refs: Sequence[Reference],
-    test_refs: Sequence[Reference],
-    budget: int,
-    seed: int,
-    folder: str | Path,
-    preset: str | ILCSettings = "cpu",
-    eval_at: Sequence[int] | None = None,
-    progress: ProgressDisplay | None = None,
+    run: TrainingRun, preset: str | ILCSettings = "cpu", progress: ProgressDisplay | None = None
 ) -> list[dict[str, Any]]:
     """The ORACLE: iterative learning control on the test references themselves, trial after trial (not a fair method).
 
@@ -270,16 +258,15 @@ def train_ilc(
     after each point. Deterministic: the same inputs give the same curve (wall times aside).
 
     Args:
-        loop: ``"closed"`` only (the ILC corrects the reference sent to the position controller).
-        system: the system spec the test references run on.
-        train_refs: unused (the oracle learns on the test references), taken for the same call as the other methods.
-        test_refs: the references the oracle learns on and is measured on (each ≥ 4 steps).
-        budget: interaction steps allowed (≥ one trial's steps).
-        seed: unused (ILC is deterministic), checked and written to the curve's header.
-        folder: output folder for ``curve.json`` (created; other files in it are left alone).
+        run: the run (:func:`~efficienttrack.baselines.curve.training_run`): ``loop`` ``"closed"`` only (the ILC
+            corrects the reference sent to the position controller); ``test_refs``, the references the oracle learns
+            on and is measured on; ``train_refs`` unused (the oracle learns on the test references; the run is the same
+            as the other methods'); ``budget`` at least one trial's steps; ``seed`` unused (ILC is deterministic),
+            written to the curve's header; ``folder`` gets ``curve.json`` (created; other files in it are left alone);
+            ``eval_at``: each count recorded at the first trial whose count reaches it, besides trial 0; None: every
+            trial. No ``validation_refs``: the corrections belong to the test references, so there is no policy to
+            measure on others.
         preset: ``"cpu"``, ``"tiny"`` (:data:`ILC_PRESETS`) or an :class:`ILCSettings`.
-        eval_at: interaction counts at which to record a point, each in ``[1, budget]`` (each recorded at the first
-            trial whose count reaches it), besides trial 0; None: every trial.
         progress: a display to show the interaction count and the last MAE on, or None for no progress.
 
     Returns:
@@ -287,45 +274,40 @@ def train_ilc(
         trials and updates before this trial; scoring excluded), "metrics": dict (compute_metrics of this trial)}``.
 
     Raises:
-        EfficientTrackError: the open loop or an unknown loop, an unknown preset, a budget < 1 or smaller than one
-            trial, an evaluation point outside ``[1, budget]``, a bad seed, a system that is no SystemSpec, no
-            references or a test reference shorter than 4 steps, a reference outside the system's limits, an output
-            folder that cannot be written or is being written by another process.
+        EfficientTrackError: a run that is no TrainingRun, in the open loop or with validation references, an unknown
+            preset, a budget smaller than one trial, a cut-off at or above the Nyquist frequency, a test reference
+            outside the system's limits, an output folder being written by another process.
     """
-    if loop == "open":
+    run = check_training_run(run)
+    if run.loop == "open":
         raise EfficientTrackError("loop 'open': the ILC oracle has the closed loop only (it corrects the PD reference)")
-    if loop != "closed":
-        raise EfficientTrackError(f"loop {loop!r}: unknown (the ILC oracle has 'closed' only)")
+    if run.validation_refs:
+        raise EfficientTrackError(
+            "validation_refs: the ILC oracle learns its corrections on the test references and has no policy to "
+            "validate on others; give it a run without validation references"
+        )
     settings = ilc_settings(preset)
-    if not isinstance(budget, int | np.integer) or isinstance(budget, bool) or budget < 1:
-        raise EfficientTrackError(f"budget: must be an integer ≥ 1 interaction step, got {budget!r}")
-    budget = int(budget)
-    check_seed(seed, "seed")
-    if not isinstance(system, SystemSpec):
-        raise EfficientTrackError(f"system: expected a SystemSpec (efficienttrack.systems.spec), got {type(system).__name__}")
-    del train_refs  # the oracle learns on the test references themselves
-    test_refs = check_refs(test_refs, "test_refs", MIN_STEPS)
+    test_refs, budget, folder = run.test_refs, run.budget, run.folder
     per_trial = trial_steps(test_refs)
     if budget < per_trial:
         raise EfficientTrackError(f"budget {budget}: less than one ILC trial over the test references ({per_trial} steps)")
     trials = min(settings.trials, budget // per_trial)
-    record_at = _recorded_trials(eval_at, budget, per_trial, trials)
-    folder = check_output_folder(folder, "folder")
+    record_at = _recorded_trials(run.eval_at, per_trial, trials)
     header = {
         "method": METHOD,
         "oracle": True,
-        "loop": loop,
-        "seed": seed,
+        "loop": run.loop,
+        "seed": run.seed,
         "budget": budget,
-        "system": system.to_dict(),
+        "system": run.system.to_dict(),
         "settings": asdict(settings),
     }
     with output_lock(folder / CURVE_FILE, "folder", folder=False):
-        opened = system.open()
+        opened = run.system.open()
         check_cutoff(settings, opened.dt)
         for ref in test_refs:
             opened.limits.check_reference(ref.q, ref.name)
-        recorder = CurveRecorder(header, folder / CURVE_FILE, opened, test_refs, progress, trials * per_trial)
+        recorder = CurveRecorder(run, header, opened, progress, trials * per_trial)
         max_adjust = np.asarray(opened.limits.max_adjust, dtype=np.float64)
         correction = np.zeros((max(len(ref) for ref in test_refs) - 1, len(test_refs), N_JOINTS))
         scoring = 0.0
@@ -345,9 +327,8 @@ def train_ilc(
     return recorder.curve
 
 
-def _recorded_trials(eval_at: Sequence[int] | None, budget: int, per_trial: int, trials: int) -> set[int]:
-    """The trials whose points are recorded: trial 0 and, per point, the first trial whose count reaches it."""
+def _recorded_trials(eval_at: Sequence[int] | None, per_trial: int, trials: int) -> set[int]:
+    """The trials whose points are recorded: trial 0 and, per (checked) point, the first trial whose count reaches it."""
     if eval_at is None:
         return set(range(trials + 1))
-    points = check_eval_points(eval_at, budget)
-    return {0} | {min(-(-p // per_trial), trials) for p in points}
+    return {0} | {min(-(-p // per_trial), trials) for p in eval_at}

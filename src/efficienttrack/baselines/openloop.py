@@ -25,13 +25,12 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 from typing import Any, cast
 
 import torch
 
 from efficienttrack.baselines.agent import policy_act
-from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_run, earlier_points
+from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, TrainingRun, check_training_run, earlier_points
 from efficienttrack.baselines.resume import references_digest
 from efficienttrack.core.configfile import check_seed
 from efficienttrack.core.errors import EfficientTrackError
@@ -40,13 +39,11 @@ from efficienttrack.core.progress import ProgressDisplay
 from efficienttrack.core.settings import canonical_preset
 from efficienttrack.data.dataset import Sequences
 from efficienttrack.data.records import EpisodeRecord
-from efficienttrack.data.references import Reference
 from efficienttrack.envs.core import open_system
 from efficienttrack.learn.dynamics import NORM_SAMPLES, ModelConfig, PlantModel, train_model
 from efficienttrack.learn.nets import check_size, resolve_device
 from efficienttrack.learn.policy import PolicyConfig, PWMPolicy, train_policy
 from efficienttrack.learn.training import MAX_STEPS
-from efficienttrack.systems.spec import SystemSpec
 from efficienttrack.workflow.collect import MAX_PASSES, CollectConfig, pass_counts, run_pass
 
 
@@ -143,69 +140,59 @@ def imitate(
 
 
 def train_efficienttrack_open(
-    loop: str,
-    system: SystemSpec,
-    train_refs: Sequence[Reference],
-    test_refs: Sequence[Reference],
-    budget: int,
-    seed: int,
-    folder: str | Path,
-    preset: str | OpenLoopSettings = "cpu",
-    eval_at: Sequence[int] | None = None,
-    progress: ProgressDisplay | None = None,
+    run: TrainingRun, preset: str | OpenLoopSettings = "cpu", progress: ProgressDisplay | None = None
 ) -> list[dict[str, Any]]:
     """Open-loop EfficientTrack after 1, 2, 5, 10 … collection passes within the budget; the curve of its test metrics.
 
     The passes are collected once, in order, with the PD controller on ``system``'s closed loop (pass k's noise seeded
     by (seed, k), so p passes are the same whatever the budget); after p passes, a plant model and a PWM policy are
-    trained from scratch on them (seeded by ``seed``) and the policy runs every test reference once on the plant.
-    ``folder/curve.json`` is rewritten after each point; the same run started again in the folder keeps the points
-    it finds there and trains only the pass counts still missing (the passes are collected again: they are the same).
+    trained from scratch on them (seeded by ``seed``) and the policy runs every test reference once on the plant, then
+    every validation reference when the run has them. ``folder/curve.json`` is rewritten after each point; the same
+    run started again in the folder keeps the points it finds there and trains only the pass counts still missing (the
+    passes are collected again: they are the same).
 
     Args:
-        loop: must be ``"open"`` (the closed loop is :func:`efficienttrack.workflow.pipeline.run_pipeline`).
-        system: the spec of a system with a PWM-level plant under it (``SystemSpec(plant=...)`` or the built-in one).
-        train_refs: the training references (``.q`` (T, 4) rad).
-        test_refs: the held-out references (each ≥ 4 steps).
-        budget: interaction steps (≥ one pass over ``train_refs``).
-        seed: seed of the collection noise and the trainings.
-        folder: output folder for ``curve.json``.
+        run: the run (:func:`~efficienttrack.baselines.curve.training_run`): ``loop`` must be ``"open"`` (the closed
+            loop is :func:`efficienttrack.workflow.pipeline.run_pipeline`); ``budget`` at least one pass over
+            ``train_refs``; ``seed`` seeds the collection noise and the trainings; ``folder`` gets ``curve.json``;
+            ``eval_at``: each count is measured after the most passes whose steps do not exceed it (at least one),
+            None: the pass counts 1, 2, 5, 10 … that fit the budget (:func:`~efficienttrack.workflow.collect.pass_counts`).
         preset: ``"cpu"``, ``"tiny"`` (:data:`OPEN_PRESETS`) or an :class:`OpenLoopSettings`.
-        eval_at: interaction counts; each is measured after the most passes whose steps do not exceed it (at least
-            one). None: the pass counts 1, 2, 5, 10 … that fit the budget
-            (:func:`~efficienttrack.workflow.collect.pass_counts`).
         progress: a display for the interaction count and the last MAE, or None.
 
     Returns:
         One point per pass count: ``{"interaction_steps": p · steps per pass, "wall_seconds": the collection of p passes
-        plus the trainings, "metrics": compute_metrics of the test episodes, "passes": p}``.
+        plus the trainings, "metrics": compute_metrics of the test episodes, "passes": p}``, and ``"validation"``
+        (compute_metrics of the validation episodes) when the run has validation references.
 
     Raises:
-        EfficientTrackError: ``loop`` is not ``"open"``, a system without a plant, a budget below one pass, a bad
-            seed, preset, evaluation point, reference or folder.
+        EfficientTrackError: a run that is no TrainingRun or not in the open loop, a budget below one pass, an unknown
+            preset, a folder being written by another process.
     """
     settings = open_settings(preset)
-    if loop != "open":
-        raise EfficientTrackError(f"loop '{loop}': open-loop EfficientTrack runs in the open loop only ('open')")
-    run = check_run(loop, system, train_refs, test_refs, budget, seed, folder, eval_at)
+    run = check_training_run(run)
+    if run.loop != "open":
+        raise EfficientTrackError(f"loop '{run.loop}': open-loop EfficientTrack runs in the open loop only ('open')")
     steps_per_pass = sum(ref.steps for ref in run.train_refs)
     counts = pass_counts(run.budget, steps_per_pass)
     if not counts:
         raise EfficientTrackError(
-            f"budget {budget}: less than one collection pass over the training references ({steps_per_pass} steps)"
+            f"budget {run.budget}: less than one collection pass over the training references ({steps_per_pass} steps)"
         )
-    if eval_at is not None:
-        counts = sorted({min(max(1, point // steps_per_pass), MAX_PASSES) for point in run.points})
+    if run.eval_at is not None:
+        counts = sorted({min(max(1, point // steps_per_pass), MAX_PASSES) for point in run.eval_at})
+    system, seed = run.system, run.seed
     plant = open_system("open", system)
     closed = system.open()
     collect_cfg = CollectConfig(sigma_max=settings.sigma_max, noise_ratio=settings.noise_ratio, passes=1, seed=seed)
-    header = {"method": "efficienttrack", "loop": loop, "seed": seed, "budget": run.budget, "system": system.to_dict(),
-              "settings": asdict(settings), "references": references_digest(run.train_refs, run.test_refs)}  # fmt: skip
+    header = {"method": "efficienttrack", "loop": run.loop, "seed": seed, "budget": run.budget,
+              "system": system.to_dict(), "settings": asdict(settings),
+              "references": references_digest(*run.reference_sets)}  # fmt: skip
     records: list[EpisodeRecord] = []
     collect_seconds: list[float] = []
     with output_lock(run.folder / CURVE_FILE, "folder", folder=False):
         earlier = earlier_points(run.folder / CURVE_FILE, header)
-        recorder = CurveRecorder(header, run.folder / CURVE_FILE, plant, run.test_refs, progress, run.budget)
+        recorder = CurveRecorder(run, header, plant, progress)
         try:
             recorder.resume(earlier, 0.0)
             done = {point.get("passes") for point in earlier}

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from efficienttrack.baselines.curve import TrainingRun
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.data.references import Reference
 from efficienttrack.learn.checkpoints import CHECKPOINT_READ_ERRORS, load_tensors
@@ -45,18 +46,18 @@ def references_digest(*sets: Sequence[Reference]) -> str:
     return digest.hexdigest()
 
 
-def run_identity(header: dict[str, Any], train_refs: Sequence[Reference], test_refs: Sequence[Reference]) -> str:
+def run_identity(header: dict[str, Any], run: TrainingRun) -> str:
     """What a run is, as saved with its state: its header (method, loop, seed, budget, system, settings), references.
 
     Args:
         header: the run's ``curve.json`` header.
-        train_refs: the training references.
-        test_refs: the held-out references.
+        run: the run (its training, test and validation references: :attr:`TrainingRun.reference_sets
+            <efficienttrack.baselines.curve.TrainingRun.reference_sets>`).
 
     Returns:
         JSON text; equal for the same run.
     """
-    return json.dumps({**header, "references": references_digest(train_refs, test_refs)}, sort_keys=True)
+    return json.dumps({**header, "references": references_digest(*run.reference_sets)}, sort_keys=True)
 
 
 def _fix(path: Path) -> str:

@@ -13,16 +13,15 @@ interaction steps, which is how the paper counts I.S. and what SB3's ``num_times
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import asdict
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnv
 
-from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_run
+from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, TrainingRun, check_training_run
 from efficienttrack.baselines.resume import SAVE_EVERY_SECONDS, STATE_FILE, run_identity
 from efficienttrack.baselines.sb3_state import restore_state, save_state
 from efficienttrack.baselines.settings import PPOSettings, SACSettings, method_settings
@@ -30,11 +29,9 @@ from efficienttrack.baselines.vec_env import FeatureVecEnv, SB3VecEnv
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import atomic_write, output_lock
 from efficienttrack.core.progress import ProgressDisplay
-from efficienttrack.data.references import Reference
 from efficienttrack.envs.core import open_system
 from efficienttrack.envs.features import ObservationPipeline, See, learner_input
 from efficienttrack.envs.vector import TrackingVectorEnv
-from efficienttrack.systems.spec import SystemSpec
 
 MAX_SB3_SEED = 2**32 - 1025
 """Largest seed: SB3 seeds numpy's legacy generator (< 2^32) and gives environment i the seed + i."""
@@ -82,31 +79,24 @@ class _Curve(BaseCallback):
 
 def train_baseline(
     method: str,
-    loop: str,
-    system: SystemSpec,
-    train_refs: Sequence[Reference],
-    test_refs: Sequence[Reference],
-    budget: int,
-    seed: int,
-    folder: str | Path,
+    run: TrainingRun,
     preset: str | PPOSettings | SACSettings = "cpu",
-    eval_at: Sequence[int] | None = None,
     progress: ProgressDisplay | None = None,
     save_every_seconds: float = SAVE_EVERY_SECONDS,
 ) -> list[dict[str, Any]]:
-    """Train PPO or SAC with Stable-Baselines3 for ``budget`` interaction steps; evaluate it along the way.
+    """Train PPO or SAC with Stable-Baselines3 for ``run.budget`` interaction steps; evaluate it along the way.
 
     Training runs on the training references (one episode per reference, picked by each environment's seeded
     generator) with ``settings.n_envs`` environments stepping one batched system. With ``settings.inputs ==
     "relative"`` the policy sees the standardized relative features of
     :func:`~efficienttrack.envs.features.pd_pipeline` (statistics from a PD pass over the training references), in
     training and evaluation alike; the untrained policy is the PD controller (its action mean starts at zero).
-    When the interaction count first reaches a point of ``eval_at``, the deterministic policy (the mean action, clipped
-    to [−1, 1]) runs every test reference once (:func:`efficienttrack.envs.evaluate`) and
-    :func:`efficienttrack.data.metrics.compute_metrics` scores it.
-    ``folder/curve.json`` (``{"method", "loop", "seed", "budget", "system", "settings", "curve": [point, ...]}``) is
-    rewritten atomically after each point. Between rollouts, every ``save_every_seconds``, the training state goes to
-    ``folder/training_state.pt`` (:mod:`.sb3_state`: no pickle); the same run started again in the folder resumes
+    When the interaction count first reaches a point of ``run.points``, the deterministic policy (the mean action,
+    clipped to [−1, 1]) runs every test reference once (:func:`efficienttrack.envs.evaluate`) and
+    :func:`efficienttrack.data.metrics.compute_metrics` scores it; then every validation reference, when the run has
+    them. ``folder/curve.json`` (``{"method", "loop", "seed", "budget", "system", "settings", "curve": [point, ...]}``)
+    is rewritten atomically after each point. Between rollouts, every ``save_every_seconds``, the training state goes
+    to ``folder/training_state.pt`` (:mod:`.sb3_state`: no pickle); the same run started again in the folder resumes
     from it, keeping the points measured up to it, with fresh episodes (so not bit-identical to an uninterrupted
     run). The state is removed once the run has finished; the final model goes to ``folder/model.zip`` (SB3's
     format, for the user; nothing here loads it). The same seed and settings give the same curve (wall times aside)
@@ -114,50 +104,46 @@ def train_baseline(
 
     Args:
         method: ``"ppo"`` or ``"sac"``.
-        loop: ``"closed"`` (the policy adjusts the PD reference) or ``"open"`` (the policy sends PWM / 1000 to the
-            plant: ``system`` must name a PWM-level plant, e.g. ``SystemSpec(plant="xe75")`` or the built-in system).
-        system: the system spec both training and evaluation run on.
-        train_refs: the training references (``.q`` (T, 4) rad).
-        test_refs: the held-out references the curve is measured on (each ≥ 4 steps).
-        budget: interaction steps to train for (≥ 1): steps of all parallel environments summed, the paper's I.S.
-            With N environments training stops at the first multiple of N that reaches it.
-        seed: seed of SB3 (Python, numpy, torch, the action space) and of the environments (environment i: seed + i).
-        folder: output folder for ``curve.json`` and ``model.zip`` (created; other files in it are left alone).
+        run: the run (:func:`~efficienttrack.baselines.curve.training_run`): ``loop`` ``"closed"`` (the policy adjusts
+            the PD reference) or ``"open"`` (the policy sends PWM / 1000 to the plant under ``system``); ``budget``,
+            the steps of all parallel environments summed (with N environments training stops at the first multiple
+            of N that reaches it); ``seed`` (≤ ``MAX_SB3_SEED``) seeds SB3 (Python, numpy, torch, the action space)
+            and the environments (environment i: seed + i); ``folder`` gets ``curve.json`` and ``model.zip`` (created;
+            other files in it are left alone).
         preset: ``"paper"``, ``"cpu"``, ``"tiny"`` (:data:`~efficienttrack.baselines.settings.PRESETS`) or the method's
             settings.
-        eval_at: interaction counts to evaluate at, each in ``[1, budget]``; None for :func:`default_eval_points`.
         progress: a display to show the training steps and the last MAE on, or None for no progress.
         save_every_seconds: wall seconds between saves of the training state (0: at every rollout's start).
 
     Returns:
         One point per measurement, in order: ``{"interaction_steps": int (the count when measured: the first
         multiple of N at or after the requested point), "wall_seconds": float (training wall time so far, building
-        the model included, evaluations excluded), "metrics": dict (compute_metrics of the test episodes)}``.
+        the model included, evaluations excluded), "metrics": dict (compute_metrics of the test episodes)}``, and
+        ``"validation"`` (compute_metrics of the validation episodes) when the run has validation references.
 
     Raises:
-        EfficientTrackError: an unknown method, loop or preset, a budget < 1, an evaluation point outside
-            ``[1, budget]``, a bad seed, a system that is no SystemSpec, no references or a test reference shorter
-            than 4 steps, an output folder that cannot be written or is being written by
-            another process, a training state in the folder from another run, or a problem the environments report
-            (a system spec, a reference outside the limits).
+        EfficientTrackError: an unknown method or preset, a run that is no TrainingRun, a seed beyond
+            ``MAX_SB3_SEED``, an output folder that cannot be written or is being written by another process, a
+            training state in the folder from another run, or a problem the environments report (a system spec, a
+            reference outside the limits).
     """
     settings = method_settings(method, preset)
-    if isinstance(seed, int) and seed > MAX_SB3_SEED:  # before check_run, which creates the folder
-        raise EfficientTrackError(f"seed: SB3 needs a seed in [0, {MAX_SB3_SEED}], got {seed}")
-    run = check_run(loop, system, train_refs, test_refs, budget, seed, folder, eval_at)
-    budget, points, folder, train_refs, test_refs = run.budget, run.points, run.folder, run.train_refs, run.test_refs
+    run = check_training_run(run)
+    if run.seed > MAX_SB3_SEED:
+        raise EfficientTrackError(f"seed: SB3 needs a seed in [0, {MAX_SB3_SEED}], got {run.seed}")
+    loop, system, seed, folder, train_refs = run.loop, run.system, run.seed, run.folder, run.train_refs
     header = {
         "method": method,
         "loop": loop,
         "seed": seed,
-        "budget": budget,
+        "budget": run.budget,
         "system": system.to_dict(),
         "settings": asdict(settings),
     }
-    run_id = run_identity(header, train_refs, test_refs)
+    run_id = run_identity(header, run)
     state_file = folder / STATE_FILE
     with output_lock(folder / CURVE_FILE, "folder", folder=False):
-        recorder = CurveRecorder(header, folder / CURVE_FILE, open_system(loop, system), test_refs, progress, budget)
+        recorder = CurveRecorder(run, header, open_system(loop, system), progress)
         env: VecEnv = SB3VecEnv(TrackingVectorEnv(settings.n_envs, loop=loop, system=system, refs=train_refs))
         see = learner_input(settings.inputs, loop, system, train_refs)
         if isinstance(see, ObservationPipeline):  # the input every learner shares, from the training references only
@@ -168,13 +154,13 @@ def train_baseline(
                 recorder.resume(*restore_state(model, state_file, run_id))
                 env.seed(int(np.random.SeedSequence([seed, model.num_timesteps]).generate_state(1)[0]) % MAX_SB3_SEED)
             done = model.num_timesteps
-            todo = [p for p in points if p > done]
+            todo = [p for p in run.points if p > done]
 
             def save() -> None:
                 save_state(model, state_file, run_id, recorder.curve, recorder.wall_seconds)
 
-            callback = _Curve(todo, budget, recorder, save, save_every_seconds, see)
-            model.learn(total_timesteps=budget - done, callback=callback, reset_num_timesteps=done == 0)
+            callback = _Curve(todo, run.budget, recorder, save, save_every_seconds, see)
+            model.learn(total_timesteps=run.budget - done, callback=callback, reset_num_timesteps=done == 0)
             # SB3 annotates a BufferedIOBase: the binary file atomic_write opens is one.
             atomic_write(folder / MODEL_FILE, model.save)  # type: ignore[arg-type]
             state_file.unlink(missing_ok=True)

@@ -1,8 +1,8 @@
 """The comparative study: methods × loops × seeds on one system and one train/test split, on a local pool or Ray.
 
 :mod:`~efficienttrack.study.jobs` (what a study and a job are, the presets, the validation split),
-:mod:`~efficienttrack.study.methods` (the methods by name and the jobs they give),
-:mod:`~efficienttrack.study.validation` (a baseline's points measured on the validation references too),
+:mod:`~efficienttrack.study.methods` (the methods by name and the jobs they give, a baseline's run with the
+validation references),
 :mod:`~efficienttrack.study.executors` (where jobs run),
 :mod:`~efficienttrack.study.report` (table, ``study.json``, figure) and :mod:`~efficienttrack.study.run` (a whole study);
 :mod:`~efficienttrack.study.ablations` (variants of one EfficientTrack setting at equal data) and

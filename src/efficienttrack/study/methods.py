@@ -9,8 +9,10 @@ held-out references at regular interaction counts, as a list of points::
 
 Each point is measured on the study's validation references by the path that measures it on the test references:
 the PD controller's and EfficientTrack's runtime (:func:`~efficienttrack.deploy.runtime.track`, through
-:func:`~efficienttrack.workflow.pipeline.evaluate` for a trained policy), a baseline's own recorder
-(:mod:`efficienttrack.study.validation`). The ILC oracle learns on the test references themselves and has none.
+:func:`~efficienttrack.workflow.pipeline.evaluate` for a trained policy), a baseline's own recorder (its
+:class:`~efficienttrack.baselines.curve.TrainingRun` holds them; :class:`~efficienttrack.baselines.curve.CurveRecorder`
+measures each point on them right after the test references). The ILC oracle learns on the test references themselves
+and has none.
 
 ``pd`` (the PD controller alone, one point at 0 interactions), ``efficienttrack`` (the whole pipeline after 1, 2, 5,
 10 … collection passes; in the open loop a plant model and a PWM policy, :mod:`efficienttrack.baselines.openloop`),
@@ -26,12 +28,13 @@ import importlib.util
 import json
 import time
 from collections.abc import Callable, Sequence
-from contextlib import nullcontext
 from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 
 from rich.console import Console
 
+from efficienttrack.baselines.curve import training_run
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import write_json
 from efficienttrack.core.progress import ProgressDisplay
@@ -40,7 +43,6 @@ from efficienttrack.deploy.runtime import track
 from efficienttrack.envs.core import LOOPS
 from efficienttrack.study.ablations import run_variant
 from efficienttrack.study.jobs import STUDY_PRESETS, Job, Point, Study, check_seeds, point
-from efficienttrack.study.validation import measuring_validation, require_validation
 from efficienttrack.workflow.collect import pass_counts
 from efficienttrack.workflow.pipeline import evaluate, run_pipeline
 
@@ -148,7 +150,9 @@ def run_efficienttrack(job: Job, folder: Path) -> list[Point]:
     if job.variant is not None:
         return run_variant(job, folder)
     if job.loop == "open":
-        return _baseline(job, folder, "efficienttrack.baselines.openloop", "train_efficienttrack_open")
+        from efficienttrack.baselines.openloop import train_efficienttrack_open
+
+        return _baseline(job, folder, train_efficienttrack_open)
     base = job.run_config
     curve = []
     for passes in pass_counts(job.budget, study.steps_per_pass):
@@ -171,19 +175,19 @@ def run_efficienttrack(job: Job, folder: Path) -> list[Point]:
     return curve
 
 
-def _baseline(job: Job, folder: Path, module: str, function: str, validate: bool = True, **method: str) -> list[Point]:
-    """Run a baseline's ``train_*(loop, system, train_refs, test_refs, budget, seed, folder, preset, progress)``.
+def _baseline(job: Job, folder: Path, train: Callable[..., list[Point]], validate: bool = True) -> list[Point]:
+    """Run a baseline's ``train(run, preset=..., progress=...)`` on the job's run.
 
-    With the study's validation references (and ``validate``), every point is measured on them too
-    (:func:`~efficienttrack.study.validation.measuring_validation`).
+    The run (:func:`~efficienttrack.baselines.curve.training_run`) is the job's loop, budget and seed on the study's
+    system and references; with the study's validation references (and ``validate``) every point is measured on them
+    too, and found so (:func:`require_validation`).
 
     Args:
         job: the job.
         folder: the job's folder (the baseline's ``curve.json`` goes there).
-        module: the module that defines the function (imported here: a job imports only what it runs).
-        function: the function's name.
+        train: the baseline's ``train_*`` (imported by the caller: a job imports only what it runs), with the method
+            bound for a function that trains several (the SB3 baselines).
         validate: measure the points on the validation references (False: the ILC oracle, which has no policy).
-        **method: ``method=...`` for a function that trains several methods (the SB3 baselines).
 
     Returns:
         The baseline's curve.
@@ -191,23 +195,35 @@ def _baseline(job: Job, folder: Path, module: str, function: str, validate: bool
     Raises:
         EfficientTrackError: a point that should have been measured on the validation references was not.
     """
-    train = getattr(importlib.import_module(module), function)
     study = job.study
     validation = study.validation if validate else ()
-    with ProgressDisplay() as progress, measuring_validation(train, validation) if validation else nullcontext():
-        curve = train(
-            **method,
-            loop=job.loop,
-            system=study.system,
-            train_refs=list(study.train),
-            test_refs=list(study.test),
-            budget=job.budget,
-            seed=job.seed,
-            folder=folder,
-            preset=STUDY_PRESETS[study.preset].baselines,
-            progress=progress,  # plain lines in the job's log
-        )
+    run = training_run(
+        job.loop, study.system, study.train, study.test, job.budget, job.seed, folder, validation_refs=validation
+    )
+    with ProgressDisplay() as progress:  # plain lines in the job's log
+        curve = train(run, preset=STUDY_PRESETS[study.preset].baselines, progress=progress)
     return require_validation(curve, job.method) if validation else curve
+
+
+def require_validation(curve: list[Point], method: str) -> list[Point]:
+    """The curve, once every point is found measured on the validation references.
+
+    Args:
+        curve: a method's points.
+        method: its name, for the error.
+
+    Returns:
+        ``curve``.
+
+    Raises:
+        EfficientTrackError: a point has no ``"validation"`` metrics (saying how many).
+    """
+    missing = sum("validation" not in p for p in curve)
+    if missing:
+        raise EfficientTrackError(
+            f"{method}: {missing} of its {len(curve)} curve points were not measured on the validation references"
+        )
+    return curve
 
 
 def run_sb3(job: Job, folder: Path) -> list[Point]:
@@ -220,7 +236,9 @@ def run_sb3(job: Job, folder: Path) -> list[Point]:
     Returns:
         The baseline's curve: its deterministic policy on the test references at its evaluation interaction counts.
     """
-    return _baseline(job, folder, "efficienttrack.baselines.sb3", "train_baseline", method=job.method)
+    from efficienttrack.baselines.sb3 import train_baseline
+
+    return _baseline(job, folder, partial(train_baseline, job.method))
 
 
 def run_supertrack(job: Job, folder: Path) -> list[Point]:
@@ -235,7 +253,9 @@ def run_supertrack(job: Job, folder: Path) -> list[Point]:
     Returns:
         Its curve on the test references.
     """
-    return _baseline(job, folder, "efficienttrack.baselines.supertrack", "train_supertrack")
+    from efficienttrack.baselines.supertrack import train_supertrack
+
+    return _baseline(job, folder, train_supertrack)
 
 
 def run_tdmpc(job: Job, folder: Path) -> list[Point]:
@@ -248,7 +268,9 @@ def run_tdmpc(job: Job, folder: Path) -> list[Point]:
     Returns:
         Its curve on the test references.
     """
-    return _baseline(job, folder, "efficienttrack.baselines.tdmpc", "train_tdmpc")
+    from efficienttrack.baselines.tdmpc import train_tdmpc
+
+    return _baseline(job, folder, train_tdmpc)
 
 
 def check_trial(study: Study) -> None:
@@ -281,7 +303,9 @@ def run_ilc(job: Job, folder: Path) -> list[Point]:
     Returns:
         One point per trial: the test metrics after k trials at k × one trial's interaction steps.
     """
-    return _baseline(job, folder, "efficienttrack.baselines.ilc", "train_ilc", validate=False)
+    from efficienttrack.baselines.ilc import train_ilc
+
+    return _baseline(job, folder, train_ilc, validate=False)
 
 
 SB3_MODULES = ("stable_baselines3", "efficienttrack.baselines.sb3")

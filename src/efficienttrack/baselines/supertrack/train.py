@@ -28,13 +28,12 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, replace
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from efficienttrack.baselines.agent import Noise, policy_act
-from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_run
+from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, TrainingRun, check_training_run
 from efficienttrack.baselines.resume import SAVE_EVERY_SECONDS, STATE_FILE, run_identity
 from efficienttrack.baselines.supertrack.settings import SuperTrackSettings, supertrack_settings
 from efficienttrack.baselines.supertrack.state import Progress, restore_state, save_state
@@ -46,7 +45,6 @@ from efficienttrack.envs.core import open_system
 from efficienttrack.envs.evaluation import evaluate
 from efficienttrack.learn.dynamics import ClosedLoopModel, PlantModel, train_model
 from efficienttrack.learn.policy import AdjustmentPolicy, PWMPolicy, train_policy
-from efficienttrack.systems.spec import SystemSpec
 
 
 def draw_references(refs: Sequence[Reference], steps: int, rng: np.random.Generator) -> list[Reference]:
@@ -81,50 +79,40 @@ def keep_recent(buffer: list[EpisodeRecord], capacity: int) -> list[EpisodeRecor
 
 
 def train_supertrack(
-    loop: str,
-    system: SystemSpec,
-    train_refs: Sequence[Reference],
-    test_refs: Sequence[Reference],
-    budget: int,
-    seed: int,
-    folder: str | Path,
+    run: TrainingRun,
     preset: str | SuperTrackSettings = "cpu",
-    eval_at: Sequence[int] | None = None,
     progress: ProgressDisplay | None = None,
     save_every_seconds: float = SAVE_EVERY_SECONDS,
 ) -> list[dict[str, Any]]:
-    """Train SuperTrack for ``budget`` interaction steps (module docstring); the curve of its test metrics.
+    """Train SuperTrack for ``run.budget`` interaction steps (module docstring); the curve of its test metrics.
 
     The last iteration collects only what is left of the budget (whole episodes, so it may end up to one episode
-    past it). ``folder/curve.json`` is rewritten after each point. After an iteration, every ``save_every_seconds``,
-    the state goes to ``folder/training_state.pt`` (:mod:`.state`: no pickle); the same run started again in the folder
-    resumes from it and continues as the uninterrupted run would. The state is removed once the run has finished.
+    past it). A point is measured after the first iteration whose count reaches it (points reached together once), on
+    the test references and then, when the run has them, the validation references. ``folder/curve.json`` is rewritten
+    after each point. After an iteration, every ``save_every_seconds``, the state goes to ``folder/training_state.pt``
+    (:mod:`.state`: no pickle); the same run started again in the folder resumes from it and continues as the
+    uninterrupted run would. The state is removed once the run has finished.
 
     Args:
-        loop: ``"closed"`` (the policy adjusts the PD reference) or ``"open"`` (the policy sends PWM / 1000 to the
-            plant under ``system``).
-        system: the system spec training and evaluation run on.
-        train_refs: the training references (``.q`` (T, 4) rad).
-        test_refs: the held-out references (each ≥ 4 steps).
-        budget: interaction steps to train for, ≥ 1.
-        seed: seed of the reference draws, the noise and the trainings.
-        folder: output folder for ``curve.json``.
+        run: the run (:func:`~efficienttrack.baselines.curve.training_run`): ``loop`` ``"closed"`` (the policy adjusts
+            the PD reference) or ``"open"`` (the policy sends PWM / 1000 to the plant under ``system``); ``seed`` seeds
+            the reference draws, the noise and the trainings; ``folder`` gets ``curve.json``.
         preset: ``"cpu"``, ``"tiny"`` (:data:`~.settings.SUPERTRACK_PRESETS`) or a :class:`SuperTrackSettings`.
-        eval_at: interaction counts to evaluate at, each in ``[1, budget]``; None: 1, 2, 5 × 10^k and the budget.
-            A point is measured after the first iteration whose count reaches it (points reached together once).
         progress: a display for the interaction count and the last MAE, or None.
         save_every_seconds: wall seconds between saves of the state (0: after every iteration).
 
     Returns:
         One point per measurement: ``{"interaction_steps", "wall_seconds" (training so far, evaluations excluded),
-        "metrics": compute_metrics of the test episodes, "iterations"}``.
+        "metrics": compute_metrics of the test episodes, "iterations"}``, and ``"validation"`` (compute_metrics of the
+        validation episodes) when the run has validation references.
 
     Raises:
-        EfficientTrackError: an unknown loop or preset, the open loop without a plant, a bad budget, seed, evaluation
-            point, reference or folder, or a training state in the folder from another run.
+        EfficientTrackError: an unknown preset, a run that is no TrainingRun, a folder being written by another
+            process, or a training state in the folder from another run.
     """
     settings = supertrack_settings(preset)
-    run = check_run(loop, system, train_refs, test_refs, budget, seed, folder, eval_at)
+    run = check_training_run(run)
+    loop, system, seed = run.loop, run.system, run.seed
     stepped = open_system(loop, system)
     closed = loop == "closed"
     world, actor = (ClosedLoopModel, AdjustmentPolicy) if closed else (PlantModel, PWMPolicy)
@@ -137,10 +125,10 @@ def train_supertrack(
     buffer: list[EpisodeRecord] = []
     model, policy = None, None
     count, iteration = 0, 0
-    run_id = run_identity(header, run.train_refs, run.test_refs)
+    run_id = run_identity(header, run)
     state_file, saved = run.folder / STATE_FILE, time.perf_counter()
     with output_lock(run.folder / CURVE_FILE, "folder", folder=False):
-        recorder = CurveRecorder(header, run.folder / CURVE_FILE, stepped, run.test_refs, progress, run.budget)
+        recorder = CurveRecorder(run, header, stepped, progress)
         try:
             if state_file.exists():
                 model, policy = world(settings.model), actor(policy_cfg)

@@ -10,7 +10,7 @@ An interaction step is one environment step of the machine (20 Hz), the paper's 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -18,7 +18,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, check_run
+from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, TrainingRun, check_training_run
 from efficienttrack.baselines.resume import SAVE_EVERY_SECONDS, STATE_FILE, run_identity
 from efficienttrack.baselines.tdmpc.buffer import PrioritizedBuffer
 from efficienttrack.baselines.tdmpc.learner import Learner
@@ -28,12 +28,10 @@ from efficienttrack.baselines.tdmpc.settings import TDMPCSettings, tdmpc_setting
 from efficienttrack.baselines.tdmpc.state import Generators, restore_state, save_state
 from efficienttrack.core.fileio import atomic_write, output_lock
 from efficienttrack.core.progress import ProgressDisplay
-from efficienttrack.data.references import Reference
 from efficienttrack.envs.core import open_system
 from efficienttrack.envs.features import See, learner_input
 from efficienttrack.envs.single import TrackingEnv
 from efficienttrack.learn.nets import resolve_device
-from efficienttrack.systems.spec import SystemSpec
 
 METHOD = "tdmpc"
 """The method's name in ``curve.json`` and the study."""
@@ -108,23 +106,18 @@ def evaluation_agent(
 
 
 def train_tdmpc(
-    loop: str,
-    system: SystemSpec,
-    train_refs: Sequence[Reference],
-    test_refs: Sequence[Reference],
-    budget: int,
-    seed: int,
-    folder: str | Path,
+    run: TrainingRun,
     preset: str | TDMPCSettings = "cpu",
-    eval_at: Sequence[int] | None = None,
     progress: ProgressDisplay | None = None,
     save_every_seconds: float = SAVE_EVERY_SECONDS,
 ) -> list[dict[str, Any]]:
-    """Train TD-MPC for ``budget`` interaction steps on one machine; evaluate it on the test references along the way.
+    """Train TD-MPC for ``run.budget`` interaction steps on one machine; evaluate it on the test references along the way.
 
-    When the interaction count reaches a point of ``eval_at``, the deterministic agent (``settings.evaluate_with``:
+    When the interaction count reaches a point of ``run.points``, the deterministic agent (``settings.evaluate_with``:
     π's mean action by default, or the planner without noise) runs every test reference once
-    (:func:`efficienttrack.envs.evaluate`) and :func:`efficienttrack.data.metrics.compute_metrics` scores it.
+    (:func:`efficienttrack.envs.evaluate`) and :func:`efficienttrack.data.metrics.compute_metrics` scores it; then the
+    same agent runs every validation reference, when the run has them (after the test references, so that the
+    planner's generator meets those as without validation).
     ``folder/curve.json`` (``{"method": "tdmpc", "loop", "seed", "budget", "system", "settings", "curve"}``) is
     rewritten atomically after each point. Between episodes, every ``save_every_seconds``, the state goes to
     ``folder/training_state.pt`` (:mod:`.state`: no pickle); the same run started again in the folder resumes from it
@@ -133,47 +126,40 @@ def train_tdmpc(
     one machine and device with the same number of torch threads; the global torch generator is left as it was.
 
     Args:
-        loop: ``"closed"`` (the agent adjusts the PD reference) or ``"open"`` (the agent sends PWM / 1000; ``system``
-            must name a PWM-level plant, e.g. ``SystemSpec(plant="xe75")`` or the built-in system).
-        system: the system spec training and evaluation run on.
-        train_refs: the training references (``.q`` (T, 4) rad).
-        test_refs: the held-out references the curve is measured on (each ≥ 4 steps).
-        budget: interaction steps to train for (≥ 1), the paper's I.S.
-        seed: seeds the networks' initialization, the planner's and π's noise, the replay sampling, the seeding
-            phase's random actions and the environment's reference draws.
-        folder: output folder for ``curve.json`` and ``model.pt`` (created; other files in it are left alone).
+        run: the run (:func:`~efficienttrack.baselines.curve.training_run`): ``loop`` ``"closed"`` (the agent adjusts
+            the PD reference) or ``"open"`` (the agent sends PWM / 1000 to the plant under ``system``); ``seed`` seeds
+            the networks' initialization, the planner's and π's noise, the replay sampling, the seeding phase's random
+            actions and the environment's reference draws; ``folder`` gets ``curve.json`` and ``model.pt`` (created;
+            other files in it are left alone).
         preset: ``"cpu"``, ``"tiny"`` (:data:`~efficienttrack.baselines.tdmpc.settings.PRESETS`) or a
             :class:`~efficienttrack.baselines.tdmpc.settings.TDMPCSettings`.
-        eval_at: interaction counts to evaluate at, each in ``[1, budget]``; None for
-            :func:`~efficienttrack.baselines.curve.default_eval_points`.
         progress: a display to show the training steps and the last MAE on, or None.
         save_every_seconds: wall seconds between saves of the state (0: at every episode's end).
 
     Returns:
         One point per evaluation, in order: ``{"interaction_steps": int, "wall_seconds": float (training wall time so
-        far, building included, evaluations excluded), "metrics": dict (compute_metrics of the test episodes)}``.
+        far, building included, evaluations excluded), "metrics": dict (compute_metrics of the test episodes)}``, and
+        ``"validation"`` (compute_metrics of the validation episodes) when the run has validation references.
 
     Raises:
-        EfficientTrackError: an unknown loop or preset, a budget < 1, an evaluation point outside ``[1, budget]``,
-            a bad seed, a system that is no SystemSpec, no references or a test reference shorter than 4 steps, a
-            device that is not available, an output folder that cannot be written or is being written by another
-            process, a training state in the folder from another run, or a problem the environment reports (a system
-            spec, a reference outside the limits).
+        EfficientTrackError: an unknown preset, a run that is no TrainingRun, a device that is not available, an output
+            folder that cannot be written or is being written by another process, a training state in the folder from
+            another run, or a problem the environment reports (a system spec, a reference outside the limits).
     """
     settings = tdmpc_settings(preset)
-    run = check_run(loop, system, train_refs, test_refs, budget, seed, folder, eval_at)
-    budget, points, folder, train_refs, test_refs = run.budget, run.points, run.folder, run.train_refs, run.test_refs
+    run = check_training_run(run)
+    loop, system, folder, train_refs = run.loop, run.system, run.folder, run.train_refs
     device = resolve_device(settings.device)
-    header = {"method": METHOD, "loop": loop, "seed": seed, "budget": budget, "system": system.to_dict()}
+    header = {"method": METHOD, "loop": loop, "seed": run.seed, "budget": run.budget, "system": system.to_dict()}
     header["settings"] = asdict(settings)
-    run_id = run_identity(header, train_refs, test_refs)
+    run_id = run_identity(header, run)
     with output_lock(folder / CURVE_FILE, "folder", folder=False):
-        recorder = CurveRecorder(header, folder / CURVE_FILE, open_system(loop, system), test_refs, progress, budget)
+        recorder = CurveRecorder(run, header, open_system(loop, system), progress)
         env = TrackingEnv(loop, system, train_refs)
         see = learner_input(settings.inputs, loop, system, train_refs)
         try:
             resume = Resume(folder / STATE_FILE, run_id, save_every_seconds)
-            model = _run(env, see, settings, device, budget, seed, points, recorder, resume)
+            model = _run(env, see, settings, device, run.budget, run.seed, run.points, recorder, resume)
             atomic_write(folder / MODEL_FILE, lambda f: torch.save(model.state_dict(), f))
             resume.state_file.unlink(missing_ok=True)
         finally:
