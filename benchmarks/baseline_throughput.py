@@ -1,12 +1,14 @@
-"""Wall time of the SB3 baselines at the ``full`` settings on one thread: 1,000 interaction steps, and 100,000 extrapolated.
+"""Wall and CPU time of the SB3 baselines on one thread: PPO at its cpu settings, SAC at candidate settings.
 
-Run: PYTHONPATH=src .venv/bin/python benchmarks/baseline_throughput.py [--steps 1000]
+Run: PYTHONPATH=src .venv/bin/python benchmarks/baseline_throughput.py [--steps 1000] [--system paper]
 PPO (16 environments, SB3's 2048 steps per environment per rollout) does not update within 1,000 steps, so its
 update is timed apart, on a 16 × 64-step rollout, per minibatch gradient step; the 100,000-step figure adds the 3
-updates of 5,120 minibatches (10 epochs × 32,768 / 64) that 100,000 steps hold. SAC (one environment, 100 random steps,
-then one gradient step of 256 per step) is timed over the steps after its warm-up. One evaluation (the deterministic
-policy on 8 generated test cycles) is timed too: a curve measures one per evaluation point. The 100,000-step figures
-are extrapolations from these measurements, not runs.
+updates of 5,120 minibatches (10 epochs × 32,768 / 64) that 100,000 steps hold. SAC is timed at each setting of
+``SAC_CANDIDATES`` (changes to the ``cpu`` preset: parallel environments, gradient steps, batch, network), over the
+interaction steps after its 100 random warm-up steps, and extrapolated to the paper's 442,892 steps: its cost is its
+gradient steps, so one gradient step per k interaction steps costs about a k-th. One evaluation (the deterministic
+policy on 8 generated test cycles) is timed too: a curve measures one per evaluation point. Every environment step
+goes through the shared observation pipeline, as in training. The extrapolated figures are not runs.
 """
 
 import os
@@ -24,11 +26,24 @@ import torch  # noqa: E402
 from stable_baselines3.common.callbacks import BaseCallback  # noqa: E402
 
 from efficienttrack.baselines import SB3VecEnv, method_settings  # noqa: E402
+from efficienttrack.baselines.vec_env import FeatureVecEnv  # noqa: E402
 from efficienttrack.data.cycles import generate_references  # noqa: E402
 from efficienttrack.envs import TrackingVectorEnv, evaluate  # noqa: E402
+from efficienttrack.envs.features import learner_input  # noqa: E402
+from efficienttrack.systems.spec import SystemSpec  # noqa: E402
 
 TARGET = 100_000
-"""The extrapolated budget, in interaction steps."""
+"""PPO's extrapolated budget, in interaction steps."""
+SAC_TARGET = 442_892
+"""SAC's extrapolated budget: the paper's closed-loop SAC row (Table I)."""
+SAC_CANDIDATES: dict[str, dict[str, object]] = {
+    "1 env, 1 step of 256 per step, (256, 256) [cpu until 2026-11-26]": {"n_envs": 1},
+    "2 envs, 1 step of 256 per 2 steps, (256, 256)": {"n_envs": 2},
+    "4 envs, 1 step of 256 per 4 steps, (256, 256) [cpu]": {"n_envs": 4},
+    "8 envs, 1 step of 512 per 8 steps, (256, 256)": {"n_envs": 8, "batch_size": 512},
+    "16 envs, 1 step of 256 per 16 steps, (512, 512, 512, 128)": {"n_envs": 16, "net_arch": (512, 512, 512, 128)},
+}
+"""SAC settings timed: changes to the ``cpu`` preset (its batch 256 and (256, 256) networks unless named)."""
 
 
 def now() -> np.ndarray:
@@ -37,26 +52,28 @@ def now() -> np.ndarray:
 
 
 class Clock(BaseCallback):
-    """Stops learning at ``stop`` interaction steps and notes the (wall, CPU) time when ``mark`` was reached."""
+    """Stops learning at ``stop`` interaction steps; notes the count and (wall, CPU) time of the last step ≤ ``mark``."""
 
     def __init__(self, mark: int, stop: int) -> None:
         super().__init__()
-        self.mark, self.stop, self.marked = mark, stop, now()
+        self.mark, self.stop, self.marked, self.marked_at = mark, stop, now(), 0
 
     def _on_step(self) -> bool:
         if self.num_timesteps <= self.mark:
-            self.marked = now()
+            self.marked, self.marked_at = now(), self.num_timesteps
         return self.num_timesteps < self.stop
 
 
-def timed_learn(settings, refs, steps: int, mark: int = 0) -> tuple[np.ndarray, np.ndarray, object]:
-    """((wall, CPU) s from ``mark`` to ``steps`` interaction steps, (wall, CPU) s in all, model) of ``settings`` learning."""
-    model = settings.build(SB3VecEnv(TrackingVectorEnv(settings.n_envs, refs=refs)), seed=0)
+def timed_learn(settings, system, refs, steps: int, mark: int = 0) -> tuple[np.ndarray, int, np.ndarray, object]:
+    """((wall, CPU) s after ``mark``, interaction steps after it, (wall, CPU) s in all, model) of ``settings`` learning."""
+    env = SB3VecEnv(TrackingVectorEnv(settings.n_envs, system=system, refs=refs))
+    see = learner_input(settings.inputs, "closed", system, refs)
+    model = settings.build(env if settings.inputs == "raw" else FeatureVecEnv(env, see), seed=0)
     clock = Clock(mark, steps)
     start = now()
     model.learn(total_timesteps=steps, callback=clock)
     end = now()
-    return end - (clock.marked if mark else start), end - start, model
+    return end - (clock.marked if mark else start), model.num_timesteps - clock.marked_at, end - start, model
 
 
 def seconds(pair: np.ndarray) -> str:
@@ -76,44 +93,47 @@ def minutes(pair: np.ndarray) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--steps", type=int, default=1000, help="interaction steps timed per method")
+    parser.add_argument("--steps", type=int, default=1000, help="interaction steps timed per method and SAC setting")
+    parser.add_argument("--system", default="xe75", help="built-in system: xe75 or paper (the paper's simulator)")
     args = parser.parse_args()
     warm_up = method_settings("sac").learning_starts
     if args.steps <= warm_up:
         parser.error(f"--steps must exceed SAC's {warm_up} warm-up steps (the per-step time is measured after them)")
     torch.set_num_threads(1)
+    system = SystemSpec(system=args.system)
     refs = generate_references(16, seed=0)
     train, test = refs[:8], refs[8:]
     print(f"command: {' '.join([os.path.basename(sys.executable), *sys.argv])}  (torch threads 1, device cpu)")
+    print(f"system {args.system}, load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs at the start")
 
     ppo = dataclasses.replace(method_settings("ppo"), device="cpu")
-    collect, _, model = timed_learn(ppo, train, args.steps)
+    collect, _, _, model = timed_learn(ppo, system, train, args.steps)
     small = dataclasses.replace(ppo, n_steps=64)  # one rollout of 16 × 64 = 1024 steps, its update, one more step
     rollout = small.n_envs * small.n_steps
-    update, _, _ = timed_learn(small, train, rollout + 1, mark=rollout)
+    update, _, _, _ = timed_learn(small, system, train, rollout + 1, mark=rollout)
     per_minibatch = update / (small.n_epochs * rollout // small.batch_size)
     full_update = ppo.n_epochs * (ppo.n_envs * ppo.n_steps // ppo.batch_size) * per_minibatch
     updates = TARGET // (ppo.n_envs * ppo.n_steps)
     ppo_target = collect * TARGET / args.steps + updates * full_update
+    see = learner_input(ppo.inputs, "closed", system, train)
     start = now()
-    evaluate(lambda obs: model.predict(obs, deterministic=True)[0], test)
+    evaluate(lambda obs: model.predict(see(obs), deterministic=True)[0], test, "closed", system)
     evaluation = now() - start
-
-    sac = dataclasses.replace(method_settings("sac"), device="cpu")
-    updating, sac_total, _ = timed_learn(sac, train, args.steps, mark=sac.learning_starts)
-    per_step = updating / (args.steps - sac.learning_starts)
-    sac_target = sac_total - updating + per_step * (TARGET - sac.learning_starts)
-
     print(f"PPO, 16 environments: {args.steps:,} steps (measured, collection only): {seconds(collect)}")
     print(f"  one minibatch of {ppo.batch_size} (measured): {millis(per_minibatch)}")
     print(f"  one update at the full settings, 10 x 32,768 / 64 minibatches (extrapolated): {seconds(full_update)}")
     print(f"  {TARGET:,} steps, {updates} updates (extrapolated): {minutes(ppo_target)}")
-    print(f"SAC, 1 environment: {args.steps:,} steps (measured): {seconds(sac_total)}")
-    print(f"  per step after the warm-up, with its gradient step (measured): {millis(per_step)}")
-    print(f"  {TARGET:,} steps (extrapolated): {minutes(sac_target)}")
     print(
         f"one evaluation on {len(test)} test cycles ({sum(len(r) - 1 for r in test):,} steps, measured): {seconds(evaluation)}"
     )
+
+    print(f"SAC, per interaction step after the warm-up (measured), and {SAC_TARGET:,} steps (extrapolated):")
+    for name, change in SAC_CANDIDATES.items():
+        sac = dataclasses.replace(method_settings("sac"), device="cpu", **change)
+        updating, timed, total, _ = timed_learn(sac, system, train, args.steps, mark=sac.learning_starts)
+        per_step = updating / timed
+        target = total - updating + per_step * (SAC_TARGET - sac.learning_starts)
+        print(f"  {name}: {millis(per_step)} per step; {minutes(target)}")
 
 
 if __name__ == "__main__":

@@ -1,8 +1,12 @@
 """The SB3 baselines: the VecEnv adapter equals N single environments, PPO and SAC train and give seeded curves."""
 
+import ast
+import dataclasses
 import io
 import json
 import math
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -157,11 +161,15 @@ def test_a_run_with_validation_references_measures_every_point_on_them_too(refs,
         )
 
 
-RESUMED_RUNS = [("ppo", TINY_PPO, [16, 48, 96], 64), ("sac", TINY_SAC, [10, 30, 60], 59)]
+RESUMED_RUNS = [
+    ("ppo", TINY_PPO, [16, 48, 96], 64),
+    ("sac", TINY_SAC, [10, 30, 60], 59),
+    ("sac", dataclasses.replace(TINY_SAC, n_envs=4), [12, 32, 60], 56),  # a replay buffer of 4 columns, as `cpu`'s
+]
 """Method, settings, points, and the count of the last state saved before the last point (a rollout's start)."""
 
 
-@pytest.mark.parametrize(("method", "settings", "points", "saved_at"), RESUMED_RUNS, ids=["ppo", "sac"])
+@pytest.mark.parametrize(("method", "settings", "points", "saved_at"), RESUMED_RUNS, ids=["ppo", "sac", "sac-4-envs"])
 def test_an_interrupted_run_resumes_from_its_training_state(
     refs, tmp_path, monkeypatch, interrupt_at, method, settings, points, saved_at
 ):
@@ -259,6 +267,43 @@ def test_presets_keep_the_papers_settings():
     assert method_settings("ppo").n_envs == 16
     assert method_settings("sac").buffer_size == 100_000
     assert method_settings("ppo", "tiny").n_envs < 16 and method_settings("sac", "tiny").net_arch == (32, 32)
+
+
+def test_the_sac_cpu_preset_takes_one_gradient_step_per_four_interaction_steps():
+    cpu = method_settings("sac", "cpu")
+    assert (cpu.n_envs, cpu.train_freq, cpu.gradient_steps, cpu.batch_size) == (4, 1, 1, 256)
+    assert (cpu.gamma, cpu.learning_rate, cpu.net_arch) == (0.98, 3e-5, (256, 256))  # the research code's γ and rate
+    assert SACSettings() == SACSettings(n_envs=1, learning_rate=3e-4, gamma=0.99)  # SB3's defaults: cpu until 2026-11-26
+
+
+DOCS = Path(__file__).resolve().parents[1] / "docs" / "baselines.md"
+
+
+def documented_presets(title: str) -> dict[str, dict[str, object]]:
+    """The preset table under ``title`` in docs/baselines.md: {preset: {field: value}} (``a``, ``b`` rows give both)."""
+    lines = DOCS.read_text().split(title, 1)[1].strip().splitlines()
+    header = [cell.strip(" `") for cell in lines[0].strip("|").split("|")]
+    presets: dict[str, dict[str, object]] = {name: {} for name in ("paper", "cpu", "tiny")}
+    for line in lines[2:]:
+        if not line.startswith("|"):
+            break
+        cells = [cell.strip() for cell in line.strip("|").split("|")]
+        fields = re.findall(r"`(\w+)`", cells[0].split(":")[0])
+        for name in presets:
+            text = re.sub(r"(?<=\d),(?=\d{3}\b)", "", cells[header.index(name)])  # 100,000 → 100000
+            value = text if text == "relative" else ast.literal_eval(text)
+            values = value if len(fields) > 1 else (value,)
+            presets[name] |= dict(zip(fields, values, strict=True))
+    return presets
+
+
+@pytest.mark.parametrize("method", ["ppo", "sac"])
+def test_the_docs_preset_tables_match_the_code(method):
+    documented = documented_presets(f"{method.upper()} (SB3 `{method.upper()}`, `MlpPolicy`):")
+    for preset, values in documented.items():
+        settings = dataclasses.asdict(method_settings(method, preset))
+        settings.pop("device")  # "auto" everywhere, described in the text
+        assert values == settings, f"{method} {preset}"
 
 
 def test_the_paper_presets_carry_the_research_codes_settings():

@@ -2,10 +2,15 @@
 
 ``paper`` takes the research code's values (``comparative_experiments/PidExcavatorRL``: ``PPO_Agent.py``,
 ``train_ppo.py``, ``SAC_Agent.py``, ``train_sac.py`` in the public repository ZiqingZou/EfficientTrack) where SB3 can
-express them; docs/baselines.md lists each field and its source. ``cpu`` is the paper's stated setup (PPO: 16
-parallel environments; SAC: a replay buffer of 100,000 transitions) with Stable-Baselines3's own defaults (SB3 2.x,
-``MlpPolicy``) for everything else. ``tiny`` shrinks networks, rollouts and batches so that a few thousand
-interaction steps take seconds on a CPU (tests and smoke runs; its curves say nothing about the methods).
+express them; docs/baselines.md lists each field and its source. ``cpu`` is what one CPU thread carries: for PPO
+the paper's 16 parallel environments with Stable-Baselines3's own defaults (SB3 2.x, ``MlpPolicy``) for everything
+else; for SAC the research code's γ and learning rate and the paper's 100,000-transition buffer, with SB3's
+(256, 256) networks and batch of 256 and one gradient step per 4 interaction steps (4 environments), so that the
+paper's 442,892 steps take about 45 minutes of one CPU thread instead of 3 hours (docs/baselines.md has the
+measurements). The dataclasses' own defaults are SB3's, with the paper's 16 PPO environments and SAC buffer
+(``SACSettings()`` was the SAC ``cpu`` preset until 2026-11-26). ``tiny`` shrinks networks, rollouts and batches
+so that a few thousand interaction steps take seconds on a CPU (tests and smoke runs; its curves say nothing about
+the methods).
 
 Every preset gives the learner the input EfficientTrack's networks see (``inputs="relative"``:
 :class:`~efficienttrack.envs.features.ObservationPipeline`) and starts it at the PD controller: the action mean's
@@ -151,7 +156,9 @@ class SACSettings:
     """Settings of SAC (SB3's ``SAC`` with an ``MlpPolicy``): the paper's where it gives them, SB3's defaults otherwise."""
 
     n_envs: int = 1
-    """Parallel environments (the paper does not say; one, as SB3's SAC examples use)."""
+    """Parallel environments on one batched system (the paper: one; SB3's SAC examples use one). With ``train_freq``
+    and ``gradient_steps`` of 1, SB3 takes one gradient step per vector step, i.e. one per ``n_envs`` interaction
+    steps."""
     buffer_size: int = 100_000
     """Replay buffer capacity in transitions (the paper: 100,000; SB3's default is 1,000,000)."""
     learning_starts: int = 100
@@ -165,7 +172,7 @@ class SACSettings:
     tau: float = 0.005
     """Polyak coefficient of the target critics (SB3 default)."""
     train_freq: int = 1
-    """Environment steps (per environment) between updates (SB3 default)."""
+    """Vector-environment steps (each ``n_envs`` interaction steps) between updates (SB3 default)."""
     gradient_steps: int = 1
     """Gradient steps per update (SB3 default)."""
     ent_coef: float | None = None
@@ -229,10 +236,15 @@ PPO_PRESETS: dict[str, PPOSettings] = {
 
 SAC_PRESETS: dict[str, SACSettings] = {
     "paper": SACSettings(batch_size=4096, learning_rate=3e-5, gamma=0.98, net_arch=PAPER_NET),
-    "cpu": SACSettings(),
+    "cpu": SACSettings(n_envs=4, learning_rate=3e-5, gamma=0.98),
     "tiny": SACSettings(buffer_size=10_000, learning_starts=50, batch_size=32, net_arch=(32, 32)),
 }
-"""SAC's presets: ``paper`` (the research code's), ``cpu`` (its 100,000-transition buffer, SB3's defaults), ``tiny``."""
+"""SAC's presets: ``paper`` (the research code's), ``cpu`` (the research code's γ 0.98 and learning rate 3e-5, its
+100,000-transition buffer, SB3's (256, 256) networks and batch 256, one gradient step per 4 interaction steps on 4
+environments: about 6 ms of CPU a step on one thread, against 24 ms at one gradient step per step), ``tiny``.
+
+``SACSettings()`` (SB3's defaults with the 100,000 buffer: one environment, one gradient step per step, learning rate
+3e-4, γ 0.99) was the ``cpu`` preset until 2026-11-26; the xe75 SAC results made before then used it."""
 
 PRESETS: dict[str, dict[str, PPOSettings] | dict[str, SACSettings]] = {"ppo": PPO_PRESETS, "sac": SAC_PRESETS}
 """Presets by method name, then preset name."""
