@@ -1,12 +1,13 @@
-"""Wall time of TD-MPC at the ``full`` settings on one thread, per interaction step after the seeding, extrapolated.
+"""Wall and CPU time of TD-MPC on one thread, per interaction step after the seeding, extrapolated.
 
-Run: PYTHONPATH=src .venv/bin/python benchmarks/tdmpc_throughput.py [--steps 1000]
-The seeding phase (5,000 random steps into the replay buffer) is run and timed; then ``--steps`` steps of what every
-later step does (plan with 6 × (512 + 25) sequences over the horizon of the schedule's end, step the machine, store,
-one update of batch 512 over 5 steps) are timed, planning and update apart. One evaluation is timed with π's mean
-action (the default) and one planned step for the 8 test cycles at once (``evaluate_with="plan"``). The figures for
-1,000 steps (when fewer are timed), 100,000 and the paper's 197,890 steps (the burst of 5,000 updates when the seeding
-ends included) are extrapolations from these measurements, not runs.
+Run: PYTHONPATH=src .venv/bin/python benchmarks/tdmpc_throughput.py [--steps 1000] [--preset paper] [--system paper]
+The seeding phase (``seed_steps`` random steps into the replay buffer; 5,000 at ``paper``) is run and timed; then
+``--steps`` steps of what every later step does (plan over the horizon of the schedule's end, step the machine, store,
+one update of one batch over ``horizon`` steps; at ``paper``: 6 × (512 + 25) sequences, batch 512) are timed, planning
+and update apart. One evaluation is timed with π's mean action (the default) and one planned step for the 8 test cycles
+at once (``evaluate_with="plan"``). The figures for 1,000 steps (when fewer are timed), EfficientTrack's one pass on
+the paper's simulator (17,672), 100,000 and the paper's 197,890 steps (the burst of ``seed_steps`` updates when the
+seeding ends included) are extrapolations from these measurements, not runs.
 """
 
 import os
@@ -26,9 +27,12 @@ from efficienttrack.baselines.tdmpc import TOLD, Learner, PrioritizedBuffer, pla
 from efficienttrack.baselines.tdmpc.train import evaluation_agent, planner_config  # noqa: E402
 from efficienttrack.data.cycles import generate_references  # noqa: E402
 from efficienttrack.envs import TrackingEnv, evaluate  # noqa: E402
+from efficienttrack.envs.features import learner_input  # noqa: E402
+from efficienttrack.systems.spec import SystemSpec  # noqa: E402
 
-TARGETS = (1_000, 100_000, 197_890)
-"""The extrapolated budgets, in interaction steps (197,890: the paper's TD-MPC I.S., closed loop)."""
+TARGETS = (1_000, 17_672, 100_000, 197_890)
+"""The extrapolated budgets, in interaction steps (17,672: EfficientTrack's one pass on the paper's simulator; 197,890:
+the paper's TD-MPC I.S., closed loop)."""
 
 
 def now() -> np.ndarray:
@@ -45,36 +49,43 @@ def fmt(pair: np.ndarray, unit: str = "s") -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=1000, help="interaction steps timed after the seeding")
+    parser.add_argument("--preset", default="paper", help="TD-MPC preset: paper, cpu (TD-MPC (reduced)) or tiny")
+    parser.add_argument("--system", default=None, help="built-in system (e.g. paper); default: the built-in xe75")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    settings = dataclasses.replace(tdmpc_settings("cpu"), device="cpu")
+    settings = dataclasses.replace(tdmpc_settings(args.preset), device="cpu")
+    system = SystemSpec() if args.system is None else SystemSpec(system=args.system)
     refs = generate_references(16, seed=0)
     train, test = refs[:8], refs[8:]
     print(f"command: {' '.join([os.path.basename(sys.executable), *sys.argv])}  (torch threads 1, device cpu)")
+    print(f"load average at the start: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
 
-    env = TrackingEnv("closed", refs=train)
-    obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
+    env = TrackingEnv("closed", system, train)
+    see = learner_input(settings.inputs, "closed", system, train)
+    obs_dim, action_dim = see(env.observation_space.sample()[None]).shape[1], env.action_space.shape[0]
     rng, generator = np.random.default_rng(0), torch.Generator().manual_seed(0)
     torch.manual_seed(0)
     model = TOLD(obs_dim, action_dim, settings)
     learner = Learner(model, settings, generator)
     buffer = PrioritizedBuffer(settings.buffer_size, obs_dim, action_dim, settings.horizon, settings.per_alpha, 0.4)
-    obs, _ = env.reset(seed=0)
-    first = True
+    raw = env.reset(seed=0)[0]
+    obs, first = see(raw[None])[0], True
 
     def step(action: np.ndarray) -> None:
-        nonlocal obs, first
-        next_obs, reward, _, truncated, _ = env.step(action)
+        nonlocal raw, obs, first
+        raw_next, reward, _, truncated, _ = env.step(action)
+        next_obs = see(raw_next[None])[0]
         buffer.add(obs, action, reward, next_obs, first)
         first = truncated
-        obs = env.reset()[0] if truncated else next_obs
+        raw = env.reset()[0] if truncated else raw_next
+        obs = see(raw[None])[0] if truncated else next_obs
 
     start = now()
     for _ in range(settings.seed_steps):
         step(rng.uniform(-1, 1, action_dim).astype(np.float32))
     seeding = now() - start
 
-    config = planner_config(settings, settings.schedule_steps, action_dim)  # the schedules' end: horizon 5
+    config = planner_config(settings, settings.schedule_steps, action_dim)  # the schedules' end: the final horizon
     planning, updating, warm = np.zeros(2), np.zeros(2), None
     for _ in range(args.steps):
         start = now()
@@ -93,10 +104,11 @@ def main() -> None:
     per_step = per_plan + per_update
 
     start = now()
-    evaluate(evaluation_agent(model, settings, settings.schedule_steps, 0), test)
+    evaluate(evaluation_agent(model, settings, settings.schedule_steps, 0, see), test, "closed", system)
     policy_evaluation = now() - start
-    planned = evaluation_agent(model, dataclasses.replace(settings, evaluate_with="plan"), settings.schedule_steps, 0)
-    batch_obs = np.repeat(obs[None], len(test), axis=0)
+    plan_settings = dataclasses.replace(settings, evaluate_with="plan")
+    planned = evaluation_agent(model, plan_settings, settings.schedule_steps, 0, see)
+    batch_obs = np.repeat(raw[None], len(test), axis=0)
     start = now()
     planned(batch_obs)
     planned_step = now() - start

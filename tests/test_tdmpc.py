@@ -2,7 +2,7 @@
 
 import json
 import math
-from dataclasses import replace
+from dataclasses import asdict, replace
 
 import numpy as np
 import pytest
@@ -276,12 +276,26 @@ def test_bad_settings_name_the_field(change, message):
 
 
 def test_presets_keep_the_papers_settings_and_schedules():
-    full = tdmpc_settings("cpu")
+    full = tdmpc_settings("paper")
+    assert full == TDMPCSettings()
     assert (full.horizon, full.iterations, full.num_samples, full.num_elites, full.num_pi_samples) == (5, 6, 512, 64, 25)
     assert (full.batch_size, full.buffer_size, full.seed_steps, full.latent_dim, full.hidden) == (512, 180_000, 5000, 50, 512)
     assert (full.reward_coef, full.value_coef, full.consistency_coef, full.rho, full.discount) == (0.5, 0.1, 2.0, 0.5, 0.98)
     assert full.schedule(0) == (1, 0.5) and full.schedule(25_000) == (5, 0.05) and full.schedule(12_500)[0] == 3
     assert tdmpc_settings("tiny").latent_dim == 8 and tdmpc_settings("tiny").hidden == 32
+
+
+def test_the_reduced_preset_changes_only_what_docs_tdmpc_lists():
+    reduced, full = asdict(tdmpc_settings("cpu")), asdict(tdmpc_settings("paper"))
+    changed = {field: value for field, value in reduced.items() if value != full[field]}
+    assert changed == {
+        "num_samples": 256,
+        "num_elites": 32,
+        "batch_size": 256,
+        "hidden": 256,
+        "schedule_steps": 5_000,
+    }
+    assert tdmpc_settings("cpu").num_pi_samples == 12 and tdmpc_settings("cpu").schedule(5_000) == (5, 0.05)
 
 
 def test_an_untrained_policy_is_the_pd_controller_and_sees_the_shared_input(refs, tmp_path):

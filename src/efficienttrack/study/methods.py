@@ -261,6 +261,9 @@ def run_supertrack(job: Job, folder: Path) -> list[Point]:
 def run_tdmpc(job: Job, folder: Path) -> list[Point]:
     """TD-MPC (:func:`efficienttrack.baselines.tdmpc.train_tdmpc`), closed or open loop.
 
+    A study runs its ``cpu`` preset, TD-MPC (reduced), or ``tiny``, never the paper's settings (a GPU job): its label
+    says so.
+
     Args:
         job: the job.
         folder: the job's folder (its ``curve.json`` and ``model.pt`` go there).
@@ -315,7 +318,7 @@ METHODS: dict[str, Method] = {
     "efficienttrack": Method("efficienttrack", "EfficientTrack", run_efficienttrack, LOOPS, check=check_passes),
     "sac": Method("sac", "SAC", run_sb3, LOOPS, requires=SB3_MODULES),
     "ppo": Method("ppo", "PPO", run_sb3, LOOPS, requires=SB3_MODULES),
-    "tdmpc": Method("tdmpc", "TD-MPC", run_tdmpc, LOOPS),
+    "tdmpc": Method("tdmpc", "TD-MPC (reduced)", run_tdmpc, LOOPS),
     "supertrack": Method("supertrack", "SuperTrack", run_supertrack, LOOPS),
     "ilc": Method("ilc", "ILC (oracle: sees the test references)", run_ilc, ("closed",), seeded=False, check=check_trial),
 }

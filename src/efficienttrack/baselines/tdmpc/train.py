@@ -131,7 +131,8 @@ def train_tdmpc(
             the networks' initialization, the planner's and π's noise, the replay sampling, the seeding phase's random
             actions and the environment's reference draws; ``folder`` gets ``curve.json`` and ``model.pt`` (created;
             other files in it are left alone).
-        preset: ``"cpu"``, ``"tiny"`` (:data:`~efficienttrack.baselines.tdmpc.settings.PRESETS`) or a
+        preset: ``"paper"``, ``"cpu"`` (TD-MPC (reduced)), ``"tiny"``
+            (:data:`~efficienttrack.baselines.tdmpc.settings.PRESETS`) or a
             :class:`~efficienttrack.baselines.tdmpc.settings.TDMPCSettings`.
         progress: a display to show the training steps and the last MAE on, or None.
         save_every_seconds: wall seconds between saves of the state (0: at every episode's end).
