@@ -27,7 +27,7 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "references"
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--method", default="sac", choices=["sac", "ppo"])
-    parser.add_argument("--preset", default="cpu", help="paper, cpu or tiny")
+    parser.add_argument("--preset", default="cpu", help="paper, cpu, sb3 or tiny")
     parser.add_argument("--system", default="paper", help="built-in system the baseline trains on")
     parser.add_argument("--steps", type=int, default=20_000, help="interaction steps of each run")
     parser.add_argument("--points", type=int, nargs="+", default=[1, 2000, 5000, 10000, 15000, 20000])

@@ -273,7 +273,15 @@ def test_the_sac_cpu_preset_takes_one_gradient_step_per_four_interaction_steps()
     cpu = method_settings("sac", "cpu")
     assert (cpu.n_envs, cpu.train_freq, cpu.gradient_steps, cpu.batch_size) == (4, 1, 1, 256)
     assert (cpu.gamma, cpu.learning_rate, cpu.net_arch) == (0.98, 3e-5, (256, 256))  # the research code's γ and rate
-    assert SACSettings() == SACSettings(n_envs=1, learning_rate=3e-4, gamma=0.99)  # SB3's defaults: cpu until 2026-11-26
+    assert method_settings("sac", "sb3") == SACSettings() == SACSettings(n_envs=1, learning_rate=3e-4, gamma=0.99)
+
+
+def test_the_ppo_cpu_preset_updates_every_4096_steps_and_explores_near_the_reference():
+    cpu = method_settings("ppo", "cpu")
+    assert (cpu.n_envs * cpu.n_steps, cpu.batch_size, cpu.n_epochs) == (4096, 512, 10)
+    assert (cpu.gamma, cpu.gae_lambda, cpu.learning_rate) == (0.98, 0.95, 3e-4)
+    assert math.exp(cpu.log_std_init) == pytest.approx(0.2, abs=0.005)  # SB3's default: σ = 1, the whole action range
+    assert method_settings("ppo", "sb3") == PPOSettings() == PPOSettings(n_steps=2048, batch_size=64, log_std_init=0.0)
 
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "baselines.md"
@@ -283,7 +291,7 @@ def documented_presets(title: str) -> dict[str, dict[str, object]]:
     """The preset table under ``title`` in docs/baselines.md: {preset: {field: value}} (``a``, ``b`` rows give both)."""
     lines = DOCS.read_text().split(title, 1)[1].strip().splitlines()
     header = [cell.strip(" `") for cell in lines[0].strip("|").split("|")]
-    presets: dict[str, dict[str, object]] = {name: {} for name in ("paper", "cpu", "tiny")}
+    presets: dict[str, dict[str, object]] = {name: {} for name in ("paper", "cpu", "sb3", "tiny")}
     for line in lines[2:]:
         if not line.startswith("|"):
             break
@@ -311,7 +319,7 @@ def test_the_paper_presets_carry_the_research_codes_settings():
     assert (sac.gamma, sac.batch_size, sac.learning_rate, sac.net_arch) == (0.98, 4096, 3e-5, (512, 512, 512, 128))
     assert (ppo.gamma, ppo.gae_lambda, ppo.learning_rate, ppo.clip_range) == (0.98, 0.99, 3e-5, 3.0)
     assert ppo.n_envs * ppo.n_steps == ppo.batch_size == 4096  # one batch of parallel episodes per update
-    assert all(method_settings(m, p).inputs == "relative" for m in ("ppo", "sac") for p in ("paper", "cpu", "tiny"))
+    assert all(method_settings(m, p).inputs == "relative" for m in ("ppo", "sac") for p in ("paper", "cpu", "sb3", "tiny"))
 
 
 @pytest.mark.parametrize("method", ["ppo", "sac"])

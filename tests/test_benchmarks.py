@@ -38,6 +38,7 @@ SMALL_RUNS = {
 of the report whose group is a figure that must be > 0 (a rate, a p99 latency, the ticks run)."""
 HELP_ONLY = {
     "baseline_inputs.py": "--method",
+    "baseline_probe.py": "--variant",
     "baseline_throughput.py": "--steps",
     "precision.py": "--held-speed",
     "rounds.py": "--presets",

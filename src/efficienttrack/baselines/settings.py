@@ -1,16 +1,17 @@
-"""The settings of the Stable-Baselines3 baselines: one frozen dataclass per method, presets ``paper``, ``cpu``, ``tiny``.
+"""The settings of the Stable-Baselines3 baselines: one frozen dataclass per method; presets paper, cpu, sb3, tiny.
 
 ``paper`` takes the research code's values (``comparative_experiments/PidExcavatorRL``: ``PPO_Agent.py``,
 ``train_ppo.py``, ``SAC_Agent.py``, ``train_sac.py`` in the public repository ZiqingZou/EfficientTrack) where SB3 can
-express them; docs/baselines.md lists each field and its source. ``cpu`` is what one CPU thread carries: for PPO
-the paper's 16 parallel environments with Stable-Baselines3's own defaults (SB3 2.x, ``MlpPolicy``) for everything
-else; for SAC the research code's γ and learning rate and the paper's 100,000-transition buffer, with SB3's
+express them; docs/baselines.md lists each field and its source. ``cpu`` is what one CPU thread carries and learns
+with, each choice measured (docs/baselines.md): for PPO the paper's 16 parallel environments, rollouts of 16 × 256
+steps in minibatches of 512, the research code's γ 0.98 and an initial action std of 0.2 (SB3's 1 spans the whole
+action range); for SAC the research code's γ and learning rate and the paper's 100,000-transition buffer, with SB3's
 (256, 256) networks and batch of 256 and one gradient step per 4 interaction steps (4 environments), so that the
-paper's 442,892 steps take about 45 minutes of one CPU thread instead of 3 hours (docs/baselines.md has the
-measurements). The dataclasses' own defaults are SB3's, with the paper's 16 PPO environments and SAC buffer
-(``SACSettings()`` was the SAC ``cpu`` preset until 2026-11-26). ``tiny`` shrinks networks, rollouts and batches
-so that a few thousand interaction steps take seconds on a CPU (tests and smoke runs; its curves say nothing about
-the methods).
+paper's 442,892 steps take about 45 minutes of one CPU thread instead of 3 hours. ``sb3`` is Stable-Baselines3's own
+defaults (SB3 2.x, ``MlpPolicy``) with the paper's 16 PPO environments and 100,000-transition SAC buffer: the
+dataclasses' defaults, the second variant, and the ``cpu`` preset until 2026-11-26. ``tiny`` shrinks networks,
+rollouts and batches so that a few thousand interaction steps take seconds on a CPU (tests and smoke runs; its curves
+say nothing about the methods).
 
 Every preset gives the learner the input EfficientTrack's networks see (``inputs="relative"``:
 :class:`~efficienttrack.envs.features.ObservationPipeline`) and starts it at the PD controller: the action mean's
@@ -229,22 +230,25 @@ PPO_PRESETS: dict[str, PPOSettings] = {
         clip_range=3.0,
         net_arch=PAPER_NET,
     ),
-    "cpu": PPOSettings(),
+    "cpu": PPOSettings(n_steps=256, batch_size=512, gamma=0.98, log_std_init=-1.6),
+    "sb3": PPOSettings(),
     "tiny": PPOSettings(n_envs=4, n_steps=32, batch_size=32, n_epochs=2, net_arch=(32, 32)),
 }
-"""PPO's presets: ``paper`` (the research code's), ``cpu`` (the paper's 16 environments, SB3's defaults), ``tiny``."""
+"""PPO's presets: ``paper`` (the research code's), ``cpu`` (16 environments × 256 steps a rollout, minibatches of 512,
+γ 0.98, initial action std e^−1.6 ≈ 0.2: 244 updates in a million steps, where SB3's 2,048-step rollouts give 30),
+``sb3`` (the paper's 16 environments, SB3's defaults; ``cpu`` until 2026-11-26), ``tiny``."""
 
 SAC_PRESETS: dict[str, SACSettings] = {
     "paper": SACSettings(batch_size=4096, learning_rate=3e-5, gamma=0.98, net_arch=PAPER_NET),
     "cpu": SACSettings(n_envs=4, learning_rate=3e-5, gamma=0.98),
+    "sb3": SACSettings(),
     "tiny": SACSettings(buffer_size=10_000, learning_starts=50, batch_size=32, net_arch=(32, 32)),
 }
 """SAC's presets: ``paper`` (the research code's), ``cpu`` (the research code's γ 0.98 and learning rate 3e-5, its
 100,000-transition buffer, SB3's (256, 256) networks and batch 256, one gradient step per 4 interaction steps on 4
-environments: about 6 ms of CPU a step on one thread, against 24 ms at one gradient step per step), ``tiny``.
-
-``SACSettings()`` (SB3's defaults with the 100,000 buffer: one environment, one gradient step per step, learning rate
-3e-4, γ 0.99) was the ``cpu`` preset until 2026-11-26; the xe75 SAC results made before then used it."""
+environments: about 6 ms of CPU a step on one thread, against 24 ms at one gradient step per step), ``sb3`` (SB3's
+defaults with the 100,000 buffer: one environment, one gradient step per step, learning rate 3e-4, γ 0.99; the
+``cpu`` preset until 2026-11-26, which the xe75 SAC results made before then used), ``tiny``."""
 
 PRESETS: dict[str, dict[str, PPOSettings] | dict[str, SACSettings]] = {"ppo": PPO_PRESETS, "sac": SAC_PRESETS}
 """Presets by method name, then preset name."""
@@ -255,7 +259,7 @@ def method_settings(method: str, preset: str | PPOSettings | SACSettings = "cpu"
 
     Args:
         method: ``"ppo"`` or ``"sac"``.
-        preset: ``"paper"``, ``"cpu"``, ``"tiny"`` (``"full"``, ``"quick"``: their earlier names), or a
+        preset: ``"paper"``, ``"cpu"``, ``"sb3"``, ``"tiny"`` (``"full"``, ``"quick"``: earlier names), or a
             :class:`PPOSettings` / :class:`SACSettings` of the method.
 
     Returns:
