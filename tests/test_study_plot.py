@@ -50,6 +50,11 @@ def test_study_folders_of_one_system_make_one_table_and_figure(tmp_path):
     again = study_folder(tmp_path / "again", PAPER, ("supertrack", "closed", 1, [0.7, 0.5]))
     with pytest.raises(EfficientTrackError, match=r"again and .*one both hold supertrack-closed-s1"):
         combine([one, again], tmp_path / "x.png")
+    pd_here, pd_there = (study_folder(tmp_path / f"pd{i}", PAPER, ("pd", "closed", i, [2.73])) for i in (0, 1))
+    assert len(combine([pd_here, pd_there], tmp_path / "x.png").entries) == 1  # PD ignores the seed: one measurement
+    pd_other = study_folder(tmp_path / "pd2", PAPER, ("pd", "closed", 0, [2.74]))
+    with pytest.raises(EfficientTrackError, match="both hold pd-closed-s0"):
+        combine([pd_here, pd_other], tmp_path / "x.png")  # not the same figures: not the same measurement
     other = study_folder(tmp_path / "other", {**PAPER, "system": "xe75"}, ("pd", "closed", 0, [4.9]))
     with pytest.raises(EfficientTrackError, match="other: ran on .*xe75.*one system only"):
         combine([one, other], tmp_path / "x.png")

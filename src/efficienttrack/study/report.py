@@ -28,6 +28,7 @@ matplotlib.use("Agg")
 
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib import ticker
 
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import atomic_write, write_csv, write_json
@@ -303,7 +304,7 @@ def markdown_table(entries: Sequence[dict[str, Any]], failed: dict[str, str], pa
             cells += [cell(e[f"{which}_interaction_steps"], e[f"{which}_interaction_steps_std"], ",.0f")]
         lines.append("| " + " | ".join(cells) + " |")
         published = paper_row(e["method"], e["loop"]) if paper else None
-        if published is not None:
+        if published is not None and published["interaction_hours"] is not None:
             values = ["–" if published.get(field) is None else f"{published[field]:{COLUMNS[field][1]}}" for field in FIELDS]
             row = ["*paper, Table I*", e["loop"], "", *(f"*{v}*" for v in values), *([""] * len(chosen))]
             lines.append("| " + " | ".join(row) + " |")
@@ -339,24 +340,26 @@ def log_mae_axis(entries: Sequence[dict[str, Any]]) -> bool:
     return bool(maes) and max(maes) > LOG_MAE_SPAN * min(maes)
 
 
-def plot_study(entries: Sequence[dict[str, Any]], path: str | Path) -> Path:
+def plot_study(entries: Sequence[dict[str, Any]], path: str | Path, paper: bool = False) -> Path:
     """MAE against interaction time, as the paper's figure: one line per method and loop (the mean over seeds).
 
     Closed loop in the dark, open loop in the light shade of the method's hue; a method evaluated only without
     training (PD) is a horizontal line. A star marks each seed's point chosen on the validation references (its test
-    MAE), where the study held some out; no point is marked by its test MAE. The x axis is logarithmic, and so is the
-    y axis when the MAEs span more than :data:`LOG_MAE_SPAN` times.
+    MAE), where the study held some out; no point is marked by its test MAE. With ``paper``, a hollow diamond in the
+    method's colour marks the paper's Table I point of each trained method and loop drawn. The x axis is logarithmic,
+    and so is the y axis when the MAEs span more than :data:`LOG_MAE_SPAN` times.
 
     Args:
         entries: :func:`summarize`'s entries (their ``curve``).
         path: PNG to write.
+        paper: mark the paper's Table I points (a study on the paper's simulator).
 
     Returns:
         The path written.
     """
     palette = plt.get_cmap("tab20")  # pairs of a dark and a light shade of each hue
     fig, ax = plt.subplots(figsize=(8, 4.8), layout="constrained")
-    drawn = starred = False
+    drawn = starred = marked = False
     for e in entries:
         trained = [p for p in e["curve"] if p["interaction_steps"] > 0]
         label = _label(e["method"])
@@ -369,6 +372,10 @@ def plot_study(entries: Sequence[dict[str, Any]], path: str | Path) -> Path:
         x = np.array([p["interaction_hours"] for p in trained])
         y = np.array([p["mae_deg"] for p in trained])
         ax.plot(x, y, "o-", color=color, ms=3, label=f"{label} ({e['loop']} loop)")
+        published = paper_row(e["method"], e["loop"]) if paper else None
+        if published is not None and published["interaction_hours"] is not None:
+            ax.plot(published["interaction_hours"], published["mae_deg"], "D", mfc="none", color=color, ms=9, mew=2)
+            marked = True
         for chosen in e.get("selected") or ():
             ax.plot(chosen["interaction_hours"], chosen["mae_deg"], "*", color=color, ms=14, markeredgecolor="k", zorder=3)
             starred = True
@@ -378,11 +385,17 @@ def plot_study(entries: Sequence[dict[str, Any]], path: str | Path) -> Path:
     log_mae = log_mae_axis(entries)
     if log_mae:
         ax.set_yscale("log")
+        ax.yaxis.set_major_formatter(ticker.FuncFormatter(lambda v, _: f"{v:g}"))
+        ax.yaxis.set_minor_formatter(ticker.FuncFormatter(_minor_label))
     else:
         ax.set_ylim(bottom=0)
     ax.set_xlabel("interaction time (h, at 20 Hz)")
     ax.set_ylabel("test MAE (°, log)" if log_mae else "test MAE (°)")
-    ax.set_title("MAE against interaction time" + (" (★ each seed's point chosen on validation)" if starred else ""))
+    if starred:
+        ax.plot([], [], "*", color="0.6", ms=12, markeredgecolor="k", ls="none", label="chosen on validation (per seed)")
+    if marked:
+        ax.plot([], [], "D", mfc="none", color="0.4", ms=8, mew=2, ls="none", label="the paper's Table I")
+    ax.set_title("MAE against interaction time")
     ax.grid(alpha=0.3, which="both")
     if entries:
         ax.legend(fontsize=8)
@@ -390,6 +403,12 @@ def plot_study(entries: Sequence[dict[str, Any]], path: str | Path) -> Path:
         return atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100))
     finally:
         plt.close(fig)
+
+
+def _minor_label(value: float, _: int) -> str:
+    """A log axis's minor tick label: 2, 3 and 5 times a power of ten, plainly written (the others unlabelled)."""
+    mantissa = value / 10 ** np.floor(np.log10(value))
+    return f"{value:g}" if round(mantissa) in (2, 3, 5) else ""
 
 
 def _study_system(out: Path) -> dict[str, Any]:
@@ -417,7 +436,8 @@ def report(out: str | Path) -> Report:
     out = Path(out)
     results, failed = read_jobs(out)
     entries = summarize(results)
-    markdown = markdown_table(entries, failed, is_paper_system(_study_system(out)))
+    paper = is_paper_system(_study_system(out))
+    markdown = markdown_table(entries, failed, paper)
     fields = (*FIELDS, *(f"{which}_{field}" for which in ("selected", "best") for field in BEST_FIELDS))
     header = ["method", "loop", "seeds", *(name for field in fields for name in (field, f"{field}_std"))]
     rows = ([e["method"], e["loop"], " ".join(map(str, e["seeds"])), *(e[name] for name in header[3:])] for e in entries)
@@ -425,16 +445,26 @@ def report(out: str | Path) -> Report:
         write_json(out / "study.json", entries),
         atomic_write(out / "study.md", lambda f: f.write(markdown), mode="w"),
         write_csv(out / "study.csv", header, rows),
-        plot_study(entries, out / "study.png"),
+        plot_study(entries, out / "study.png", paper),
     )
     return Report(entries, failed, markdown, paths)
+
+
+def _same_measurement(result: dict[str, Any], held: dict[str, Any]) -> bool:
+    """Whether two jobs' results are one measurement of a method that ignores the seed: the same test figures."""
+    method = METHODS.get(result["method"])
+    if method is None or method.seeded:
+        return False
+    return [p["metrics"] for p in result["curve"]] == [p["metrics"] for p in held["curve"]]
 
 
 def combine(folders: Sequence[str | Path], path: str | Path) -> Report:
     """One table and one figure of several study folders (studies of one system run in several sittings).
 
     Args:
-        folders: study folders (each ``jobs/<name>/result.json``); a method, loop and seed may be in one of them only.
+        folders: study folders (each ``jobs/<name>/result.json``); a method, loop and seed may be in one of them only,
+            except for a method whose outcome does not depend on the seed (PD, the ILC oracle): a job of it found again,
+            at any seed, with the same test figures is the same measurement, taken once.
         path: the PNG to write (:func:`plot_study`).
 
     Returns:
@@ -446,7 +476,7 @@ def combine(folders: Sequence[str | Path], path: str | Path) -> Report:
     """
     results: list[dict[str, Any]] = []
     failed: dict[str, str] = {}
-    owner: dict[tuple[str, str, int], Path] = {}
+    owner: dict[tuple[str, str, int], tuple[Path, dict[str, Any]]] = {}
     system: tuple[Path, dict[str, Any]] | None = None
     for folder in map(Path, folders):
         found, errors = read_jobs(folder)
@@ -457,12 +487,17 @@ def combine(folders: Sequence[str | Path], path: str | Path) -> Report:
             )
         system = system or (folder, here)
         for result in found:
-            key = (result["method"], result["loop"], result["seed"])
+            seeded = result["method"] not in METHODS or METHODS[result["method"]].seeded
+            key = (result["method"], result["loop"], result["seed"] if seeded else -1)
             if key in owner:
-                raise EfficientTrackError(f"{folder} and {owner[key]} both hold {key[0]}-{key[1]}-s{key[2]}: give it once")
-            owner[key] = folder
-        results += found
+                first, held = owner[key]
+                if _same_measurement(result, held):
+                    continue
+                job = f"{result['method']}-{result['loop']}-s{result['seed']}"
+                raise EfficientTrackError(f"{folder} and {first} both hold {job}: give it once")
+            owner[key] = (folder, result)
+            results.append(result)
         failed |= {f"{folder}/{name}": error for name, error in errors.items()}
     entries = summarize(results)
-    markdown = markdown_table(entries, failed, system is not None and is_paper_system(system[1]))
-    return Report(entries, failed, markdown, (plot_study(entries, path),))
+    paper = system is not None and is_paper_system(system[1])
+    return Report(entries, failed, markdown_table(entries, failed, paper), (plot_study(entries, path, paper),))
