@@ -503,3 +503,33 @@ def test_a_study_with_validation_measures_every_point_on_it_and_reports_the_sele
     for key in [("pd", "closed"), ("efficienttrack", "closed"), ("efficienttrack", "open"), ("ppo", "closed")]:
         ours = [p["mae_deg"] for p in entries[key]["curves"][0]["points"]]
         assert ours == pytest.approx([p["mae_deg"] for p in plain[key][0]["points"]]), key
+
+
+def test_the_studys_efficienttrack_job_gives_exactly_what_run_gives_with_the_same_settings_and_seed(refs, tmp_path):
+    """The study's closed-loop EfficientTrack job (no validation references) at p passes is ``run`` with the same preset,
+    seed, passes, references and system: the same settings, episodes and test metrics to the last bit (issue #26)."""
+    save_references(refs[0], tmp_path / "train")
+    save_references(refs[1], tmp_path / "test")
+    folders = ["--train-refs", tmp_path / "train", "--test-refs", tmp_path / "test"]
+    sizes = ["--preset", "tiny", "--set", "model.steps=10", "--set", "policy.steps=10"]  # seconds: only equality counts
+    seed, passes = 3, 2  # not the default seed; the study runs 1 and 2 passes (budget 2 × 118), the last is compared
+    study = [*folders, "--out", tmp_path / "study", *sizes, "--set", "device=cpu", "--methods", "efficienttrack",
+             "--seeds", seed, "--budget", passes * 118, "--validation", 0]  # fmt: skip
+    run = [*folders, "--out", tmp_path / "run", *sizes, "--set", f"collect.passes={passes}", "--seed", seed,
+           "--device", "cpu", "--plots", 0]  # fmt: skip
+    for command, args in (("study", study), ("run", run)):
+        result = CliRunner().invoke(app, [command, *map(str, args)])
+        assert result.exit_code == 0, result.output
+    job = tmp_path / "study" / "jobs" / f"efficienttrack-closed-s{seed}"
+    ours = json.loads((job / "result.json").read_text())["curve"][-1]
+    theirs = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert ours["passes"] == passes and ours["interaction_steps"] == theirs["interaction_steps"] == passes * 118
+    assert ours["metrics"] == theirs["efficienttrack"]  # equal, not approximately
+    folders = (job / f"passes_{passes}", tmp_path / "run")
+    same_run = [{k: v for k, v in json.loads((f / "run.json").read_text()).items() if k != "provenance"} for f in folders]
+    assert same_run[0] == same_run[1]  # settings (seed, collect.seed, passes), system, references and their order
+    assert same_run[1]["config"]["collect"] == {**same_run[1]["config"]["collect"], "seed": seed, "passes": passes}
+    for method in ("pd", "efficienttrack"):
+        for ref in refs[1]:
+            a, b = (np.load(f / "records" / method / f"{ref.name}.npz") for f in folders)
+            assert a.files == b.files and all(np.array_equal(a[k], b[k]) for k in a.files), (method, ref.name)
