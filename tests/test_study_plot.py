@@ -51,7 +51,9 @@ def test_study_folders_of_one_system_make_one_table_and_figure(tmp_path):
     with pytest.raises(EfficientTrackError, match=r"again and .*one both hold supertrack-closed-s1"):
         combine([one, again], tmp_path / "x.png")
     pd_here, pd_there = (study_folder(tmp_path / f"pd{i}", PAPER, ("pd", "closed", i, [2.73])) for i in (0, 1))
-    assert len(combine([pd_here, pd_there], tmp_path / "x.png").entries) == 1  # PD ignores the seed: one measurement
+    pd_only = combine([pd_here, pd_there], tmp_path / "x.png")
+    assert len(pd_only.entries) == 1  # PD ignores the seed: one measurement
+    assert "| *paper, Table I* | closed |  | *–* | *–* | *–* | *2.73* |" in pd_only.markdown  # PD's row has no I.S.
     pd_other = study_folder(tmp_path / "pd2", PAPER, ("pd", "closed", 0, [2.74]))
     with pytest.raises(EfficientTrackError, match="both hold pd-closed-s0"):
         combine([pd_here, pd_other], tmp_path / "x.png")  # not the same figures: not the same measurement

@@ -304,7 +304,7 @@ def markdown_table(entries: Sequence[dict[str, Any]], failed: dict[str, str], pa
             cells += [cell(e[f"{which}_interaction_steps"], e[f"{which}_interaction_steps_std"], ",.0f")]
         lines.append("| " + " | ".join(cells) + " |")
         published = paper_row(e["method"], e["loop"]) if paper else None
-        if published is not None and published["interaction_hours"] is not None:
+        if published is not None:
             values = ["–" if published.get(field) is None else f"{published[field]:{COLUMNS[field][1]}}" for field in FIELDS]
             row = ["*paper, Table I*", e["loop"], "", *(f"*{v}*" for v in values), *([""] * len(chosen))]
             lines.append("| " + " | ".join(row) + " |")
