@@ -1,4 +1,4 @@
-"""The README's plug-in example runs exactly as written, from a folder holding mymachines.py, with the console script."""
+"""The README's Python quick start and docs/your-system.md's plug-in example run exactly as written."""
 
 import os
 import re
@@ -11,16 +11,17 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
+PLUG_IN = ROOT / "docs" / "your-system.md"
 CONSOLE_SCRIPT = Path(sys.executable).parent / "efficienttrack"
 
 
 def plug_in_example() -> tuple[str, list[str]]:
     """The ``mymachines.py`` block and the command lines of the bash block right after it."""
-    text = README.read_text()
+    text = PLUG_IN.read_text()
     module = re.search(r"```python\n(# mymachines\.py\n.*?)```", text, re.S)
-    assert module, "README: no ```python block starting with '# mymachines.py'"
+    assert module, f"{PLUG_IN.name}: no ```python block starting with '# mymachines.py'"
     commands = re.search(r"```bash\n(.*?)```", text[module.end() :], re.S)
-    assert commands, "README: no ```bash block after the mymachines.py example"
+    assert commands, f"{PLUG_IN.name}: no ```bash block after the mymachines.py example"
     lines = [line.strip() for line in commands.group(1).splitlines() if line.strip() and not line.startswith("#")]
     return module.group(1), lines
 
@@ -40,7 +41,7 @@ def test_plug_in_example_runs_as_written(tmp_path):
     for line in lines:
         argv = shlex.split(line)
         done = subprocess.run([str(CONSOLE_SCRIPT), *argv[1:]], cwd=tmp_path, env=env, capture_output=True, text=True)
-        assert done.returncode == 0, f"README command failed: {line}\n{done.stdout}\n{done.stderr}"
+        assert done.returncode == 0, f"{PLUG_IN.name} command failed: {line}\n{done.stdout}\n{done.stderr}"
     assert "EfficientTrack" in done.stdout and (tmp_path / "runs" / "mine" / "metrics.json").is_file()
 
 
