@@ -7,7 +7,7 @@ from typer.testing import CliRunner
 
 from efficienttrack.cli import app
 from efficienttrack.core.errors import EfficientTrackError
-from efficienttrack.study.report import METRICS, combine, mean_curve
+from efficienttrack.study.report import METRICS, combine, equal_interaction_table, mean_curve, summarize
 
 PAPER = {"system": "paper", "plant": None, "pd": None, "options": {}}
 
@@ -62,3 +62,52 @@ def test_study_folders_of_one_system_make_one_table_and_figure(tmp_path):
         combine([one, other], tmp_path / "x.png")
     with pytest.raises(EfficientTrackError, match="no study here"):
         combine([tmp_path / "nothing"], tmp_path / "x.png")
+
+
+def result(method, loop, seed, *pairs):
+    """A job's result with its curve's (interaction steps, test MAE)."""
+    curve = [{"interaction_steps": steps, "metrics": {**dict.fromkeys(METRICS, 1.0), "mae_deg": mae,
+              "per_joint_mae_deg": [mae] * 4}} for steps, mae in pairs]  # fmt: skip
+    return {"method": method, "loop": loop, "seed": seed, "curve": curve}
+
+
+def table_rows(markdown):
+    """A table's rows: (method, loop) → the cells after them."""
+    rows = [line.split(" | ") for line in markdown.splitlines() if line.startswith("| ") and "---" not in line]
+    return {(row[0][2:], row[1]): [c.rstrip(" |") for c in row[2:]] for row in rows[1:]}
+
+
+def test_equal_interaction_cells_hold_each_seeds_last_point_at_or_below_the_count():
+    results = [
+        result("efficienttrack", "closed", 0, (10, 0.5), (20, 0.4)),
+        result("efficienttrack", "closed", 1, (12, 0.7), (20, 0.6)),
+        result("pd", "closed", 0, (0, 2.73)),
+        result("sac", "closed", 0, (10, 1.0), (100, 0.8)),
+    ]
+    markdown = equal_interaction_table(summarize(results), [30, 5, 11, 15, 20, 20])
+    assert "| method | loop | seeds | ≤ 5 | ≤ 11 | ≤ 15 | ≤ 20 | ≤ 30 |" in markdown  # sorted, once each
+    rows = table_rows(markdown)
+    assert list(rows) == [("PD", "closed"), ("EfficientTrack", "closed"), ("SAC", "closed")]  # the main table's order
+    assert rows["PD", "closed"] == ["1", "2.730 (0)", "", "", "", ""]  # in the first column only
+    assert rows["EfficientTrack", "closed"] == [
+        "2",
+        "",  # no point at or below 5 steps
+        "",  # seed 1 has none at or below 11
+        "0.600 ± 0.141 (10–12)",  # the seeds' points differ: min–max
+        "0.500 ± 0.141 (20)",
+        "",  # past the final points, already shown
+    ]
+    assert rows["SAC", "closed"] == ["1", "", "1.000 (10)", "1.000 (10)", "1.000 (10)", "1.000 (10)"]  # no ± alone
+    assert "last curve point at or below the column's interaction steps" in markdown
+
+
+def test_study_plot_at_prints_the_equal_interaction_table_and_refuses_bad_counts(tmp_path):
+    one = study_folder(tmp_path / "one", PAPER, ("sac", "closed", 0, [0.6, 0.4]), ("sac", "closed", 1, [0.8, 0.6]))
+    figure = tmp_path / "all.png"
+    result = CliRunner().invoke(app, ["study-plot", str(one), "--out", str(figure), "--at", "15,20,1000"])
+    assert result.exit_code == 0, result.output
+    assert "| SAC | closed | 2 | 0.700 ± 0.141 (10) | 0.500 ± 0.141 (20) |  |" in result.output
+    for bad in ("15,abc", "15,0", "-5", "1.5"):
+        result = CliRunner().invoke(app, ["study-plot", str(one), "--out", str(tmp_path / "x.png"), "--at", bad])
+        assert result.exit_code != 0 and f"--at '{bad.split(',')[-1]}'" in str(result.exception)
+    assert not (tmp_path / "x.png").exists()

@@ -57,6 +57,16 @@ def _method_budgets(items: list[str]) -> dict[str, int]:
     return budgets
 
 
+def _interaction_counts(text: str) -> list[int]:
+    """``17672,35344`` → ``[17672, 35344]``; an item that is not a positive integer is an error naming ``--at``."""
+    counts = []
+    for item in text.split(","):
+        if not item.strip().isdecimal() or int(item) == 0:
+            raise EfficientTrackError(f"--at '{item.strip()}': expected positive interaction step counts, e.g. 17672,35344")
+        counts.append(int(item))
+    return counts
+
+
 StudyPresetOpt = Annotated[
     str,
     typer.Option("--preset", help="tiny (tiny networks, minutes) or cpu (the cpu run preset, the baselines' cpu settings)."),
@@ -170,12 +180,26 @@ def study_command(
 def study_plot_command(
     folders: Annotated[list[Path], typer.Argument(help="Study folders (each a study's --out) of one system.")],
     out: Annotated[Path, typer.Option("--out", help="The figure to write (PNG).")],
+    at: Annotated[
+        str | None,
+        typer.Option(
+            "--at",
+            help="Comma-separated interaction step counts N: also a table of each method's test MAE with at most N "
+            "interaction steps (each seed's last curve point at or below N), e.g. 17672,176720.",
+        ),
+    ] = None,
 ) -> None:
-    """One table and one MAE-against-interaction-time figure of several study folders (a study run in several sittings)."""
-    from efficienttrack.core.fileio import check_output_file
-    from efficienttrack.study.report import combine
+    """One table and one MAE-against-interaction-time figure of several study folders (a study run in several sittings).
 
+    With --at, a second table compares the methods at equal interaction: one column per count N.
+    """
+    from efficienttrack.core.fileio import check_output_file
+    from efficienttrack.study.report import combine, equal_interaction_table
+
+    counts = None if at is None else _interaction_counts(at)
     check_output_file(out)
     result = combine(folders, out)
     typer.echo(result.markdown)
+    if counts is not None:
+        typer.echo(equal_interaction_table(result.entries, counts))
     typer.echo(f"figure: {out}")

@@ -325,6 +325,66 @@ def markdown_table(entries: Sequence[dict[str, Any]], failed: dict[str, str], pa
     return "\n".join(lines) + "\n"
 
 
+def point_at_most(points: Sequence[dict[str, Any]], steps: int) -> dict[str, Any] | None:
+    """What one seed had reached with at most ``steps`` interactions: its curve's last point at or below them.
+
+    Args:
+        points: the seed's curve points (each with "interaction_steps").
+        steps: the interaction steps allowed.
+
+    Returns:
+        The point with the most interaction steps not above ``steps``, or None when every point is above them.
+    """
+    reached = [p for p in points if p["interaction_steps"] <= steps]
+    return max(reached, key=lambda p: p["interaction_steps"]) if reached else None
+
+
+def equal_interaction_table(entries: Sequence[dict[str, Any]], counts: Sequence[int]) -> str:
+    """The methods at equal interaction, as Markdown: one row per method and loop, one column per interaction count N.
+
+    A cell gives, over the seeds, the mean ± sample std of the test MAE at each seed's last curve point with at most N
+    interaction steps (:func:`point_at_most`), then those points' interaction steps: one number when the seeds agree,
+    else min–max. It is empty when a seed has no point so early, and when N is past every seed's final point and the
+    cell would repeat the points an earlier column shows: a method's final points appear once (PD's point at 0 steps
+    in the first column only).
+
+    Args:
+        entries: :func:`summarize`'s entries (their "curves").
+        counts: the interaction counts N, one column each, in increasing order (sorted, duplicates dropped).
+
+    Returns:
+        The table, its heading and the line that explains its cells.
+    """
+    counts = sorted(set(counts))
+    headers = ["method", "loop", "seeds", *(f"≤ {n:,}" for n in counts)]
+    lines = [
+        "# At equal interaction: each method's test MAE with at most N interaction steps, mean ± sample std over seeds",
+        "",
+        "| " + " | ".join(headers) + " |",
+        "|" + "|".join("---" if i < 2 else "---:" for i in range(len(headers))) + "|",
+    ]
+    for e in entries:
+        cells = [_label(e["method"]), e["loop"], str(len(e["seeds"]))]
+        finals = [max(p["interaction_steps"] for p in c["points"]) for c in e["curves"]]
+        shown: list[int] | None = None  # the steps of the points of the last column filled
+        for n in counts:
+            chosen = [point_at_most(c["points"], n) for c in e["curves"]]
+            steps = [p["interaction_steps"] for p in chosen if p is not None]
+            if len(steps) < len(chosen) or (steps == shown and n > max(finals)):
+                cells.append("")
+                continue
+            mean, std = stats([p["mae_deg"] for p in chosen if p is not None])
+            reached = f"{min(steps):,}" if min(steps) == max(steps) else f"{min(steps):,}–{max(steps):,}"
+            cells.append(f"{cell(mean, std, '.3f')} ({reached})")
+            shown = steps
+        lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", "Each cell: the mean test MAE (°) over the seeds of each seed's last curve point at or below the "
+              "column's interaction steps, ± sample std over seeds; in brackets the interaction steps of those points "
+              "(min–max when the seeds differ). Empty: a seed has no point that early, or the final points, already "
+              "shown."]  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
 def log_mae_axis(entries: Sequence[dict[str, Any]]) -> bool:
     """Whether the figure draws MAE on a log axis.
 
