@@ -82,7 +82,9 @@ def execute(job: Job, out: Path, threads: int = 1) -> Outcome:
     What the method prints goes to the folder's ``job.log``. On success ``result.json`` is written last:
     ``{"job", "method", "loop", "seed", "budget", "curve": [point, ...] sorted by interaction steps, "wall_seconds",
     "provenance"}`` (and ``"variant"``: name, label, overrides, for an ablation's job); on failure ``error.json``
-    (``{"job", "error", "traceback"}``). torch uses ``threads`` CPU threads while the job runs.
+    (``{"job", "error", "traceback"}``). ``"wall_seconds"`` is this sitting's wall time, evaluations included: a job
+    resumed after a kill counts from the resume, while the wall times of its curve points carry on across the resume
+    (what the study's table reports). torch uses ``threads`` CPU threads while the job runs.
 
     Args:
         job: the job.
