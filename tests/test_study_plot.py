@@ -7,7 +7,14 @@ from typer.testing import CliRunner
 
 from efficienttrack.cli import app
 from efficienttrack.core.errors import EfficientTrackError
-from efficienttrack.study.report import METRICS, combine, equal_interaction_table, mean_curve, summarize
+from efficienttrack.study.report import (
+    METRICS,
+    combine,
+    equal_interaction_table,
+    markdown_table,
+    mean_curve,
+    summarize,
+)
 
 PAPER = {"system": "paper", "plant": None, "pd": None, "options": {}}
 
@@ -111,3 +118,70 @@ def test_study_plot_at_prints_the_equal_interaction_table_and_refuses_bad_counts
         result = CliRunner().invoke(app, ["study-plot", str(one), "--out", str(tmp_path / "x.png"), "--at", bad])
         assert result.exit_code != 0 and f"--at '{bad.split(',')[-1]}'" in str(result.exception)
     assert not (tmp_path / "x.png").exists()
+
+
+def validated(method, loop, seed, *points):
+    """A job's result with validation figures: each point (interaction steps, test MAE, validation MAE, the other
+    metrics' value), its wall time equal to its interaction steps."""
+    curve = [{"interaction_steps": steps, "wall_seconds": steps, "metrics": {**dict.fromkeys(METRICS, other),
+              "mae_deg": mae, "per_joint_mae_deg": [mae] * 4}, "validation": {"mae_deg": val}}
+             for steps, mae, val, other in points]  # fmt: skip
+    return {"method": method, "loop": loop, "seed": seed, "curve": curve}
+
+
+def split_tables(markdown):
+    """The first table's text and the second's (the points chosen on validation; empty without it)."""
+    first, _, second = markdown.partition("## Each method at the point its validation references chose")
+    return first, second
+
+
+def test_a_second_table_gives_each_method_at_its_points_chosen_on_validation_with_every_metric():
+    results = [
+        validated("pd", "closed", 0, (0, 2.7, 2.9, 1.0)),
+        # validation chooses 10 steps on seed 0 and 20 on seed 1; both seeds' final points, at 30, have lower test MAEs
+        validated("efficienttrack", "closed", 0, (10, 0.4, 0.5, 2.0), (20, 0.3, 0.6, 5.0), (30, 0.2, 0.7, 6.0)),
+        validated("efficienttrack", "closed", 1, (10, 0.9, 0.9, 9.0), (20, 0.8, 0.5, 4.0), (30, 0.1, 0.8, 8.0)),
+        result("ilc", "closed", 0, (0, 2.7), (10, 0.05)),  # the oracle: no validation
+    ]
+    entries = summarize(results)
+    first, second = split_tables(markdown_table(entries, {}))
+    assert table_rows(first)["EfficientTrack", "closed"][:5] == ["2", "30 ± 0", "0.000 ± 0.000", "30 ± 0", "0.15 ± 0.07"]
+    assert table_rows(first)["EfficientTrack", "closed"][-4:] == ["0.60 ± 0.28", "15 ± 7", "0.15 ± 0.07", "30 ± 0"]
+    selected = table_rows(second)
+    ilc = ("ILC (oracle: sees the test references)", "closed")
+    assert list(selected) == [("PD", "closed"), ("EfficientTrack", "closed"), ilc]
+    assert selected["EfficientTrack", "closed"] == [
+        "2",
+        "15 ± 7",  # I.S.: 10 and 20
+        "0.000 ± 0.000",
+        "15 ± 7",  # wall time
+        "0.60 ± 0.28",  # MAE: 0.4 and 0.8
+        "3.00 ± 1.41",  # RMSE, FMAE: 2 and 4
+        "3.00 ± 1.41",
+        "3.000 ± 1.414",  # 1st and 2nd oSMT
+        "3.000 ± 1.414",
+        "3.00 ± 1.41",  # ETD-MAE, ETD-FMAE
+        "3.00 ± 1.41",
+    ]
+    assert selected["PD", "closed"] == table_rows(first)["PD", "closed"][:-4]  # its single point, in both tables
+    assert selected[ilc] == table_rows(first)[ilc][:-4] and selected[ilc][4] == "0.05"  # no choice: its final point
+    assert "lowest MAE on the validation references (held out of every method's training), its test metrics." in second
+    assert "Table I" not in second
+
+
+def test_the_papers_rows_are_under_the_second_table_on_its_simulator_and_no_second_table_without_validation():
+    results = [
+        validated("efficienttrack", "closed", 0, (10, 0.4, 0.5, 2.0), (20, 0.3, 0.6, 5.0)),
+        validated("efficienttrack", "closed", 1, (10, 0.9, 0.9, 9.0), (20, 0.8, 0.5, 4.0)),
+    ]
+    first, second = split_tables(markdown_table(summarize(results), {}, paper=True))
+    lines = second.splitlines()
+    ours = next(i for i, line in enumerate(lines) if line.startswith("| EfficientTrack | closed | 2 | 15 ± 7 |"))
+    assert lines[ours + 1] == (
+        "| *paper, Table I* | closed |  | *176,720* | *2.454* | *–* | *0.32* | *0.46* | *0.23* | *0.670* | *0.590* "
+        "| *3.94* | *2.00* |"
+    )  # as in the first table, without its selected and best columns
+    assert lines[ours + 1] + "  |  |  |  |" in first
+    assert second.rstrip().endswith("its test metrics; the paper's rows are each method's best point.")
+    plain = markdown_table(summarize([result("efficienttrack", "closed", 0, (10, 0.4), (20, 0.3))]), {}, paper=True)
+    assert split_tables(plain)[1] == "" and "validation references chose" not in plain

@@ -10,14 +10,15 @@ MAE, and its test metrics; a choice made without the test references, so an hone
 stopped improving". The best point: the point with the lowest test MAE, as the paper's Table I reports ("when the
 model converges to the optimal value"); a choice made on the test set, so an optimistic figure, labelled so.
 
-A study on the paper's simulator (``--system paper``) prints the paper's Table I row under each of its rows
-(:mod:`efficienttrack.study.paper_table`).
+A study with validation references gets a second table under the first: each method and loop at each seed's selected
+point, with every metric, as the first gives the final point. A study on the paper's simulator (``--system paper``)
+prints the paper's Table I row under each of its rows, in both tables (:mod:`efficienttrack.study.paper_table`).
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -184,6 +185,19 @@ def selected_point(curve: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
     return min(curve, key=lambda p: p["validation"]["mae_deg"])
 
 
+def point_stats(points: Sequence[dict[str, Any]], field: str) -> tuple[float | None, float | None]:
+    """Mean and sample standard deviation over seeds of one field at each seed's point (:func:`stats`).
+
+    Args:
+        points: one point per seed (:func:`_flat`'s keys).
+        field: the field, e.g. ``mae_deg``; a point where it is None (no wall time recorded) is left out.
+
+    Returns:
+        (mean, std).
+    """
+    return stats([p[field] for p in points if p[field] is not None])
+
+
 def _mean_point(steps: int, maes: list[float]) -> dict[str, Any]:
     """A point of the mean curve: the seeds' MAE at ``steps`` interaction steps, mean and std."""
     mae, std = stats(maes)
@@ -247,10 +261,10 @@ def summarize(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
         selected = chosen if len(chosen) == len(group) else None  # no choice made on part of the seeds
         entry: dict[str, Any] = {"method": method, "loop": loop, "seeds": [c["seed"] for c in curves]}
         for field in FIELDS:
-            entry[field], entry[f"{field}_std"] = stats([f[field] for f in final if f[field] is not None])
+            entry[field], entry[f"{field}_std"] = point_stats(final, field)
         for field in BEST_FIELDS:
-            entry[f"selected_{field}"], entry[f"selected_{field}_std"] = stats([p[field] for p in selected or []])
-            entry[f"best_{field}"], entry[f"best_{field}_std"] = stats([b[field] for b in best])
+            entry[f"selected_{field}"], entry[f"selected_{field}_std"] = point_stats(selected or [], field)
+            entry[f"best_{field}"], entry[f"best_{field}_std"] = point_stats(best, field)
         entry["per_joint_mae_deg"] = np.mean([f["per_joint_mae_deg"] for f in final], axis=0).tolist()
         entry["episodes"], entry["steps"] = final[0].get("episodes"), final[0].get("steps")
         entry["final"], entry["selected"], entry["best"] = final, selected, best
@@ -276,8 +290,61 @@ def cell(mean: float | None, std: float | None, fmt: str) -> str:
     return f"{mean:{fmt}}" if std is None else f"{mean:{fmt}} ± {std:{fmt}}"
 
 
+def _row(cells: Sequence[str]) -> str:
+    """A Markdown table row of these cells."""
+    return "| " + " | ".join(cells) + " |"
+
+
+def _head(headers: Sequence[str]) -> list[str]:
+    """A Markdown table's heading row and rule: the first two columns (method, loop) left-aligned, the rest right."""
+    return [_row(headers), "|" + "|".join("---" if i < 2 else "---:" for i in range(len(headers))) + "|"]
+
+
+def _rows(
+    entries: Sequence[dict[str, Any]],
+    points: Callable[[dict[str, Any]], Sequence[dict[str, Any]]],
+    paper: bool,
+    more: Callable[[dict[str, Any]], list[str]] = lambda e: [],
+) -> list[str]:
+    """A table's rows: each method and loop at one point per seed, the paper's Table I row under it on its simulator.
+
+    Args:
+        entries: :func:`summarize`'s entries.
+        points: an entry's points that the row reports, one per seed (its "final", say).
+        paper: put the paper's Table I row, in italics, under each row that has one.
+        more: an entry's cells after the :data:`FIELDS` (empty ones in the paper's row).
+
+    Returns:
+        The rows' lines: method, loop, seeds, then the mean ± std over seeds of each of :data:`FIELDS` at the points.
+    """
+    lines = []
+    for e in entries:
+        chosen = points(e)
+        extra = more(e)
+        values = [cell(*point_stats(chosen, field), COLUMNS[field][1]) for field in FIELDS]
+        lines.append(_row([_label(e["method"]), e["loop"], str(len(e["seeds"])), *values, *extra]))
+        published = paper_row(e["method"], e["loop"]) if paper else None
+        if published is not None:
+            theirs = ["–" if published.get(field) is None else f"{published[field]:{COLUMNS[field][1]}}" for field in FIELDS]
+            lines.append(_row(["*paper, Table I*", e["loop"], "", *(f"*{v}*" for v in theirs), *([""] * len(extra))]))
+    return lines
+
+
+def _chosen_cells(e: dict[str, Any]) -> list[str]:
+    """The first table's cells after the metrics: the test MAE and I.S. at the selected points, then at the best."""
+    return [
+        cell(e[f"{which}_{field}"], e[f"{which}_{field}_std"], COLUMNS[field][1])
+        for which in ("selected", "best")
+        for field in ("mae_deg", "interaction_steps")
+    ]
+
+
 def markdown_table(entries: Sequence[dict[str, Any]], failed: dict[str, str], paper: bool = False) -> str:
     """The report as Markdown: one row per method and loop (mean ± std over seeds), and the failed jobs.
+
+    The first table gives each method and loop at its final points; in a study with validation references (an entry
+    with "selected" points) a second one gives it at the points selected on them, every metric; a method without a
+    selection there (the ILC oracle) at its final points, as in the first.
 
     Args:
         entries: :func:`summarize`'s entries.
@@ -288,26 +355,14 @@ def markdown_table(entries: Sequence[dict[str, Any]], failed: dict[str, str], pa
         The text of ``study.md``.
     """
     chosen = ["selected MAE (°)", "I.S. selected", "best MAE (°)", "I.S. at best"]
-    headers = ["method", "loop", "seeds", *(COLUMNS[field][0] for field in FIELDS), *chosen]
+    metrics = ["method", "loop", "seeds", *(COLUMNS[field][0] for field in FIELDS)]
     lines = [
         "# Study: each method at its final point (the end of its budget), then at the point selected on validation "
         "references and at the best on test (optimistic); mean ± sample std over seeds",
         "",
-        "| " + " | ".join(headers) + " |",
-        "|" + "|".join("---" if i < 2 else "---:" for i in range(len(headers))) + "|",
+        *_head([*metrics, *chosen]),
+        *_rows(entries, lambda e: e["final"], paper, _chosen_cells),
     ]
-    for e in entries:
-        cells = [_label(e["method"]), e["loop"], str(len(e["seeds"]))]
-        cells += [cell(e[field], e[f"{field}_std"], COLUMNS[field][1]) for field in FIELDS]
-        for which in ("selected", "best"):
-            cells += [cell(e[f"{which}_mae_deg"], e[f"{which}_mae_deg_std"], ".2f")]
-            cells += [cell(e[f"{which}_interaction_steps"], e[f"{which}_interaction_steps_std"], ",.0f")]
-        lines.append("| " + " | ".join(cells) + " |")
-        published = paper_row(e["method"], e["loop"]) if paper else None
-        if published is not None:
-            values = ["–" if published.get(field) is None else f"{published[field]:{COLUMNS[field][1]}}" for field in FIELDS]
-            row = ["*paper, Table I*", e["loop"], "", *(f"*{v}*" for v in values), *([""] * len(chosen))]
-            lines.append("| " + " | ".join(row) + " |")
     if not entries:
         lines.append("")
         lines.append("No job has finished yet.")
@@ -320,6 +375,17 @@ def markdown_table(entries: Sequence[dict[str, Any]], failed: dict[str, str], pa
     if paper:
         lines += ["", "*paper, Table I*: the published figures on the paper's simulator (Zou et al. 2025), each method "
                   "at its best point; I.S. of PPO summed over its 16 workers."]  # fmt: skip
+    if any(e["selected"] for e in entries):
+        lines += [
+            "",
+            "## Each method at the point its validation references chose; mean ± sample std over seeds",
+            "",
+            *_head(metrics),
+            *_rows(entries, lambda e: e["selected"] or e["final"], paper),
+            "",
+            "Each seed's point with the lowest MAE on the validation references (held out of every method's "
+            "training), its test metrics" + ("; the paper's rows are each method's best point." if paper else "."),
+        ]
     if failed:
         lines += ["", "## Failed jobs", "", *(f"- `{name}`: {error}" for name, error in sorted(failed.items()))]
     return "\n".join(lines) + "\n"
@@ -360,8 +426,7 @@ def equal_interaction_table(entries: Sequence[dict[str, Any]], counts: Sequence[
     lines = [
         "# At equal interaction: each method's test MAE with at most N interaction steps, mean ± sample std over seeds",
         "",
-        "| " + " | ".join(headers) + " |",
-        "|" + "|".join("---" if i < 2 else "---:" for i in range(len(headers))) + "|",
+        *_head(headers),
     ]
     for e in entries:
         cells = [_label(e["method"]), e["loop"], str(len(e["seeds"]))]
@@ -377,7 +442,7 @@ def equal_interaction_table(entries: Sequence[dict[str, Any]], counts: Sequence[
             reached = f"{min(steps):,}" if min(steps) == max(steps) else f"{min(steps):,}–{max(steps):,}"
             cells.append(f"{cell(mean, std, '.3f')} ({reached})")
             shown = steps
-        lines.append("| " + " | ".join(cells) + " |")
+        lines.append(_row(cells))
     lines += ["", "Each cell: the mean test MAE (°) over the seeds of each seed's last curve point at or below the "
               "column's interaction steps, ± sample std over seeds; in brackets the interaction steps of those points "
               "(min–max when the seeds differ). Empty: a seed has no point that early, or the final points, already "
