@@ -433,14 +433,15 @@ def equal_interaction_table(entries: Sequence[dict[str, Any]], counts: Sequence[
         finals = [max(p["interaction_steps"] for p in c["points"]) for c in e["curves"]]
         shown: list[int] | None = None  # the steps of the points of the last column filled
         for n in counts:
-            chosen = [point_at_most(c["points"], n) for c in e["curves"]]
-            steps = [p["interaction_steps"] for p in chosen if p is not None]
-            if len(steps) < len(chosen) or (steps == shown and n > max(finals)):
+            reached = [point_at_most(c["points"], n) for c in e["curves"]]
+            chosen = [p for p in reached if p is not None]
+            steps = [p["interaction_steps"] for p in chosen]
+            if len(chosen) < len(reached) or (steps == shown and n > max(finals)):
                 cells.append("")
                 continue
-            mean, std = stats([p["mae_deg"] for p in chosen if p is not None])
-            reached = f"{min(steps):,}" if min(steps) == max(steps) else f"{min(steps):,}–{max(steps):,}"
-            cells.append(f"{cell(mean, std, '.3f')} ({reached})")
+            mean, std = point_stats(chosen, "mae_deg")
+            span = f"{min(steps):,}" if min(steps) == max(steps) else f"{min(steps):,}–{max(steps):,}"
+            cells.append(f"{cell(mean, std, '.3f')} ({span})")
             shown = steps
         lines.append(_row(cells))
     lines += ["", "Each cell: the mean test MAE (°) over the seeds of each seed's last curve point at or below the "
