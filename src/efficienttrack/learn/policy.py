@@ -293,6 +293,25 @@ def policy_rollout(
     return PolicyRollout(torch.stack(q_hat, 1), torch.stack(actions, 1), torch.stack(refs, 1))
 
 
+def policy_loss(q_hat: torch.Tensor, a: torch.Tensor, q_star: torch.Tensor, gamma: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The two terms of the policy's loss, per window: L = L_track + k_smooth · L_reg (module docstring).
+
+    Args:
+        q_hat: (B, H, 4) rad, positions ``q_{t+1} … q_{t+H}`` (predicted by the model, or measured).
+        a: (B, H, 4), the actions ``a_t … a_{t+H−1}`` (rad; open loop PWM / 1000).
+        q_star: (B, H, 4) rad, the desired positions ``q*_{t+1} … q*_{t+H}``.
+        gamma: γ, the discount over the steps.
+
+    Returns:
+        (B,) L_track = (1/H) Σ γ^i ‖wrap(q̂_{t+i} − q*_{t+i})‖² and (B,) L_reg = (1/(H−1)) Σ ‖a_{t+i} − a_{t+i−1}‖², rad².
+    """
+    H = q_hat.shape[1]
+    gamma_i = gamma ** torch.arange(1, H + 1, device=q_hat.device, dtype=q_hat.dtype)
+    L_track = (gamma_i * wrap(q_hat - q_star).pow(2).sum(-1)).sum(1) / H
+    L_reg = (a[:, 1:] - a[:, :-1]).pow(2).sum(-1).sum(1) / (H - 1)
+    return L_track, L_reg
+
+
 class PolicyTrainResult(NamedTuple):
     """Outcome of :func:`train_policy`.
 
@@ -369,7 +388,6 @@ def train_policy(
     else:
         sample = data.window(starts[torch.randperm(len(starts))[:NORM_SAMPLES].to(device)], horizon=0, desired=F)
         pi_phi.fit_scaling(sample.obs_hist, sample.qref_hist, sample.qdes_future)
-    gamma_i = cfg.gamma ** torch.arange(1, H + 1, device=device, dtype=torch.float32)
     optimizer = torch.optim.AdamW(pi_phi.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     inputs = fingerprint(records, seed, model, init)
     subset = held_out_subset(held_out)
@@ -382,10 +400,8 @@ def train_policy(
         q_star = window.qdes_future
         # rollout: H steps of g_θ under π_φ, q^r_{i+1} = q*_{i+1} + a_i, q*_F sliding along q*_{t+1..t+H−1+F}
         q_hat, a, _ = policy_rollout(g_theta, pi_phi, window.obs_hist, window.qref_hist, q_star, steps=H)
-        # loss: L_track = (1/H) Σ γ^i ‖q̂_{t+i} − q*_{t+i}‖², L_reg = (1/(H−1)) Σ ‖a_{t+i} − a_{t+i−1}‖²
-        L_track = (gamma_i * wrap(q_hat - q_star[:, :H]).pow(2).sum(-1)).sum(1).mean() / H
-        L_reg = (a[:, 1:] - a[:, :-1]).pow(2).sum(-1).sum(1).mean() / (H - 1)
-        loss = L_track + cfg.k_smooth * L_reg
+        L_track, L_reg = policy_loss(q_hat, a, q_star[:, :H], cfg.gamma)
+        loss = L_track.mean() + cfg.k_smooth * L_reg.mean()
         # step
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
