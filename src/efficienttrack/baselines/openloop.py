@@ -56,10 +56,10 @@ class OpenLoopSettings:
     )
     """The plant model g_θ and its training (the closed loop's ``cpu`` preset: history 5 = 0.25 s, horizon 20, 128 × 3
     units, weight decay 0.003 as in the paper; 1000 steps instead of 4000 to keep a pass count within minutes)."""
-    policy: PolicyConfig = field(default_factory=lambda: PolicyConfig(horizon=20, steps=500, k_smooth=0.01))
-    """π_φ and its training: the paper's horizon 20 and γ 0.98; 128 × 3 units; ``k_smooth`` weighs the change of the
-    command in (PWM / 1000)², not of an adjustment in rad² as the paper's 1.0 does, and is set ours (0.01: the PD
-    law's own commands change by about 0.3 a step)."""
+    policy: PolicyConfig = field(default_factory=lambda: PolicyConfig(horizon=20, steps=500))
+    """π_φ and its training: the paper's horizon 20, γ 0.98 and k_smooth 1.0; 128 × 3 units. ``k_smooth`` weighs the
+    change of the command in (PWM / 1000)², as the research code's open loop does (docs/openloop.md measures 0.01
+    against 1.0: with 0.01 the policy switches the valves between dead zone and full speed)."""
     sigma_max: float = 0.05
     """Collection: bound of the per-episode noise level on the PD reference, rad (the paper's 0.05)."""
     noise_ratio: tuple[float, float] = (9.0, 2.0)
@@ -83,7 +83,7 @@ OPEN_PRESETS: dict[str, OpenLoopSettings] = {
     "cpu": OpenLoopSettings(),
     "tiny": OpenLoopSettings(
         model=ModelConfig(hidden=32, layers=2, horizon=4, history=None, batch_size=64, lr=3e-3, steps=100),
-        policy=PolicyConfig(hidden=32, layers=2, horizon=4, batch_size=64, lr=3e-3, steps=60, k_smooth=0.01),
+        policy=PolicyConfig(hidden=32, layers=2, horizon=4, batch_size=64, lr=3e-3, steps=60),
         imitation_steps=60,
     ),
 }
