@@ -40,6 +40,8 @@ HELP_ONLY = {
     "baseline_inputs.py": "--method",
     "baseline_probe.py": "--variant",
     "baseline_throughput.py": "--steps",
+    "model_vs_simulator.py": "--policy",
+    "openloop_smoothness.py": "--k",
     "precision.py": "--held-speed",
     "rounds.py": "--presets",
     "tdmpc_throughput.py": "--steps",
