@@ -44,6 +44,7 @@ HELP_ONLY = {
     "openloop_smoothness.py": "--k",
     "precision.py": "--held-speed",
     "rounds.py": "--presets",
+    "supertrack_ablation.py": "--variant",
     "tdmpc_throughput.py": "--steps",
     "tracking.py": "--seeds",
 }
