@@ -235,9 +235,12 @@ def loss_terms(q: np.ndarray, a: np.ndarray, q_star: np.ndarray, gamma: float) -
     return np.stack([l_track.numpy(), l_reg.numpy(), np.abs(wrap(q - q_star)).mean((1, 2))], axis=1)
 
 
-def named(specs: list[str], load) -> dict:
-    """NAME=PATH options loaded with ``load``."""
-    return {name: load(path) for name, path in (spec.split("=", 1) for spec in specs)}
+def named_path(text: str) -> tuple[str, str]:
+    """A ``NAME=PATH`` option as (name, path)."""
+    name, sep, path = text.partition("=")
+    if not (name and sep and path):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected NAME=PATH")
+    return name, path
 
 
 def main() -> None:
@@ -246,8 +249,10 @@ def main() -> None:
     parser.add_argument("--system", default="paper", help="reference-level simulator (default paper)")
     parser.add_argument("--records", required=True, help="folder of recorded episodes to replay (subfolders too)")
     parser.add_argument("--every-record", type=int, default=1, help="use every N-th record")
-    parser.add_argument("--model", action="append", required=True, help="NAME=PATH of a closed-loop model (repeatable)")
-    parser.add_argument("--policy", action="append", default=[], help="NAME=PATH of a policy to judge (repeatable)")
+    parser.add_argument(
+        "--model", type=named_path, action="append", required=True, help="NAME=PATH of a closed-loop model (repeatable)"
+    )
+    parser.add_argument("--policy", type=named_path, action="append", default=[], help="NAME=PATH of a policy to judge")
     parser.add_argument("--horizon", type=int, default=20)
     parser.add_argument("--stride", type=int, default=10, help="a start every N steps")
     parser.add_argument("--eps-deg", type=float, default=0.5, help="the change of one reference, degrees")
@@ -255,14 +260,15 @@ def main() -> None:
     args = parser.parse_args()
     print("$ " + " ".join(shlex.quote(a) for a in sys.argv))
     torch.set_num_threads(1)
-    models = named(args.model, load_model)
-    policies = named(args.policy, load_policy)
+    models = {name: load_model(path) for name, path in args.model}
+    policies = {name: load_policy(path) for name, path in args.policy}
     h = max(net.cfg.history_length for net in [*models.values(), *policies.values()])
     eps, horizon = np.deg2rad(args.eps_deg), args.horizon
     records = load_records(args.records, recursive=True)[:: args.every_record]
     sim, positions, desired, predicted = [], [], [], defaultdict(list)
     judged = defaultdict(list)
-    for record in records:
+    for i, record in enumerate(records, 1):
+        print(f"record {i}/{len(records)}", file=sys.stderr, flush=True)
         starts = np.arange(h - 1, len(record) - horizon, args.stride)
         ahead = starts[:, None] + np.arange(1, horizon + 1)
         refs = perturbed_references(record.q_ref, starts, eps)

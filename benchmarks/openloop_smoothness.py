@@ -22,6 +22,7 @@ import torch
 
 from efficienttrack.baselines import training_run
 from efficienttrack.baselines.openloop import OPEN_PRESETS, train_efficienttrack_open
+from efficienttrack.core.progress import ProgressDisplay
 from efficienttrack.data.references import load_references
 from efficienttrack.systems.spec import SystemSpec
 
@@ -43,13 +44,13 @@ def main() -> None:
     budget = args.passes * sum(ref.steps for ref in train)
     preset = OPEN_PRESETS["cpu"]
     rows = []
-    for k in args.k:
-        settings = dataclasses.replace(preset, policy=dataclasses.replace(preset.policy, k_smooth=k))
-        run = training_run("open", SystemSpec(system=args.system), train, test, budget, args.seed, args.out / f"k_{k:g}")
-        m = train_efficienttrack_open(run, preset=settings)[-1]["metrics"]
-        joints = " / ".join(f"{e:.2f}" for e in m["per_joint_mae_deg"])
-        rows.append(f"| {k:g} | {m['mae_deg']:.3f} | {m['smt1_deg']:.2f} / {m['smt2_deg']:.2f} | {joints} |")
-        print(rows[-1], flush=True)
+    with ProgressDisplay() as bar:
+        for k in args.k:
+            settings = dataclasses.replace(preset, policy=dataclasses.replace(preset.policy, k_smooth=k))
+            run = training_run("open", SystemSpec(system=args.system), train, test, budget, args.seed, args.out / f"k_{k:g}")
+            m = train_efficienttrack_open(run, preset=settings, progress=bar)[-1]["metrics"]
+            joints = " / ".join(f"{e:.2f}" for e in m["per_joint_mae_deg"])
+            rows.append(f"| {k:g} | {m['mae_deg']:.3f} | {m['smt1_deg']:.2f} / {m['smt2_deg']:.2f} | {joints} |")
     print(f"\n{args.passes} pass(es), {budget:,} interaction steps, seed {args.seed}; test MAE on {len(test)} references")
     print("| k_smooth | MAE (°) | 1st / 2nd oSMT (°) | boom / arm / bucket / swing MAE (°) |\n|---:|---:|---|---|")
     print("\n".join(rows))
