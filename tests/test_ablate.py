@@ -137,7 +137,7 @@ def test_rerun_skips_finished_jobs_and_a_folder_refuses_other_work(finished, ref
     with pytest.raises(EfficientTrackError, match="an ablation of another kind, system, references, passes"):
         run_ablation(ABLATIONS["k-smooth"], more, ablation_jobs(ABLATIONS["k-smooth"], more, [0], ["0"]), out)
     plain = make_study(SystemSpec(), *refs, budget=118, preset="tiny", run_config=FAST)
-    with pytest.raises(EfficientTrackError, match="holds a study of another system, references, budget or preset, or an abl"):
+    with pytest.raises(EfficientTrackError, match="holds a study of another system, references, budget, preset or settings"):
         run_study(plain, make_jobs(plain, ["pd"]), out)
 
 

@@ -22,9 +22,9 @@ from efficienttrack.envs.core import LOOPS
 from efficienttrack.study import METHODS, Job, Study, available_methods, make_jobs, make_study, report, run_study
 from efficienttrack.study.executors import Outcome, process_pool
 from efficienttrack.study.jobs import default_validation, split_validation
-from efficienttrack.study.methods import Method, point
+from efficienttrack.study.methods import Method, job_settings, point
 from efficienttrack.study.paper_table import is_paper_system, paper_row
-from efficienttrack.study.report import FIELDS, METRICS, log_mae_axis, markdown_table, summarize
+from efficienttrack.study.report import FIELDS, METRICS, combine, log_mae_axis, markdown_table, summarize
 from efficienttrack.study.run import progress_line
 from efficienttrack.systems.spec import SystemSpec
 from efficienttrack.workflow.collect import pass_counts
@@ -355,6 +355,8 @@ def test_cli_study(refs, tmp_path, monkeypatch):
         (["--methods", "pd", "--method-budget", "sac"], "--method-budget 'sac': expected METHOD=STEPS"),
         (["--methods", "pd", "--budget", "5000"], "holds a study of another system, references, budget"),
         (["--methods", "pd", "--validation", "1"], "--validation 1: would hold out 1 of the 2 training references"),
+        (["--methods", "pd", "--method-set", "ilc.trials"], "--method-set 'ilc.trials': expected METHOD.field=value"),
+        (["--methods", "pd", "--method-set", "ilc.trials=1"], "holds a study of another system, references, budget"),
     ]:
         refused = CliRunner().invoke(app, [str(a) for a in [*common, *extra]])
         assert isinstance(refused.exception, EfficientTrackError) and message in str(refused.exception), refused.output
@@ -533,3 +535,46 @@ def test_the_studys_efficienttrack_job_gives_exactly_what_run_gives_with_the_sam
         for ref in refs[1]:
             a, b = (np.load(f / "records" / method / f"{ref.name}.npz") for f in folders)
             assert a.files == b.files and all(np.array_equal(a[k], b[k]) for k in a.files), (method, ref.name)
+
+
+def test_method_set_changes_a_methods_settings_and_the_table_names_the_change(refs, tmp_path):
+    plain = tiny_study(refs)
+    changes = ["ilc.trials=1", "ilc.gain=[0.5, 0.5, 0.5, 0.5]"]
+    changed = make_study(SystemSpec(), *refs, 2 * 59, "tiny", FAST, method_settings=changes)
+    (job,) = make_jobs(changed, ["ilc"])
+    assert job.settings_changes == tuple(changes)
+    assert (job_settings(job).trials, job_settings(job).gain) == (1, (0.5,) * 4)
+    assert job_settings(make_jobs(plain, ["ilc"])[0]) == "tiny"  # no change: the preset's name, as before
+    assert changed.identity()["method_settings"] == {"ilc": changes}
+    assert "method_settings" not in plain.identity()
+    run_study(plain, make_jobs(plain, ["ilc"]), tmp_path / "plain", log=lambda line: None)
+    run_study(changed, [job], tmp_path / "changed", log=lambda line: None)
+    result = json.loads((tmp_path / "changed" / "jobs" / "ilc-closed-s0" / "result.json").read_text())
+    assert result["settings_changes"] == changes
+    both = combine([tmp_path / "plain", tmp_path / "changed"], tmp_path / "both.png")  # not one job twice: two entries
+    assert [entry.get("settings_changes") for entry in both.entries] == [None, changes]
+    assert [len(entry["curve"]) for entry in both.entries] == [3, 2]  # trials 0, 1, 2 within the budget; 0, 1
+    assert "| ILC (oracle: sees the test references) (trials=1, gain=[0.5, 0.5, 0.5, 0.5]) | closed |" in both.markdown
+
+
+@pytest.mark.parametrize(
+    ("changes", "methods", "message"),
+    [
+        (["nope.x=1"], ["pd"], "--method-set nope.x=1: unknown method, choose from efficienttrack, sac"),
+        (["pd.kp=1"], ["pd"], "--method-set pd.kp=1: pd has no settings to change"),
+        (["ilc.trails=1"], ["ilc"], r"--method-set ilc.trails=1: unknown ILCSettings field\(s\) trails"),
+        (["ilc.trials=0"], ["ilc"], "--method-set ilc.trials=0: .*ilc.trials: must be an integer ≥ 1, got 0"),
+        (["ilc.trials=2", "ilc.gain=0.5"], ["ilc"], "--method-set ilc.gain=0.5: gain must be a list of finite numbers"),
+        (["supertrack.policy.lr=fast"], ["pd"], "--method-set supertrack.policy.lr=fast: policy.lr must be a finite"),
+        (["efficienttrack.k_smooth=1"], ["efficienttrack"], "changes open-loop EfficientTrack, and no job runs it.*--set"),
+    ],
+)
+def test_method_set_refuses_a_change_no_job_can_make_before_any_job_runs(refs, changes, methods, message):
+    study = make_study(SystemSpec(), *refs, 2 * 59, "tiny", FAST, method_settings=changes)
+    with pytest.raises(EfficientTrackError, match=message):
+        make_jobs(study, methods)
+
+
+def test_method_set_must_name_a_method_and_a_field():
+    with pytest.raises(EfficientTrackError, match="--method-set 'trials=1': expected METHOD.field=value"):
+        make_study(SystemSpec(), [], [], method_settings=["trials=1"])

@@ -126,6 +126,15 @@ def study_command(
     ] = None,
     preset_name: StudyPresetOpt = "cpu",
     overrides: StudySetOpt = None,
+    method_set: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--method-set",
+            help="Change one of a method's settings: METHOD.field=value, e.g. supertrack.policy.lr=1e-5 or "
+            "sac.learning_rate=3e-5 (repeatable; baselines, and efficienttrack in the open loop; its closed loop: --set). "
+            "The table names the changes.",
+        ),
+    ] = None,
     executor: ExecutorOpt = "local",
     jobs: JobsOpt = 1,
     address: AddressOpt = None,
@@ -160,8 +169,9 @@ def study_command(
     budgets = _method_budgets(method_budget or [])
     settings = _study_settings(preset_name, overrides)
     study = make_study(
-        spec, load_references(train_refs), load_references(test_refs), budget, preset_name, settings, budgets, validation
-    )
+        spec, load_references(train_refs), load_references(test_refs), budget, preset_name, settings, budgets, validation,
+        method_set or (),
+    )  # fmt: skip
     names = None if methods is None else comma_names(methods, "--methods")
     job_list = make_jobs(study, names, comma_names(loops, "--loops"), parse_ints(seeds, "--seeds"))
     _lock(ctx, out)

@@ -81,7 +81,8 @@ def execute(job: Job, out: Path, threads: int = 1) -> Outcome:
 
     What the method prints goes to the folder's ``job.log``. On success ``result.json`` is written last:
     ``{"job", "method", "loop", "seed", "budget", "curve": [point, ...] sorted by interaction steps, "wall_seconds",
-    "provenance"}`` (and ``"variant"``: name, label, overrides, for an ablation's job); on failure ``error.json``
+    "provenance"}`` (and ``"variant"``: name, label, overrides, for an ablation's job; ``"settings_changes"``: the
+    ``--method-set`` changes it trained with, if any); on failure ``error.json``
     (``{"job", "error", "traceback"}``). ``"wall_seconds"`` is this sitting's wall time, evaluations included: a job
     resumed after a kill counts from the resume, while the wall times of its curve points carry on across the resume
     (what the study's table reports). torch uses ``threads`` CPU threads while the job runs.
@@ -122,6 +123,8 @@ def execute(job: Job, out: Path, threads: int = 1) -> Outcome:
     }
     if job.variant is not None:
         result["variant"] = job.variant.to_dict()
+    if job.settings_changes:
+        result["settings_changes"] = list(job.settings_changes)
     (folder / ERROR).unlink(missing_ok=True)
     write_json(folder / RESULT, result)
     return Outcome(job.name, result, None)

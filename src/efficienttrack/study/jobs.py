@@ -11,7 +11,7 @@ settings, and owns ``OUT/jobs/<method>-<variant>-s<seed>/``.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -128,6 +128,9 @@ class Study:
             baseline stopped earlier, a sample-hungry one given more).
         validation: training references held out of every method's training (:func:`split_validation`); each curve
             point is measured on them too, and the report chooses each curve's point by them. Empty: no validation.
+        method_settings: (method, ``method.field=value``) pairs, in the order given (``--method-set``): changes to a
+            method's settings over the preset's (a baseline's, or open-loop EfficientTrack's), checked by
+            :func:`~efficienttrack.study.methods.make_jobs`.
     """
 
     system: SystemSpec
@@ -138,6 +141,7 @@ class Study:
     run_config: RunConfig
     method_budgets: tuple[tuple[str, int], ...] = ()
     validation: tuple[Reference, ...] = ()
+    method_settings: tuple[tuple[str, str], ...] = ()
 
     def __post_init__(self) -> None:
         """Check the references, the budgets and the preset (EfficientTrackError naming the option)."""
@@ -153,6 +157,14 @@ class Study:
             raise EfficientTrackError(f"--method-budget: a method is given twice ({', '.join(names)})")
         if self.preset not in STUDY_PRESETS:
             raise EfficientTrackError(f"--preset '{self.preset}': unknown, choose one of {', '.join(STUDY_PRESETS)}")
+
+    def settings_changes(self, method: str) -> tuple[str, ...]:
+        """The ``--method-set`` changes of ``method``, in order, each as given (``supertrack.policy.lr=1e-5``).
+
+        Args:
+            method: a method name.
+        """
+        return tuple(text for name, text in self.method_settings if name == method)
 
     def budget_of(self, method: str) -> int:
         """Interaction steps a job of ``method`` may spend: its ``method_budgets`` entry, else ``budget``.
@@ -181,7 +193,7 @@ class Study:
             ``{"system", "validation": count held out, "validation_references": {name: length} (these two only with a
             validation split), "train_references": {name: length} of every training reference given, the validation
             ones included, "test_references": {name: length}, "references_sha256", "budget", "method_budgets":
-            {method: steps}, "preset", "run_config"}``.
+            {method: steps}, "preset", "run_config", "method_settings": {method: [change]} (only with changes)}``.
         """
         validation = {"validation": len(self.validation), "validation_references": {r.name: len(r) for r in self.validation}}
         return {
@@ -194,7 +206,15 @@ class Study:
             "method_budgets": dict(self.method_budgets),
             "preset": self.preset,
             "run_config": self.run_config.to_dict(),
+            **({"method_settings": self._changes_by_method()} if self.method_settings else {}),
         }
+
+    def _changes_by_method(self) -> dict[str, list[str]]:
+        """``{method: [change, ...]}`` of :attr:`method_settings`."""
+        changes: dict[str, list[str]] = {}
+        for method, text in self.method_settings:
+            changes.setdefault(method, []).append(text)
+        return changes
 
 
 def make_study(
@@ -206,6 +226,7 @@ def make_study(
     run_config: RunConfig | None = None,
     method_budgets: dict[str, int] | None = None,
     validation: int | None = None,
+    method_settings: Sequence[str] = (),
 ) -> Study:
     """A study with the preset's defaults filled in, and ``validation`` of the training references held out.
 
@@ -220,12 +241,14 @@ def make_study(
             overriding, the preset's own).
         validation: training references to hold out for validation (:func:`split_validation`; 0: none; None:
             :func:`default_validation`, a tenth of them).
+        method_settings: ``method.field=value`` changes to a method's settings (``--method-set``), in order.
 
     Returns:
         The study.
 
     Raises:
-        EfficientTrackError: an unknown preset, a budget < 1, no references, a bad ``validation`` count.
+        EfficientTrackError: an unknown preset, a budget < 1, no references, a bad ``validation`` count, a change that
+            does not start with a method's name.
     """
     preset = canonical_preset(preset)
     if preset not in STUDY_PRESETS:
@@ -241,7 +264,16 @@ def make_study(
         run_config=PRESETS[sizes.run] if run_config is None else run_config,
         method_budgets=tuple(sorted({**dict(sizes.method_budgets), **(method_budgets or {})}.items())),
         validation=held,
+        method_settings=tuple((_changed_method(text), text) for text in method_settings),
     )
+
+
+def _changed_method(text: str) -> str:
+    """The method a ``--method-set`` change names: what comes before its first dot."""
+    method, dot, rest = text.partition(".")
+    if not dot or not method.strip() or "=" not in rest or "=" in method:
+        raise EfficientTrackError(f"--method-set '{text}': expected METHOD.field=value, e.g. supertrack.policy.lr=1e-5")
+    return method.strip()
 
 
 @dataclass(frozen=True, eq=False)
@@ -305,6 +337,13 @@ class Job:
     def name(self) -> str:
         """``<method>-<loop>-s<seed>``, or ``<method>-<variant>-s<seed>`` for a variant: the job's folder name."""
         return f"{self.method}-{self.loop if self.variant is None else self.variant.name}-s{self.seed}"
+
+    @property
+    def settings_changes(self) -> tuple[str, ...]:
+        """The study's ``--method-set`` changes this job trains with (closed-loop EfficientTrack has none: ``--set``)."""
+        if self.method == "efficienttrack" and self.loop != "open":
+            return ()
+        return self.study.settings_changes(self.method)
 
     @property
     def run_config(self) -> RunConfig:

@@ -28,9 +28,10 @@ import importlib.util
 import json
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 from rich.console import Console
 
@@ -38,6 +39,7 @@ from efficienttrack.baselines.curve import training_run
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import write_json
 from efficienttrack.core.progress import ProgressDisplay
+from efficienttrack.core.settings import merge, parse_override, settings_from_dict
 from efficienttrack.data.metrics import compute_metrics, rounded
 from efficienttrack.deploy.runtime import track
 from efficienttrack.envs.core import LOOPS
@@ -201,8 +203,103 @@ def _baseline(job: Job, folder: Path, train: Callable[..., list[Point]], validat
         job.loop, study.system, study.train, study.test, job.budget, job.seed, folder, validation_refs=validation
     )
     with ProgressDisplay() as progress:  # plain lines in the job's log
-        curve = train(run, preset=STUDY_PRESETS[study.preset].baselines, progress=progress)
+        curve = train(run, preset=job_settings(job), progress=progress)
     return require_validation(curve, job.method) if validation else curve
+
+
+SETTABLE = ("efficienttrack", "sac", "ppo", "tdmpc", "supertrack", "ilc")
+"""The methods whose settings ``--method-set`` changes (EfficientTrack's in the open loop; its closed loop: ``--set``)."""
+
+
+def preset_settings(method: str, preset: str) -> Any:
+    """The settings object of a method's preset, its module imported only now (a job imports only what it runs).
+
+    Args:
+        method: a name of :data:`SETTABLE`.
+        preset: the baselines' preset name (``cpu``, ``tiny``).
+
+    Returns:
+        The method's settings dataclass (``OpenLoopSettings`` for ``efficienttrack``, ``SACSettings`` …).
+    """
+    if method == "efficienttrack":
+        from efficienttrack.baselines.openloop import open_settings
+
+        return open_settings(preset)
+    if method in ("sac", "ppo"):
+        from efficienttrack.baselines.settings import method_settings
+
+        return method_settings(method, preset)
+    if method == "tdmpc":
+        from efficienttrack.baselines.tdmpc import tdmpc_settings
+
+        return tdmpc_settings(preset)
+    if method == "supertrack":
+        from efficienttrack.baselines.supertrack import supertrack_settings
+
+        return supertrack_settings(preset)
+    from efficienttrack.baselines.ilc import ilc_settings
+
+    return ilc_settings(preset)
+
+
+def changed_settings(method: str, preset: str, changes: Sequence[str]) -> Any:
+    """A method's preset with ``--method-set`` changes laid over it, each checked as a settings file's field is.
+
+    Args:
+        method: a name of :data:`SETTABLE`.
+        preset: the baselines' preset name.
+        changes: ``method.field=value`` texts (a dotted field reaches into a section: ``supertrack.policy.lr=1e-5``).
+
+    Returns:
+        The changed settings.
+
+    Raises:
+        EfficientTrackError: a malformed change, an unknown field or a value its field refuses (naming the change).
+    """
+    settings = preset_settings(method, preset)
+    for text in changes:  # one at a time: an error names the change that caused it
+        data = merge(asdict(settings), parse_override(text, "--method-set")[method])
+        settings = settings_from_dict(type(settings), data, f"--method-set {text}")
+    return settings
+
+
+def job_settings(job: Job) -> Any:
+    """What a baseline job trains with: the study preset's name, or its settings with the job's ``--method-set`` changes.
+
+    Args:
+        job: the job.
+
+    Returns:
+        The preset's name (no change: the job's ``curve.json`` is as before changes existed) or a settings object.
+    """
+    preset = STUDY_PRESETS[job.study.preset].baselines
+    return changed_settings(job.method, preset, job.settings_changes) if job.settings_changes else preset
+
+
+def check_method_settings(study: Study, jobs: Sequence[Job]) -> None:
+    """Refuse ``--method-set`` changes that no job would use, or that do not make valid settings, before any job runs.
+
+    Args:
+        study: the study.
+        jobs: its jobs.
+
+    Raises:
+        EfficientTrackError: a change of an unknown method, of one without settings (``pd``), of EfficientTrack without
+            an open-loop job (its closed loop takes ``--set``), or one its settings refuse.
+    """
+    for method in dict.fromkeys(name for name, _ in study.method_settings):
+        changes = study.settings_changes(method)
+        if method not in METHODS:
+            raise EfficientTrackError(f"--method-set {changes[0]}: unknown method, choose from {', '.join(SETTABLE)}")
+        if method not in SETTABLE:
+            raise EfficientTrackError(f"--method-set {changes[0]}: {method} has no settings to change")
+        if method == "efficienttrack" and not any(job.settings_changes for job in jobs if job.method == method):
+            raise EfficientTrackError(
+                f"--method-set {changes[0]}: changes open-loop EfficientTrack, and no job runs it; the closed loop's "
+                "settings take --set (e.g. --set policy.k_smooth=0.1)"
+            )
+        if METHODS[method].available():
+            changed_settings(method, STUDY_PRESETS[study.preset].baselines, changes)
 
 
 def require_validation(curve: list[Point], method: str) -> list[Point]:
@@ -349,8 +446,8 @@ def make_jobs(
 
     Raises:
         EfficientTrackError: an unknown or unavailable method (also in the study's ``method_budgets``), one that cannot
-            run in the study (its ``check``), an unknown loop, a bad seed, the open loop without a plant, or no job at
-            all (each naming its option).
+            run in the study (its ``check``), an unknown loop, a bad seed, the open loop without a plant, no job at
+            all (each naming its option), or a ``--method-set`` change :func:`check_method_settings` refuses.
     """
     names = available_methods() if methods is None else list(methods)
     for name in names:
@@ -389,4 +486,5 @@ def make_jobs(
         raise EfficientTrackError(
             f"--loops open: the system {study.system.system_name} has no PWM-level plant under it; name one with --plant"
         )
+    check_method_settings(study, jobs)
     return jobs

@@ -144,16 +144,23 @@ def stats(values: Sequence[float]) -> tuple[float | None, float | None]:
     return float(np.mean(values)), (float(np.std(values, ddof=1)) if len(values) > 1 else None)
 
 
-def _label(method: str) -> str:
-    """The method's name in the table and the figure."""
-    return METHODS[method].label if method in METHODS else method
+def _label(entry: dict[str, Any]) -> str:
+    """An entry's name in the table and the figure: its method's, with its ``--method-set`` changes in brackets."""
+    method, changes = entry["method"], entry.get("settings_changes") or ()
+    label = METHODS[method].label if method in METHODS else method
+    return f"{label} ({', '.join(text.removeprefix(method + '.') for text in changes)})" if changes else label
 
 
-def _order(key: tuple[str, str]) -> tuple[int, str, int]:
-    """Sort key of a (method, loop): the registry's order (others after, by name), then closed before open."""
-    method, loop = key
+def _order(key: tuple[str, str, tuple[str, ...]]) -> tuple[int, str, int, tuple[str, ...]]:
+    """Sort key of (method, loop, changes): the registry's order (others after, by name), closed first, presets first."""
+    method, loop, changes = key
     rank = list(METHODS).index(method) if method in METHODS else len(METHODS)
-    return rank, method, LOOPS.index(loop) if loop in LOOPS else len(LOOPS)
+    return rank, method, LOOPS.index(loop) if loop in LOOPS else len(LOOPS), changes
+
+
+def _key(result: dict[str, Any]) -> tuple[str, str, tuple[str, ...]]:
+    """What one entry of the report gathers the seeds of: method, loop and ``--method-set`` changes."""
+    return result["method"], result["loop"], tuple(result.get("settings_changes") or ())
 
 
 def _flat(p: dict[str, Any]) -> dict[str, Any]:
@@ -231,15 +238,16 @@ def mean_curve(curves: Sequence[Sequence[dict[str, Any]]]) -> list[dict[str, Any
 
 
 def summarize(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
-    """One entry per method and loop: the mean ± std over seeds of each seed's final, selected and best points; curves.
+    """One entry per method, loop and settings: mean ± std over seeds of each seed's final, selected and best points; curves.
 
     Args:
         results: the jobs' ``result.json`` contents.
 
     Returns:
-        Entries ordered as :data:`~efficienttrack.study.methods.METHODS`, closed loop first: ``{"method", "loop",
-        "seeds": [int], "interaction_steps", "interaction_hours", "wall_seconds", "mae_deg", "rmse_deg", "fmae_deg",
-        "smt1_deg", "smt2_deg", "etd_mae_cm", "etd_fmae_cm" (means at the final points) and each with ``_std``,
+        Entries ordered as :data:`~efficienttrack.study.methods.METHODS`, closed loop first, a method's preset before its
+        ``--method-set`` changes: ``{"method", "loop", "settings_changes": [change] (only with changes), "seeds": [int],
+        "interaction_steps", "interaction_hours", "wall_seconds", "mae_deg", "rmse_deg", "fmae_deg", "smt1_deg",
+        "smt2_deg", "etd_mae_cm", "etd_fmae_cm" (means at the final points) and each with ``_std``,
         "selected_interaction_steps", "selected_mae_deg" and their ``_std`` (the test MAE at the points selected on
         validation; None unless every seed has one), "best_interaction_steps", "best_mae_deg" and their ``_std`` (at
         the best points on test), "per_joint_mae_deg": [4], "episodes", "steps": the test set, "final", "best": [per
@@ -248,11 +256,11 @@ def summarize(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
         "points": [each point: interaction steps and hours, wall seconds, test metrics, "validation_mae_deg"]}]}``;
         a point of "final", "selected", "best" is ``{"seed", **that point}``.
     """
-    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    groups: dict[tuple[str, str, tuple[str, ...]], list[dict[str, Any]]] = {}
     for result in results:
-        groups.setdefault((result["method"], result["loop"]), []).append(result)
+        groups.setdefault(_key(result), []).append(result)
     entries = []
-    for (method, loop), group in sorted(groups.items(), key=lambda item: _order(item[0])):
+    for (method, loop, changes), group in sorted(groups.items(), key=lambda item: _order(item[0])):
         group = sorted(group, key=lambda r: r["seed"])
         curves = [{"seed": r["seed"], "points": [_flat(p) for p in r["curve"]]} for r in group]
         final = [{"seed": c["seed"], **max(c["points"], key=lambda p: p["interaction_steps"])} for c in curves]
@@ -260,6 +268,8 @@ def summarize(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
         chosen = [{"seed": r["seed"], **_flat(s)} for r in group if (s := selected_point(r["curve"])) is not None]
         selected = chosen if len(chosen) == len(group) else None  # no choice made on part of the seeds
         entry: dict[str, Any] = {"method": method, "loop": loop, "seeds": [c["seed"] for c in curves]}
+        if changes:
+            entry["settings_changes"] = list(changes)
         for field in FIELDS:
             entry[field], entry[f"{field}_std"] = point_stats(final, field)
         for field in BEST_FIELDS:
@@ -322,7 +332,7 @@ def _rows(
         chosen = points(e)
         extra = more(e)
         values = [cell(*point_stats(chosen, field), COLUMNS[field][1]) for field in FIELDS]
-        lines.append(_row([_label(e["method"]), e["loop"], str(len(e["seeds"])), *values, *extra]))
+        lines.append(_row([_label(e), e["loop"], str(len(e["seeds"])), *values, *extra]))
         published = paper_row(e["method"], e["loop"]) if paper else None
         if published is not None:
             theirs = ["–" if published.get(field) is None else f"{published[field]:{COLUMNS[field][1]}}" for field in FIELDS]
@@ -429,7 +439,7 @@ def equal_interaction_table(entries: Sequence[dict[str, Any]], counts: Sequence[
         *_head(headers),
     ]
     for e in entries:
-        cells = [_label(e["method"]), e["loop"], str(len(e["seeds"]))]
+        cells = [_label(e), e["loop"], str(len(e["seeds"]))]
         finals = [max(p["interaction_steps"] for p in c["points"]) for c in e["curves"]]
         shown: list[int] | None = None  # the steps of the points of the last column filled
         for n in counts:
@@ -488,16 +498,17 @@ def plot_study(entries: Sequence[dict[str, Any]], path: str | Path, paper: bool 
     drawn = starred = marked = False
     for e in entries:
         trained = [p for p in e["curve"] if p["interaction_steps"] > 0]
-        label = _label(e["method"])
+        label = _label(e)
         if not trained:
             mae = e["curve"][0]["mae_deg"]
             ax.axhline(mae, color="k", ls="--", lw=1, label=f"{label} ({mae:.2f}°)")
             continue
-        hue = 2 * _order((e["method"], e["loop"]))[0] % 20
+        hue = 2 * _order(_key(e))[0] % 20
         color = palette(hue if e["loop"] == "closed" else hue + 1)
         x = np.array([p["interaction_hours"] for p in trained])
         y = np.array([p["mae_deg"] for p in trained])
-        ax.plot(x, y, "o-", color=color, ms=3, label=f"{label} ({e['loop']} loop)")
+        style = "o--" if e.get("settings_changes") else "o-"
+        ax.plot(x, y, style, color=color, ms=3, label=f"{label} ({e['loop']} loop)")
         published = paper_row(e["method"], e["loop"]) if paper else None
         if published is not None and published["interaction_hours"] is not None:
             ax.plot(published["interaction_hours"], published["mae_deg"], "D", mfc="none", color=color, ms=9, mew=2)
@@ -565,8 +576,12 @@ def report(out: str | Path) -> Report:
     paper = is_paper_system(_study_system(out))
     markdown = markdown_table(entries, failed, paper)
     fields = (*FIELDS, *(f"{which}_{field}" for which in ("selected", "best") for field in BEST_FIELDS))
-    header = ["method", "loop", "seeds", *(name for field in fields for name in (field, f"{field}_std"))]
-    rows = ([e["method"], e["loop"], " ".join(map(str, e["seeds"])), *(e[name] for name in header[3:])] for e in entries)
+    header = ["method", "loop", "seeds", *(name for field in fields for name in (field, f"{field}_std")), "settings_changes"]
+    rows = (
+        [e["method"], e["loop"], " ".join(map(str, e["seeds"])), *(e[name] for name in header[3:-1]),
+         " ".join(e.get("settings_changes", ()))]
+        for e in entries
+    )  # fmt: skip
     paths = (
         write_json(out / "study.json", entries),
         atomic_write(out / "study.md", lambda f: f.write(markdown), mode="w"),
@@ -602,7 +617,7 @@ def combine(folders: Sequence[str | Path], path: str | Path) -> Report:
     """
     results: list[dict[str, Any]] = []
     failed: dict[str, str] = {}
-    owner: dict[tuple[str, str, int], tuple[Path, dict[str, Any]]] = {}
+    owner: dict[tuple[str, str, tuple[str, ...], int], tuple[Path, dict[str, Any]]] = {}
     system: tuple[Path, dict[str, Any]] | None = None
     for folder in map(Path, folders):
         found, errors = read_jobs(folder)
@@ -614,7 +629,7 @@ def combine(folders: Sequence[str | Path], path: str | Path) -> Report:
         system = system or (folder, here)
         for result in found:
             seeded = result["method"] not in METHODS or METHODS[result["method"]].seeded
-            key = (result["method"], result["loop"], result["seed"] if seeded else -1)
+            key = (*_key(result), result["seed"] if seeded else -1)
             if key in owner:
                 first, held = owner[key]
                 if _same_measurement(result, held):

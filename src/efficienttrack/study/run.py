@@ -125,7 +125,7 @@ def run_jobs(
         raise EfficientTrackError(f"--address {address}: only with --executor ray")
     out = Path(out).resolve()  # as the workers of a cluster see it, on a shared file system
     other = {
-        "study": "a study of another system, references, budget or preset, or an ablation",
+        "study": "a study of another system, references, budget, preset or settings, or an ablation",
         "ablation": "a study, or an ablation of another kind, system, references, passes or preset",
     }
     claim_folder(
