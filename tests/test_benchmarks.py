@@ -45,6 +45,7 @@ HELP_ONLY = {
     "precision.py": "--held-speed",
     "rounds.py": "--presets",
     "supertrack_ablation.py": "--variant",
+    "tdmpc_plan_eval.py": "--train-refs",
     "tdmpc_throughput.py": "--steps",
     "tracking.py": "--seeds",
 }
