@@ -12,6 +12,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from matplotlib.axes import Axes
 from typer.testing import CliRunner
 
 from efficienttrack.cli import app
@@ -24,7 +25,7 @@ from efficienttrack.study.executors import Outcome, process_pool
 from efficienttrack.study.jobs import default_validation, split_validation
 from efficienttrack.study.methods import Method, job_settings, point
 from efficienttrack.study.paper_table import is_paper_system, paper_row
-from efficienttrack.study.report import FIELDS, METRICS, combine, log_mae_axis, markdown_table, summarize
+from efficienttrack.study.report import FIELDS, METRICS, combine, log_mae_axis, markdown_table, plot_study, summarize
 from efficienttrack.study.run import progress_line
 from efficienttrack.systems.spec import SystemSpec
 from efficienttrack.workflow.collect import pass_counts
@@ -578,3 +579,27 @@ def test_method_set_refuses_a_change_no_job_can_make_before_any_job_runs(refs, c
 def test_method_set_must_name_a_method_and_a_field():
     with pytest.raises(EfficientTrackError, match="--method-set 'trials=1': expected METHOD.field=value"):
         make_study(SystemSpec(), [], [], method_settings=["trials=1"])
+
+
+def test_the_figure_draws_each_settings_variant_of_a_method_with_its_own_line(tmp_path, monkeypatch):
+    points = [{"interaction_steps": s, "interaction_hours": s / 72_000, "mae_deg": m} for s, m in ((100, 2.0), (200, 1.0))]
+    entries = [{"method": "supertrack", "loop": "open", "curve": points, "selected": None}] + [
+        {"method": "supertrack", "loop": "open", "settings_changes": [f"supertrack.noise_open={v}"], "curve": points,
+         "selected": None}
+        for v in (0.1, 0.5)
+    ]  # fmt: skip
+    drawn = []
+    plot = Axes.plot
+
+    def spy(self, *args, **kwargs):
+        lines = plot(self, *args, **kwargs)
+        drawn.extend((line.get_label(), line.get_linestyle()) for line in lines)
+        return lines
+
+    monkeypatch.setattr(Axes, "plot", spy)
+    plot_study(entries, tmp_path / "variants.png")
+    assert drawn[:3] == [
+        ("SuperTrack (open loop)", "-"),
+        ("SuperTrack (noise_open=0.1) (open loop)", "--"),
+        ("SuperTrack (noise_open=0.5) (open loop)", ":"),
+    ]

@@ -476,6 +476,11 @@ def log_mae_axis(entries: Sequence[dict[str, Any]]) -> bool:
     return bool(maes) and max(maes) > LOG_MAE_SPAN * min(maes)
 
 
+LINE_STYLES = ("-", "--", ":", "-.", (0, (5, 1, 1, 1, 1, 1)))
+"""The line of each curve of one method and loop: solid for the first (the preset's, when it ran), then dashed, dotted …
+for its ``--method-set`` variants, in the report's order."""
+
+
 def plot_study(entries: Sequence[dict[str, Any]], path: str | Path, paper: bool = False) -> Path:
     """MAE against interaction time, as the paper's figure: one line per method and loop (the mean over seeds).
 
@@ -496,6 +501,7 @@ def plot_study(entries: Sequence[dict[str, Any]], path: str | Path, paper: bool 
     palette = plt.get_cmap("tab20")  # pairs of a dark and a light shade of each hue
     fig, ax = plt.subplots(figsize=(8, 4.8), layout="constrained")
     drawn = starred = marked = False
+    variants: dict[tuple[str, str], int] = {}  # per method and loop: its curves so far, the preset's first
     for e in entries:
         trained = [p for p in e["curve"] if p["interaction_steps"] > 0]
         label = _label(e)
@@ -507,8 +513,9 @@ def plot_study(entries: Sequence[dict[str, Any]], path: str | Path, paper: bool 
         color = palette(hue if e["loop"] == "closed" else hue + 1)
         x = np.array([p["interaction_hours"] for p in trained])
         y = np.array([p["mae_deg"] for p in trained])
-        style = "o--" if e.get("settings_changes") else "o-"
-        ax.plot(x, y, style, color=color, ms=3, label=f"{label} ({e['loop']} loop)")
+        variant = variants[e["method"], e["loop"]] = variants.get((e["method"], e["loop"]), -1) + 1
+        style = LINE_STYLES[variant % len(LINE_STYLES)]
+        ax.plot(x, y, marker="o", ls=style, color=color, ms=3, label=f"{label} ({e['loop']} loop)")
         published = paper_row(e["method"], e["loop"]) if paper else None
         if published is not None and published["interaction_hours"] is not None:
             ax.plot(published["interaction_hours"], published["mae_deg"], "D", mfc="none", color=color, ms=9, mew=2)
