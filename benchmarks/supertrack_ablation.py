@@ -17,41 +17,23 @@ Run (docs/comparison.md, "Why SuperTrack learns faster on the XE75"):
 from __future__ import annotations
 
 import argparse
-import dataclasses
+import json
 import shlex
 import sys
 from pathlib import Path
-from typing import Any
 
 import torch
 
 from baseline_probe import variant
 from efficienttrack.baselines import training_run
-from efficienttrack.baselines.supertrack import SUPERTRACK_PRESETS, SuperTrackSettings, train_supertrack
+from efficienttrack.baselines.supertrack import SuperTrackSettings, train_supertrack
+from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.progress import ProgressDisplay
 from efficienttrack.data.references import load_references
 from efficienttrack.study.jobs import default_validation, split_validation
+from efficienttrack.study.methods import changed_settings
+from efficienttrack.study.report import selected_point
 from efficienttrack.systems.spec import SystemSpec
-
-
-def changed(settings: Any, fields: dict[str, object]) -> Any:
-    """``settings`` with ``fields`` replaced; ``a.b`` replaces field ``b`` of the dataclass in field ``a``."""
-    nested: dict[str, dict[str, object]] = {}
-    flat = {}
-    for name, value in fields.items():
-        head, dot, rest = name.partition(".")
-        if dot:
-            nested.setdefault(head, {})[rest] = value
-        else:
-            flat[name] = value
-    for head, inner in nested.items():
-        flat[head] = changed(getattr(settings, head), inner)
-    return dataclasses.replace(settings, **flat)
-
-
-def selected(curve: list[dict[str, Any]]) -> dict[str, Any]:
-    """The point with the lowest validation MAE (the first of equals)."""
-    return min(curve, key=lambda point: point["validation"]["mae_deg"])
 
 
 def main() -> None:
@@ -73,10 +55,11 @@ def main() -> None:
     if not runs:
         parser.error("nothing to run: give --variant, or leave out --no-base")
     settings: dict[str, SuperTrackSettings] = {}
-    for name, fields in runs:
+    for name, fields in runs:  # the study's --method-set mechanism: every field checked, a dotted one reaching in
+        changes = [f"supertrack.{field}={json.dumps(value)}" for field, value in fields.items()]
         try:
-            settings[name] = changed(SUPERTRACK_PRESETS["cpu"], fields)
-        except (TypeError, AttributeError) as error:
+            settings[name] = changed_settings("supertrack", "cpu", changes)
+        except EfficientTrackError as error:
             parser.error(f"--variant {name}: {error}")
     counts = [int(n) for n in args.at.split(",") if n]
     torch.set_num_threads(1)
@@ -93,9 +76,9 @@ def main() -> None:
             for n in counts:
                 early = [p for p in curve if p["interaction_steps"] <= n]
                 cells.append(f"{early[-1]['metrics']['mae_deg']:.3f} ({early[-1]['interaction_steps']:,})" if early else "")
-            final, best = curve[-1], selected(curve)
+            final, best = curve[-1], selected_point(curve)
             cells.append(f"{final['metrics']['mae_deg']:.3f} ({final['interaction_steps']:,})")
-            cells.append(f"{best['metrics']['mae_deg']:.3f} ({best['interaction_steps']:,})")
+            cells.append(f"{best['metrics']['mae_deg']:.3f} ({best['interaction_steps']:,})" if best else "–")
             rows.append(f"| {name} | " + " | ".join(cells) + f" | {final['wall_seconds']:.0f} |")
     print(f"SuperTrack, {args.loop} loop on {args.system}, seed {args.seed}: test MAE ° (interaction steps)")
     for name, fields in runs:

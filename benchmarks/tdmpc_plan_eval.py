@@ -23,14 +23,18 @@ import json
 import shlex
 import sys
 import time
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from efficienttrack.baselines.tdmpc import TOLD, TDMPCSettings
 from efficienttrack.baselines.tdmpc.train import evaluation_agent
 from efficienttrack.core.fileio import write_json
+from efficienttrack.core.progress import ProgressDisplay
 from efficienttrack.core.settings import settings_from_dict
 from efficienttrack.data.metrics import compute_metrics
 from efficienttrack.data.references import load_references
@@ -55,6 +59,17 @@ def read_job(folder: Path) -> dict[str, Any]:
     if not (folder / "model.pt").is_file():
         sys.exit(f"{folder}: no model.pt (the run has not finished)")
     return header
+
+
+def counted(act: Callable[[np.ndarray], np.ndarray], tick: Callable[[], None]) -> Callable[[np.ndarray], np.ndarray]:
+    """``act`` (observations (N, D) → actions (N, A)), calling ``tick`` after each call."""
+
+    def act_and_tick(obs: np.ndarray) -> np.ndarray:
+        action = act(obs)
+        tick()
+        return action
+
+    return act_and_tick
 
 
 def main() -> None:
@@ -91,9 +106,13 @@ def main() -> None:
     final = max(header["curve"], key=lambda point: point["interaction_steps"])
     agent = evaluation_agent(model, settings, header["budget"], header["seed"], see)
     began = time.perf_counter()
-    planned = {"test": compute_metrics(evaluate(agent, test, loop=loop, system=machine))}
-    if validation:
-        planned["validation"] = compute_metrics(evaluate(agent, validation, loop=loop, system=machine))
+    planned = {}
+    with ProgressDisplay() as bar:  # the planner takes minutes: one tick per planned step of the batch
+        for name, refs in (("test", test), ("validation", validation)):
+            if refs:
+                task = bar.add_task(f"planner, {len(refs)} {name} references (steps)", max(ref.steps for ref in refs))
+                act = counted(agent, partial(bar.update, task, advance=1))
+                planned[name] = compute_metrics(evaluate(act, refs, loop=loop, system=machine))
     wall = time.perf_counter() - began
     print(f"{args.job.name}: {loop} loop, seed {header['seed']}, {final['interaction_steps']:,} interaction steps; "
           f"the planner's evaluation took {wall:.0f} s")  # fmt: skip
