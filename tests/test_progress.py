@@ -55,3 +55,17 @@ def test_disabled_shows_nothing():
 
 def test_format_fields():
     assert format_fields({"loss": 0.0123456, "pass": 3}) == "loss 0.01235 pass 3"
+
+
+def test_a_resumed_task_counts_its_time_left_from_where_it_resumed():
+    stream, clock = io.StringIO(), Clock()
+    with ProgressDisplay(stream=stream, interval=10.0, clock=clock) as bar:
+        task = bar.add_task("sac open (steps)", total=1000)
+        clock.now += 5.0  # restoring the saved state
+        bar.resume(task, completed=800)
+        for step in range(801, 901):
+            clock.now += 0.25  # 4 steps a second
+            bar.update(task, completed=step)
+    lines = stream.getvalue().splitlines()
+    # 20 steps in the 5 s since it resumed, 180 to go; the 800 restored steps are not this run's rate
+    assert lines[0] == "sac open (steps) 820/1000 (5 s, ~45 s left)"

@@ -106,18 +106,19 @@ class CurveRecorder:
         """The training wall time so far, evaluations excluded."""
         return time.perf_counter() - self.start - self.evaluating
 
-    def resume(self, curve: list[dict[str, Any]], wall_seconds: float) -> None:
-        """Continue a run from its saved state: the points it measured, and its wall time up to the state.
+    def resume(self, curve: list[dict[str, Any]], wall_seconds: float, count: int) -> None:
+        """Continue a run from its saved state: the points it measured, its wall time and its interaction steps.
 
         Args:
             curve: the points measured before the state was saved (later ones are measured again).
             wall_seconds: the training wall time at the state; the wall times of new points continue from it.
+            count: interaction steps of the state; the progress display's time left counts only the steps from here.
         """
         self.curve = list(curve)
         self.start, self.evaluating = time.perf_counter() - wall_seconds, 0.0
         write_json(self.path, {**self.header, "curve": self.curve})
-        if self.curve and self.progress is not None and self.task is not None:
-            self.progress.update(self.task, completed=self.curve[-1]["interaction_steps"])
+        if self.progress is not None and self.task is not None:
+            self.progress.resume(self.task, completed=count)
 
     def measure(
         self,

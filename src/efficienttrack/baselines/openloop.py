@@ -194,7 +194,7 @@ def train_efficienttrack_open(
         earlier = earlier_points(run.folder / CURVE_FILE, header)
         recorder = CurveRecorder(run, header, plant, progress)
         try:
-            recorder.resume(earlier, 0.0)
+            recorder.resume(earlier, 0.0, 0)  # its passes are collected again, from the first
             done = {point.get("passes") for point in earlier}
             for passes in (p for p in counts if p not in done):
                 while len(collect_seconds) < passes:  # collect

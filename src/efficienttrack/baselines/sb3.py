@@ -151,7 +151,8 @@ def train_baseline(
         try:
             model = settings.build(env, seed)
             if state_file.exists():
-                recorder.resume(*restore_state(model, state_file, run_id))
+                curve, wall = restore_state(model, state_file, run_id)
+                recorder.resume(curve, wall, model.num_timesteps)
                 env.seed(int(np.random.SeedSequence([seed, model.num_timesteps]).generate_state(1)[0]) % MAX_SB3_SEED)
             done = model.num_timesteps
             todo = [p for p in run.points if p > done]

@@ -151,6 +151,22 @@ class ProgressDisplay:
             for shown in self._tasks.values():
                 self._print(shown)
 
+    def resume(self, task_id: int, completed: float) -> None:
+        """Continue a task from ``completed`` units (a run resumed from its saved state) without a line of its own.
+
+        Its rate and time left count only the units done from here, as if it had been added with ``completed``.
+
+        Args:
+            task_id: from :meth:`add_task`.
+            completed: units the saved state had done.
+        """
+        if self._bar is not None:
+            self._bar.reset(task_id, completed=completed)  # type: ignore[arg-type]
+        elif task_id in self._tasks:
+            task = self._tasks[task_id]
+            task.completed = task.first = completed
+            task.started = self.clock()
+
     def advance(self, task_id: int, amount: float = 1) -> None:
         """Add ``amount`` units of work to a task (see :meth:`update`).
 

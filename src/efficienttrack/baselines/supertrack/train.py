@@ -133,7 +133,7 @@ def train_supertrack(
             if state_file.exists():
                 model, policy = world(settings.model), actor(policy_cfg)
                 count, iteration, buffer, curve, wall = restore_state(state_file, run_id, model, policy, rng, noise)
-                recorder.resume(curve, wall)
+                recorder.resume(curve, wall, count)
             points = [p for p in run.points if p > count]
             while count < run.budget:
                 # collect: the policy plus noise on references drawn at random

@@ -203,7 +203,7 @@ def _run(
     if resume.state_file.exists():
         generators = Generators(rng, generator, env.np_random)
         start, curve, wall = restore_state(resume.state_file, resume.run, learner, buffer, generators)
-        recorder.resume(curve, wall)
+        recorder.resume(curve, wall, start)
     else:
         obs = see(env.reset(seed=seed)[0][None])[0]
     generators = Generators(rng, generator, env.np_random)  # a seeded reset gives the environment a new generator
