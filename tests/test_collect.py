@@ -1,6 +1,6 @@
 import json
 import shutil
-from dataclasses import asdict
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -67,6 +67,38 @@ def test_noise_distribution_is_clipped_gaussian():
     assert np.mean(np.abs(d) == sigma) == pytest.approx(0.3173, abs=0.01)
     sigmas = [episode_noise(cfg, 0, i, 1)[0] for i in range(2000)]
     assert max(sigmas) <= 0.05 and np.mean(sigmas) == pytest.approx(0.025, abs=0.001)
+
+
+def test_correlated_noise_keeps_the_level_and_the_clip_and_rho_0_is_the_white_noise_unchanged():
+    white = CollectConfig(sigma_max=0.05, seed=1)
+    sigma, d = episode_noise(white, pass_index=2, ref_index=5, steps=20000)
+    rng = np.random.default_rng([1, 2, 5])  # the paper's formula, drawn as before the option existed
+    assert sigma == rng.uniform(0.0, 0.05)
+    assert np.array_equal(d, np.clip(rng.normal(0.0, sigma, size=(20000, 4)), -sigma, sigma))
+    slow_sigma, slow = episode_noise(replace(white, noise_rho=0.9), pass_index=2, ref_index=5, steps=20000)
+    assert slow_sigma == sigma and np.all(np.abs(slow) <= sigma)
+    assert np.std(slow) / sigma == pytest.approx(0.7184, abs=0.03)  # the same clipped level: stationary from step 0
+    lag1 = np.mean([np.corrcoef(slow[1:, j], slow[:-1, j])[0, 1] for j in range(4)])
+    assert 0.85 < lag1 < 0.9  # ρ = 0.9 before the clip, a little less after it
+    assert abs(np.corrcoef(d[1:, 0], d[:-1, 0])[0, 1]) < 0.03
+
+
+def test_a_collection_folder_from_before_noise_rho_resumes_and_a_correlated_one_is_told_apart(tmp_path, refs):
+    cfg = CollectConfig(passes=2, seed=4)
+    first = collect(BatchedSystem(make()), refs, cfg, out=tmp_path, progress=False)
+    manifest = json.loads((tmp_path / "collect.json").read_text())
+    assert "noise_rho" not in manifest["config"]  # the form of the folders made before the field existed
+    again = collect(BatchedSystem(make()), refs, cfg, out=tmp_path, progress=False)
+    assert again.resumed_passes == 2 and again.interaction_steps == first.interaction_steps
+    with pytest.raises(EfficientTrackError, match=r"collect\.json: this folder holds a collection with other settings"):
+        collect(BatchedSystem(make()), refs, replace(cfg, noise_rho=0.5), out=tmp_path, progress=False)
+    assert CollectConfig(noise_rho=0.5).to_dict()["noise_rho"] == 0.5
+
+
+@pytest.mark.parametrize("rho", [-0.1, 1.0, float("nan")])
+def test_a_noise_correlation_outside_0_to_0_99_is_refused_naming_the_field(rho):
+    with pytest.raises(EfficientTrackError, match="noise_rho"):
+        CollectConfig(noise_rho=rho)
 
 
 @pytest.mark.parametrize(
@@ -210,7 +242,7 @@ def test_cli_collect_defaults_are_the_config_defaults(tmp_path):
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
     written = json.loads((tmp_path / "col" / "collect.json").read_text())["config"]
-    assert written == json.loads(json.dumps(asdict(CollectConfig())))
+    assert written == CollectConfig().to_dict()
     result = CliRunner().invoke(app, [*args, "--noise-ratio", "9/2"])
     assert isinstance(result.exception, EfficientTrackError) and "--noise-ratio '9/2'" in str(result.exception)
 

@@ -258,6 +258,9 @@ def collect_command(
     passes: Annotated[int, typer.Option("--passes", help="Passes over the references.")] = COLLECT.passes,
     noise_ratio: Annotated[str, typer.Option("--noise-ratio", help="Noisy:clean episodes.")] = COLLECT.noise_ratio_text,
     sigma_max: Annotated[float, typer.Option("--sigma-max", help="Largest noise level σ_max, rad.")] = COLLECT.sigma_max,
+    noise_rho: Annotated[
+        float, typer.Option("--noise-rho", help="Correlation of consecutive noise steps, AR(1) (0: white, the paper's).")
+    ] = COLLECT.noise_rho,
     seed: Annotated[int, typer.Option("--seed", help="Noise seed.")] = COLLECT.seed,
 ) -> None:
     """Algorithm 1: track the references with the position controller, with and without noise, and record it.
@@ -271,7 +274,7 @@ def collect_command(
 
     check_output_folder(out)
     ratio = CollectConfig.parse_noise_ratio(noise_ratio)
-    cfg = CollectConfig(sigma_max=sigma_max, noise_ratio=ratio, passes=passes, seed=seed)
+    cfg = CollectConfig(sigma_max=sigma_max, noise_ratio=ratio, noise_rho=noise_rho, passes=passes, seed=seed)
     spec = _system_spec(system, plant, pd, system_opt, limits)
     references = load_references(refs)
     looped = loop or machine is not None

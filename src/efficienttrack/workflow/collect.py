@@ -31,9 +31,10 @@ import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
+from scipy.signal import lfilter
 
 from efficienttrack.core.angles import wrap
 from efficienttrack.core.configfile import MAX_SEED
@@ -52,6 +53,8 @@ from efficienttrack.systems.protocol import BatchedSystem
 
 MAX_PASSES = 1000
 """Most passes over the references a collection may ask for (the paper: 10)."""
+MAX_NOISE_RHO = 0.99
+"""Largest correlation of the collection noise: at 1 it would never change within an episode."""
 NOISE_MIX = "episode"
 """How ``collect.json`` names the noise mixing (noisy or clean per episode); folders mixed per pass are refused."""
 
@@ -64,6 +67,10 @@ class CollectConfig:
     """Upper bound σ_max of the per-episode noise level σ ~ U(0, σ_max), rad."""
     noise_ratio: tuple[float, float] = setting((9.0, 2.0), ge=0, length=2)
     """Noisy episodes : clean episodes, as relative weights (the paper's best mix is 9:2)."""
+    noise_rho: float = setting(0.0, ge=0, le=MAX_NOISE_RHO)
+    """ρ: correlation of consecutive steps of n_t, AR(1) with stationary std σ (0: the paper's white noise). A
+    hydraulic joint follows slow noise and averages white noise out, so correlated noise moves it further off the
+    reference at the same σ."""
     passes: int = setting(10, ge=1, le=MAX_PASSES)
     """Passes over the reference set (the paper: 10 passes over 40 references = 176,720 steps)."""
     seed: int = setting(0, ge=0, le=MAX_SEED)
@@ -95,6 +102,17 @@ class CollectConfig:
         except ValueError as exc:
             raise EfficientTrackError(f"{option} '{text}': expected noisy:clean, two numbers like 9:2") from exc
         return noisy, clean
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-serializable form (tuples become lists); ``noise_rho`` only when not 0.
+
+        Without correlation the form is the one from before the field existed, so that collection and run folders
+        made then still match their settings and resume.
+        """
+        data: dict[str, Any] = json.loads(json.dumps(asdict(self)))
+        if self.noise_rho == 0:
+            del data["noise_rho"]
+        return data
 
     @property
     def noise_ratio_text(self) -> str:
@@ -219,11 +237,16 @@ def episode_noise(cfg: CollectConfig, pass_index: int, ref_index: int, steps: in
         steps: T, steps of the episode.
 
     Returns:
-        σ in rad (U(0, σ_max)) and d (steps, 4) rad, N(0, σ²) clipped to ±σ.
+        σ in rad (U(0, σ_max)) and d (steps, 4) rad: n_t ~ N(0, σ²), AR(1) in time with ``noise_rho``
+        (``n_t = ρ n_{t−1} + √(1 − ρ²) ε_t``, stationary from the first step), clipped to ±σ.
     """
     rng = np.random.default_rng([cfg.seed, pass_index, ref_index])
     sigma = float(rng.uniform(0.0, cfg.sigma_max))
-    return sigma, np.clip(rng.normal(0.0, sigma, size=(steps, 4)), -sigma, sigma)
+    n = rng.normal(0.0, sigma, size=(steps, 4))
+    if cfg.noise_rho > 0:
+        n[1:] *= np.sqrt(1.0 - cfg.noise_rho**2)
+        n = lfilter([1.0], [1.0, -cfg.noise_rho], n, axis=0)
+    return sigma, np.clip(n, -sigma, sigma)
 
 
 def run_pass(
@@ -466,7 +489,7 @@ def collect(
     folder = Path(out) if out is not None else None
     if folder is not None:
         steps = [ref.steps for ref in references]
-        manifest = {"config": asdict(cfg), "noise_mix": NOISE_MIX, "references": names, "steps": steps}
+        manifest = {"config": cfg.to_dict(), "noise_mix": NOISE_MIX, "references": names, "steps": steps}
         if isinstance(system, LoopMachine):
             manifest["loop"] = dict(asdict(system.loop), machine=system.name)
         manifest = json.loads(json.dumps(manifest))  # tuples as lists, as read back

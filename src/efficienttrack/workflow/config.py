@@ -74,11 +74,13 @@ class RunConfig:
         """JSON/YAML-serializable form (tuples become lists); ``time_budget`` only when set.
 
         Without a budget the form is the one from before the field existed, so that run, study and ablation folders
-        made then still match their settings and resume.
+        made then still match their settings and resume; ``collect`` likewise, as
+        :meth:`CollectConfig.to_dict <efficienttrack.workflow.collect.CollectConfig.to_dict>` writes it.
         """
         data = json.loads(json.dumps(asdict(self)))
         if data["time_budget"] is None:
             del data["time_budget"]
+        data["collect"] = self.collect.to_dict()
         return data
 
     def save(self, path: str | Path) -> Path:
