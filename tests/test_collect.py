@@ -93,6 +93,12 @@ def test_a_collection_folder_from_before_noise_rho_resumes_and_a_correlated_one_
     with pytest.raises(EfficientTrackError, match=r"collect\.json: this folder holds a collection with other settings"):
         collect(BatchedSystem(make()), refs, replace(cfg, noise_rho=0.5), out=tmp_path, progress=False)
     assert CollectConfig(noise_rho=0.5).to_dict()["noise_rho"] == 0.5
+    # a run's settings likewise: run folders from before the field still match theirs, a correlated one reads back
+    from efficienttrack.workflow.config import RunConfig, amend
+
+    assert "noise_rho" not in RunConfig().to_dict()["collect"]
+    slow = amend(RunConfig(), {"collect": {"noise_rho": 0.9}}, "--set")
+    assert slow.collect.noise_rho == 0.9 and amend(RunConfig(), slow.to_dict(), "config.json") == slow
 
 
 @pytest.mark.parametrize("rho", [-0.1, 1.0, float("nan")])
