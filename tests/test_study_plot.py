@@ -71,6 +71,20 @@ def test_study_folders_of_one_system_make_one_table_and_figure(tmp_path):
         combine([tmp_path / "nothing"], tmp_path / "x.png")
 
 
+def test_a_job_run_again_with_a_larger_budget_is_shown_once_at_its_longer_run(tmp_path):
+    short = study_folder(tmp_path / "short", PAPER, ("sac", "open", 0, [4.0, 3.0]), ("ppo", "open", 0, [9.0, 5.0]))
+    long = study_folder(tmp_path / "long", PAPER, ("sac", "open", 0, [4.0, 3.0, 2.0, 1.5]))
+    for folder, budget in ((short, 20), (long, 40)):
+        job = folder / "jobs" / "sac-open-s0" / "result.json"
+        job.write_text(json.dumps({**json.loads(job.read_text()), "budget": budget}))
+    for order in ([short, long], [long, short]):
+        report = combine(order, tmp_path / "x.png")
+        sac = next(entry for entry in report.entries if entry["method"] == "sac")
+        assert sac["seeds"] == [0] and sac["mae_deg"] == 1.5  # the longer run, once
+        assert {entry["method"] for entry in report.entries} == {"sac", "ppo"}  # the short folder's other jobs stay
+        assert f"sac-open-s0: {long}'s 40 steps in place of {short}'s 20" in report.markdown
+
+
 def result(method, loop, seed, *pairs):
     """A job's result with its curve's (interaction steps, test MAE)."""
     curve = [{"interaction_steps": steps, "metrics": {**dict.fromkeys(METRICS, 1.0), "mae_deg": mae,

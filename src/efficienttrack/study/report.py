@@ -606,13 +606,19 @@ def _same_measurement(result: dict[str, Any], held: dict[str, Any]) -> bool:
     return [p["metrics"] for p in result["curve"]] == [p["metrics"] for p in held["curve"]]
 
 
+def _longer_note(job: str, kept: tuple[Path, dict[str, Any]], dropped: tuple[Path, dict[str, Any]]) -> str:
+    """The table's note on a job found in two folders at two budgets: which (folder, result) is shown."""
+    return f"{job}: {kept[0]}'s {kept[1]['budget']:,} steps in place of {dropped[0]}'s {dropped[1]['budget']:,}"
+
+
 def combine(folders: Sequence[str | Path], path: str | Path) -> Report:
     """One table and one figure of several study folders (studies of one system run in several sittings).
 
     Args:
         folders: study folders (each ``jobs/<name>/result.json``); a method, loop and seed may be in one of them only,
             except for a method whose outcome does not depend on the seed (PD, the ILC oracle): a job of it found again,
-            at any seed, with the same test figures is the same measurement, taken once.
+            at any seed, with the same test figures is the same measurement, taken once; and a job run again with a
+            larger budget (a longer run of it), which takes the shorter one's place, as the table notes.
         path: the PNG to write (:func:`plot_study`).
 
     Returns:
@@ -620,10 +626,11 @@ def combine(folders: Sequence[str | Path], path: str | Path) -> Report:
 
     Raises:
         EfficientTrackError: a folder holds no study, two folders ran on different systems, or one job (method, loop,
-            seed) is in two folders.
+            seed) is in two folders at one budget.
     """
     results: list[dict[str, Any]] = []
     failed: dict[str, str] = {}
+    longer: list[str] = []
     owner: dict[tuple[str, str, tuple[str, ...], int], tuple[Path, dict[str, Any]]] = {}
     system: tuple[Path, dict[str, Any]] | None = None
     for folder in map(Path, folders):
@@ -642,10 +649,20 @@ def combine(folders: Sequence[str | Path], path: str | Path) -> Report:
                 if _same_measurement(result, held):
                     continue
                 job = f"{result['method']}-{result['loop']}-s{result['seed']}"
-                raise EfficientTrackError(f"{folder} and {first} both hold {job}: give it once")
+                budgets = (result.get("budget"), held.get("budget"))
+                if budgets[0] == budgets[1] or None in budgets:
+                    raise EfficientTrackError(f"{folder} and {first} both hold {job} at one budget: give it once")
+                if held["budget"] > result["budget"]:
+                    longer.append(_longer_note(job, (first, held), (folder, result)))
+                    continue
+                longer.append(_longer_note(job, (folder, result), (first, held)))
+                results = [r for r in results if r is not held]
             owner[key] = (folder, result)
             results.append(result)
         failed |= {f"{folder}/{name}": error for name, error in errors.items()}
     entries = summarize(results)
     paper = system is not None and is_paper_system(system[1])
-    return Report(entries, failed, markdown_table(entries, failed, paper), (plot_study(entries, path, paper),))
+    markdown = markdown_table(entries, failed, paper)
+    if longer:
+        markdown += "\nJobs run again with a larger budget, the longer run shown: " + "; ".join(longer) + ".\n"
+    return Report(entries, failed, markdown, (plot_study(entries, path, paper),))
