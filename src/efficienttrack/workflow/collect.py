@@ -1,14 +1,14 @@
 """Algorithm 1, data collection: the PD loop tracks the references with (or without) noise.
 
-For every reference q*_{0:L−1}, the machine is reset to q*_0 and at each step t the reference ``q^r_{t+1} = q*_{t+1} +
-d_t`` is sent, with ``d_t = clip(n_t, −σ, σ)``, ``n_t ~ N(0, σ²)`` per joint (white in time, the paper's; ``noise_rho``
-makes it AR(1)), and ``σ ~ U(0, σ_max)`` drawn once per episode. The noise is an adjustment of the reference like the
-policy's, so it passes the same limits: ``σ_max`` may not exceed the machine's adjustment bound (refused before anything
-moves), and a noisy reference beyond the joint limits is clamped into them (the step's guard bit ``CLAMPED``, counted in
-the record's ``meta["guard"]``). A pass runs every reference once. Each episode is either noisy or clean (d = 0), and
-the noisy:clean mix follows ``noise_ratio`` (the paper's best is 9:2) over the episodes, so that any number of passes
-keeps it: a single pass over 40 references gives 33 noisy and 7 clean episodes (the paper's fastset). Interaction steps
-(I.S.) are the steps the machine was driven.
+For every reference q*_{0:L−1}, the machine is reset to q*_0 and at each step t the reference
+``q^r_{t+1} = q*_{t+1} + d_t`` is sent, with ``d_t = clip(n_t, −σ, σ)``, ``n_t ~ N(0, σ²)`` per joint (white in time,
+the paper's; ``noise_rho`` makes it AR(1)), and ``σ ~ U(0, σ_max)`` drawn once per episode. The noise is an adjustment
+of the reference like the policy's, so it passes the same limits: ``σ_max`` may not exceed the machine's adjustment
+bound (refused before anything moves), and a noisy reference beyond the joint limits is clamped into them (the step's
+guard bit ``CLAMPED``, counted in the record's ``meta["guard"]``). A pass runs every reference once. Each episode is
+either noisy or clean (d = 0), and the noisy:clean mix follows ``noise_ratio`` (the paper's best is 9:2) over the
+episodes, so that any number of passes keeps it: a single pass over 40 references gives 33 noisy and 7 clean episodes
+(the paper's fastset). Interaction steps (I.S.) are the steps the machine was driven.
 
 Every episode is flushed to ``out/.pass_<k>.partial/`` as soon as it (or its batch) has run, and
 the folder becomes ``out/pass_<k>/`` when the pass is complete: an interrupted collection resumes
