@@ -34,7 +34,6 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
-from scipy.signal import lfilter
 
 from efficienttrack.core.angles import wrap
 from efficienttrack.core.configfile import MAX_SEED
@@ -244,6 +243,8 @@ def episode_noise(cfg: CollectConfig, pass_index: int, ref_index: int, steps: in
     sigma = float(rng.uniform(0.0, cfg.sigma_max))
     n = rng.normal(0.0, sigma, size=(steps, 4))
     if cfg.noise_rho > 0:
+        from scipy.signal import lfilter  # here, not at the top: scipy is the train extra's, white noise needs none
+
         n[1:] *= np.sqrt(1.0 - cfg.noise_rho**2)
         n = lfilter([1.0], [1.0, -cfg.noise_rho], n, axis=0)
     return sigma, np.clip(n, -sigma, sigma)
