@@ -68,4 +68,11 @@ def test_a_resumed_task_counts_its_time_left_from_where_it_resumed():
             bar.update(task, completed=step)
     lines = stream.getvalue().splitlines()
     # 20 steps in the 5 s since it resumed, 180 to go; the 800 restored steps are not this run's rate
-    assert lines[0] == "sac open (steps) 820/1000 (5 s, ~45 s left)"
+    assert lines[0] == "sac open (steps) 820/1,000 (5 s, ~45 s left)"
+
+
+def test_large_counts_are_shown_in_full():
+    stream = io.StringIO()
+    with ProgressDisplay(stream=stream, interval=10.0, clock=Clock()) as bar:
+        bar.add_task("ppo open (steps)", total=12_361_696, completed=1_559_232)
+    assert stream.getvalue().splitlines() == ["ppo open (steps) 1,559,232/12,361,696 (0 s)"]

@@ -2,7 +2,7 @@
 
 Output piped to a file or a CI log is not a terminal; rich draws nothing there until the end. There
 :class:`ProgressDisplay` prints one line per task every ``interval`` seconds and a last one when the
-display closes, e.g. ``train model 1200/4000 loss 0.0123 (35 s, ~80 s left)``.
+display closes, e.g. ``train model 1,200/4,000 loss 0.0123 (35 s, ~80 s left)``.
 """
 
 from __future__ import annotations
@@ -28,6 +28,11 @@ from rich.text import Text
 
 PLAIN_INTERVAL = 10.0
 """Seconds between plain progress lines when the output is not a terminal."""
+
+
+def format_count(value: float) -> str:
+    """A task's count as a plain line shows it: ``12,361,696`` for a whole number (not ``1.23617e+07``), else ``:g``."""
+    return f"{value:,.0f}" if float(value).is_integer() else f"{value:g}"
 
 
 def format_fields(fields: dict[str, Any]) -> str:
@@ -190,7 +195,7 @@ class ProgressDisplay:
     def _print(self, task: _PlainTask) -> None:
         now = self.clock()
         elapsed = now - task.started
-        line = f"{task.description} {task.completed:g}/{task.total:g}"
+        line = f"{task.description} {format_count(task.completed)}/{format_count(task.total)}"
         if task.fields:
             line += f" {format_fields(task.fields)}"
         done, remaining = task.completed - task.first, task.total - task.completed
