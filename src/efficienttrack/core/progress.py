@@ -31,7 +31,11 @@ PLAIN_INTERVAL = 10.0
 
 
 def format_count(value: float) -> str:
-    """A task's count as a plain line shows it: ``12,361,696`` for a whole number (not ``1.23617e+07``), else ``:g``."""
+    """A task's count as a plain line shows it: ``12,361,696`` for a whole number (not ``1.23617e+07``), else ``:g``.
+
+    Args:
+        value: units done, or the task's total.
+    """
     return f"{value:,.0f}" if float(value).is_integer() else f"{value:g}"
 
 
