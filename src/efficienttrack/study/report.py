@@ -650,8 +650,8 @@ def combine(folders: Sequence[str | Path], path: str | Path) -> Report:
                     continue
                 job = f"{result['method']}-{result['loop']}-s{result['seed']}"
                 budgets = (result.get("budget"), held.get("budget"))
-                if budgets[0] == budgets[1] or None in budgets:
-                    raise EfficientTrackError(f"{folder} and {first} both hold {job} at one budget: give it once")
+                if budgets[0] == budgets[1] or None in budgets:  # not a longer run of it: the same job twice
+                    raise EfficientTrackError(f"{folder} and {first} both hold {job}: give it once")
                 if held["budget"] > result["budget"]:
                     longer.append(_longer_note(job, (first, held), (folder, result)))
                     continue
