@@ -12,7 +12,9 @@ asks the runtime for the reference of step k+1 and sends it. What it sends is de
 1. **stop** (the raw reference ``q*_{k+1}`` is sent once more, then the run ends): the tick is the
    ``stop_after``-th overrun in a row; the last good reading is older than ``stop_stale_ticks``; the machine's
    ``read`` raised or gave a malformed reading; the runtime raised; Ctrl-C, SIGTERM or SIGHUP
-   (:mod:`~efficienttrack.core.stop_signals`). A ``send`` that raises or reports a
+   (:mod:`~efficienttrack.core.stop_signals`). A **sensor fault** (a finite reading no machine could give:
+   :mod:`~efficienttrack.deploy.sensor`) stops the run too, but holds: the reference sent last tick is sent again,
+   for the machine's controller would steer the raw one by the faulty reading. A ``send`` that raises or reports a
    malformed reference ends the run at once (nothing more can be sent);
 2. **a = 0** (the raw reference) for this tick: the first tick (every run starts with a = 0); shadow mode; the
    ``hold_after``-th overrun in a row or later; a reading older than ``stale_ticks`` (or missing: a dropped
@@ -50,9 +52,10 @@ from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.joints import DT, SWING
 from efficienttrack.core.stop_signals import interrupt_name, stop_signals_as_interrupt
 from efficienttrack.deploy.episodes import Guard, Sent
+from efficienttrack.deploy.sensor import SENSOR_MARGIN, SENSOR_TOLERANCE, first_sensor_fault
 from efficienttrack.systems.limits import GuardLimits
 
-STOP_REASONS = ("overruns", "stale_sensor", "read_error", "send_error", "runtime_error", "interrupted")
+STOP_REASONS = ("overruns", "stale_sensor", "sensor_fault", "read_error", "send_error", "runtime_error", "interrupted")
 """Why a run can end before its reference does (``done``: it ran to the end)."""
 
 
@@ -176,6 +179,10 @@ class LoopConfig:
     """The last good reading older than this many periods stops the run."""
     start_tolerance: float = 0.1
     """rad, largest distance per joint between the machine and the reference's first position at the start."""
+    sensor_margin: float = SENSOR_MARGIN
+    """rad, how far beyond the joint limits a joint may read before the reading is a sensor fault (stop)."""
+    sensor_tolerance: float = SENSOR_TOLERANCE
+    """rad, how far a joint's change between readings may exceed what its velocities allow before it is a sensor fault."""
     fsync_every: int = 20
     """Log lines between two fsyncs (each line is flushed)."""
 
@@ -193,8 +200,10 @@ class LoopConfig:
             raise EfficientTrackError(
                 f"loop: needs 0 < stale_ticks ≤ stop_stale_ticks, finite, got {self.stale_ticks!r}, {self.stop_stale_ticks!r}"
             )
-        if not (math.isfinite(self.start_tolerance) and self.start_tolerance > 0):
-            raise EfficientTrackError(f"loop: start_tolerance must be a positive number of rad, got {self.start_tolerance!r}")
+        for name in ("start_tolerance", "sensor_margin", "sensor_tolerance"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise EfficientTrackError(f"loop: {name} must be a positive number of rad, got {value!r}")
 
 
 class TickLog:
@@ -364,6 +373,7 @@ class Loop:
         self._rate = np.asarray(limits.max_adjust_rate, dtype=np.float64)
         self._good: Reading | None = None  # the newest finite reading
         self._a_sent = np.zeros(4)  # the adjustment really sent last tick
+        self._q_sent: np.ndarray | None = None  # the reference really sent last tick
 
     def run(self, q_des: np.ndarray, name: str = "reference") -> LoopResult:
         """Track one reference: tick k sends the reference of step k+1, for k = 0 … L − 2.
@@ -391,7 +401,7 @@ class Loop:
         with stop_signals_as_interrupt(), self.machine:
             self._good = self._start(q_des[0], name)
             self.runtime.start(self._good.obs[None])
-            self._a_sent = np.zeros(4)
+            self._a_sent, self._q_sent = np.zeros(4), None
             t0 = self.clock.now()
             k, in_row, previous_end = 0, 0, t0
             try:
@@ -457,13 +467,17 @@ class Loop:
         except Exception as exc:
             reading = None
             stop = stop or _Stop("read_error", f"{type(exc).__name__}: {exc}")
+        assert self._good is not None  # run reads the first good reading before the first tick
+        fault = None
         if reading is None:
             events.append("dropped")
         elif not np.all(np.isfinite(reading.obs)):
             events.append("nonfinite")
+        elif k > 0 and (fault := self._sensor_fault(self._good, reading)) is not None:
+            events.append("sensor_fault")
+            stop = stop or _Stop("sensor_fault", f"tick {k}: {fault}")
         else:
             obs, self._good = reading.obs, reading
-        assert self._good is not None  # run reads the first good reading before the first tick
         age = start - self._good.stamp
         if age > cfg.stop_stale_ticks * cfg.dt:
             stop = stop or _Stop("stale_sensor", f"last good reading {age * 1e3:.0f} ms old")
@@ -491,8 +505,11 @@ class Loop:
         if np.any(a_send != a_target):
             events.append("ramped")
         q_send = self.limits.clamp(q_raw + a_send)
+        if fault is not None and self._q_sent is not None:
+            q_send = self._q_sent  # hold: the machine's controller would steer to q_raw by the faulty reading
         self._a_sent = np.zeros(4)  # if the send fails, nothing adjusted was sent
         q_taken = self._send(q_send)
+        self._q_sent = q_taken
         self._a_sent = q_taken - q_raw
         self._a_sent[SWING] = wrap(self._a_sent[SWING])
         if np.any(q_taken != q_send):
@@ -524,6 +541,11 @@ class Loop:
             ) from exc
         if reading is None or not np.all(np.isfinite(reading.obs)):
             raise EfficientTrackError(f"loop '{name}': no finite first reading from the machine; nothing was sent")
+        fault = first_sensor_fault(reading.obs, np.array([reading.stamp]), self.limits, self.cfg.sensor_margin)
+        if fault is not None:
+            raise EfficientTrackError(
+                f"loop '{name}': sensor fault in the first reading: {fault.describe()}; nothing was sent"
+            )
         age = self.clock.now() - reading.stamp
         if age > self.cfg.stale_ticks * self.cfg.dt:
             raise EfficientTrackError(
@@ -538,6 +560,12 @@ class Loop:
                 f"(joint {j}, tolerance {self.cfg.start_tolerance} rad); move it to the start first; nothing was sent"
             )
         return reading
+
+    def _sensor_fault(self, previous: Reading, reading: Reading) -> str | None:
+        """What makes ``reading`` impossible after ``previous`` (:mod:`~efficienttrack.deploy.sensor`), or None."""
+        obs, stamps = np.stack([previous.obs, reading.obs]), np.array([previous.stamp, reading.stamp])
+        fault = first_sensor_fault(obs, stamps, self.limits, self.cfg.sensor_margin, self.cfg.sensor_tolerance)
+        return None if fault is None else fault.describe()
 
     def _limit(self, a_target: np.ndarray, a_last: np.ndarray, ticks_left: int) -> np.ndarray:
         """The adjustment to send: a = 0 at once, else at most ``rate`` from the last one sent and ``rate·ticks_left``."""
