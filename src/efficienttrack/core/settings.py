@@ -90,6 +90,7 @@ def setting(
     le: float | None = None,
     choices: Sequence[str] | None = None,
     length: int | None = None,
+    added_later: bool = False,
 ) -> Any:
     """A dataclass field with its bounds, checked by :func:`check_fields` (arguments as :class:`Bounds`).
 
@@ -101,12 +102,41 @@ def setting(
         le: largest value allowed.
         choices: the only values allowed.
         length: a tuple's number of elements.
+        added_later: the field came after folders were first written with its class: :func:`plain_form` leaves it out
+            at its default, so that those folders still match their settings and resume.
 
     Returns:
         The field, to assign in the class body: ``lr: float = setting(1e-3, gt=0, le=MAX_LR)``.
     """
     bounds = Bounds(ge, gt, le, tuple(choices) if choices is not None else None, length)
-    return field(default=default, default_factory=default_factory, metadata={"bounds": bounds})
+    metadata = {"bounds": bounds, "added_later": added_later}
+    return field(default=default, default_factory=default_factory, metadata=metadata)
+
+
+def plain_form(settings: Any) -> dict[str, Any]:
+    """A settings tree as plain JSON/YAML data (tuples become lists), each ``added_later`` field left out at its default.
+
+    This is the form a folder's identity is compared in: a field added later does not change the identity of
+    settings that leave it at its default.
+
+    Args:
+        settings: a settings dataclass (nested sections are converted the same way).
+
+    Returns:
+        field name → value.
+    """
+    data: dict[str, Any] = {}
+    for spec in fields(settings):
+        value = getattr(settings, spec.name)
+        if spec.metadata.get("added_later") and value == spec.default:
+            continue
+        if is_dataclass(value):
+            data[spec.name] = plain_form(value)
+        elif isinstance(value, tuple):
+            data[spec.name] = list(value)
+        else:
+            data[spec.name] = value
+    return data
 
 
 def inherit(parent: type, name: str, default: Any) -> Any:

@@ -7,7 +7,6 @@ expand to, so a file from elsewhere can neither run code nor exhaust memory.
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import pickle
@@ -25,6 +24,7 @@ from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import atomic_write, write_json
 from efficienttrack.core.npyfile import MAX_EXPANDED_BYTES
 from efficienttrack.core.provenance import provenance
+from efficienttrack.core.settings import plain_form
 from efficienttrack.learn.nets import resolve_device
 
 if TYPE_CHECKING:
@@ -115,7 +115,7 @@ def save_checkpoint(module: nn.Module, kind: str, config: Any, path: str | Path,
     device = next(iter(tensors.values())).device if tensors else None
     meta = {
         "kind": kind,
-        "config": dataclasses.asdict(config),
+        "config": plain_form(config),
         "weights_sha256": _file_sha256(path),
         "training_fingerprint": fingerprint,
         "provenance": provenance(device),

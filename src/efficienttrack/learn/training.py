@@ -27,7 +27,7 @@ from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import atomic_write
 from efficienttrack.core.progress import ProgressDisplay
 from efficienttrack.core.provenance import MAX_SHOWN, differences
-from efficienttrack.core.settings import check_fields, setting, settings_from_dict
+from efficienttrack.core.settings import check_fields, plain_form, setting, settings_from_dict
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.learn.checkpoints import check_finite, load_tensors
 
@@ -325,7 +325,7 @@ class TrainLoop:
         self.generator = torch.Generator().manual_seed(check_seed(seed, f"{kind} training: seed"))
         self._losses = np.full(total, np.nan)
         self.start = 0
-        self._config = json.dumps(dataclasses.asdict(cfg), sort_keys=True)
+        self._config = json.dumps(plain_form(cfg), sort_keys=True)
         self.log_dir = None if log_dir is None else Path(log_dir)
         self.evaluate = evaluate
         self.eval_every = cfg.eval_every if cfg.eval_every is not None else math.ceil(total / EVALUATIONS)

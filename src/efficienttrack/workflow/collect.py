@@ -41,7 +41,7 @@ from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.joints import JOINT_NAMES
 from efficienttrack.core.progress import ProgressDisplay
 from efficienttrack.core.provenance import claim_folder
-from efficienttrack.core.settings import check_fields, setting
+from efficienttrack.core.settings import check_fields, plain_form, setting
 from efficienttrack.data.records import EpisodeRecord, load_records, save_records
 from efficienttrack.data.references import Reference
 from efficienttrack.deploy.deployment import records_from_log
@@ -66,7 +66,7 @@ class CollectConfig:
     """Upper bound σ_max of the per-episode noise level σ ~ U(0, σ_max), rad."""
     noise_ratio: tuple[float, float] = setting((9.0, 2.0), ge=0, length=2)
     """Noisy episodes : clean episodes, as relative weights (the paper's best mix is 9:2)."""
-    noise_rho: float = setting(0.0, ge=0, le=MAX_NOISE_RHO)
+    noise_rho: float = setting(0.0, ge=0, le=MAX_NOISE_RHO, added_later=True)
     """ρ: correlation of consecutive steps of n_t, AR(1) with stationary std σ (0: the paper's white noise). A
     hydraulic joint follows slow noise and averages white noise out, so correlated noise moves it further off the
     reference at the same σ."""
@@ -103,15 +103,8 @@ class CollectConfig:
         return noisy, clean
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-serializable form (tuples become lists); ``noise_rho`` only when not 0.
-
-        Without correlation the form is the one from before the field existed, so that collection and run folders
-        made then still match their settings and resume.
-        """
-        data: dict[str, Any] = json.loads(json.dumps(asdict(self)))
-        if self.noise_rho == 0:
-            del data["noise_rho"]
-        return data
+        """JSON-serializable form (:func:`~efficienttrack.core.settings.plain_form`: ``noise_rho`` only when not 0)."""
+        return plain_form(self)
 
     @property
     def noise_ratio_text(self) -> str:

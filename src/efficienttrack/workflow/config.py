@@ -12,9 +12,8 @@ are errors naming the file and the field.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +22,7 @@ import yaml
 from efficienttrack.core.configfile import MAX_SEED, read_mapping_file
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import atomic_write, write_json
-from efficienttrack.core.settings import check_fields, merge, parse_override, setting, settings_from_dict
+from efficienttrack.core.settings import check_fields, merge, parse_override, plain_form, setting, settings_from_dict
 from efficienttrack.learn.dynamics import MODEL_PRESETS, ModelConfig
 from efficienttrack.learn.policy import POLICY_PRESETS, PolicyConfig
 from efficienttrack.workflow.collect import CollectConfig
@@ -59,7 +58,7 @@ class RunConfig:
     warm_budget: float = setting(0.5, gt=0)
     """Optimizer steps (or epochs) of a later round's trainings, as a share of round 1's: they start from the
     previous round's networks and need fewer."""
-    time_budget: float | None = setting(None, gt=0)
+    time_budget: float | None = setting(None, gt=0, added_later=True)
     """Minutes of wall time for the whole run, all rounds (``--time-budget``): every training's optimizer steps are
     scaled down by one factor, from step times measured on this machine when training starts
     (:mod:`efficienttrack.workflow.time_budget`); None: the configured steps."""
@@ -71,17 +70,8 @@ class RunConfig:
             object.__setattr__(self, "collect", replace(self.collect, seed=self.seed))
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON/YAML-serializable form (tuples become lists); ``time_budget`` only when set.
-
-        Without a budget the form is the one from before the field existed, so that run, study and ablation folders
-        made then still match their settings and resume; ``collect`` likewise, as
-        :meth:`CollectConfig.to_dict <efficienttrack.workflow.collect.CollectConfig.to_dict>` writes it.
-        """
-        data = json.loads(json.dumps(asdict(self)))
-        if data["time_budget"] is None:
-            del data["time_budget"]
-        data["collect"] = self.collect.to_dict()
-        return data
+        """JSON/YAML-serializable form (:func:`~efficienttrack.core.settings.plain_form`: fields added later only when set)."""
+        return plain_form(self)
 
     def save(self, path: str | Path) -> Path:
         """Write the config atomically, as YAML or JSON.
