@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.settings import plain_form
 from efficienttrack.data.windows import initial_history, push_observation, push_reference
 from efficienttrack.learn.policy import (
     POLICY_PRESETS,
@@ -71,6 +72,29 @@ def test_policy_cuts_predicted_and_true_tracking_error(model, trained):
     pd_mae, policy_mae = track_lag_system(None, test), track_lag_system(trained.policy, test)
     assert pd_mae > 1.5
     assert policy_mae < 0.45 * pd_mae, (pd_mae, policy_mae)
+
+
+def test_a_rollout_split_in_two_at_its_histories_is_the_rollout_in_one(model):
+    torch.manual_seed(0)
+    policy = AdjustmentPolicy(POLICY_PRESETS["tiny"])
+    torch.nn.init.normal_(policy.pi_phi.body[-1].weight, std=0.1)
+    obs_hist, qref_hist, q_star = torch.randn(3, 4, 8) * 0.1, torch.randn(3, 4, 4) * 0.1, torch.randn(3, 12, 4) * 0.1
+    with torch.no_grad():
+        whole = policy_rollout(model, policy, obs_hist, qref_hist, q_star, steps=9)
+        first = policy_rollout(model, policy, obs_hist, qref_hist, q_star, steps=4)
+        second = policy_rollout(model, policy, first.obs_hist, first.qref_hist, q_star[:, 4:], steps=5)
+    torch.testing.assert_close(torch.cat([first.q_hat, second.q_hat], 1), whole.q_hat)
+    torch.testing.assert_close(torch.cat([first.a, second.a], 1), whole.a)
+
+
+def test_a_policy_trained_after_a_burn_in_cuts_the_true_tracking_error(model):
+    cfg = dataclasses.replace(POLICY_PRESETS["tiny"], burn_in=6)
+    assert plain_form(cfg)["burn_in"] == 6 and "burn_in" not in plain_form(POLICY_PRESETS["tiny"])  # old folders resume
+    trained = train_policy(cfg, model, lag_records(), device="cpu", progress=False)
+    test = lag_records(n=4, seed=1, sigma=0.0)
+    pd_mae, policy_mae = track_lag_system(None, test), track_lag_system(trained.policy, test)
+    assert policy_mae < 0.45 * pd_mae, (pd_mae, policy_mae)
+    assert trained.windows == sum(len(r.q) - 6 for r in lag_records())  # B steps still within each episode
 
 
 def test_untrained_policy_is_the_position_controller_and_output_is_bounded():

@@ -13,6 +13,10 @@ in rad² (the paper's units, for which γ = 0.98 and k_smooth = 1.0 are tuned). 
 2. The output is ``tanh × max_adjust`` per joint, and its last layer starts at zero: the untrained policy is
    the position controller alone (a = 0).
 3. Windows start at every recorded step; desired positions past an episode's end repeat its last one.
+4. With ``burn_in`` B > 0, the policy first drives the model B steps from the window's start without gradient, and the
+   loss is taken over the h steps after them: the histories it then sees hold its own adjustments, as when deployed,
+   where the recorded windows hold the collection's references and noise. Windows start where B steps still lie
+   within the episode.
 
 The open loop (:class:`PWMPolicy` through a :class:`~efficienttrack.learn.dynamics.PlantModel`): the policy outputs the
 command u_t / 1000 = π_φ(o_H, u_H, q*_F) ∈ (−1, 1)⁴ (tanh × 1: PWM within ±1000), the model is driven by it, and the
@@ -79,6 +83,10 @@ class PolicyConfig(TrainingSchedule):
     """k_smooth: weight of the action-smoothness regularizer (paper 1.0)."""
     max_adjust: tuple[float, ...] = setting(XE75_MAX_ADJUST, gt=0, length=4)
     """(4,) rad, bound of |a| per joint (boom, arm, bucket, swing)."""
+    burn_in: int = setting(0, ge=0, le=MAX_HORIZON, added_later=True)
+    """B: steps the policy drives the frozen model from each training start, without gradient, before the loss's h
+    steps, so that the histories the loss sees hold the policy's own adjustments, as when deployed (0: the paper's,
+    the histories are the recorded ones)."""
 
     @property
     def history_length(self) -> int:
@@ -228,11 +236,15 @@ class PolicyRollout(NamedTuple):
         q_hat: (B, H, 4) rad, predicted positions ``q̂_{t+1} … q̂_{t+H}``.
         a: (B, H, 4) rad, adjustments ``a_t … a_{t+H−1}``.
         q_ref: (B, H, 4) rad, references ``q^r_{t+1} … q^r_{t+H}`` the policy produced.
+        obs_hist: (B, h', 8) [rad, rad/s], the histories at the rollout's end, ``o_{t+H−h'+1} … ô_{t+H}``.
+        qref_hist: (B, h', 4) rad, ``q^r_{t+H−h'+1} … q^r_{t+H}``.
     """
 
     q_hat: torch.Tensor
     a: torch.Tensor
     q_ref: torch.Tensor
+    obs_hist: torch.Tensor
+    qref_hist: torch.Tensor
 
 
 def drive(channel: str, a: torch.Tensor, q_next: torch.Tensor) -> torch.Tensor:
@@ -290,7 +302,7 @@ def policy_rollout(
         q_hat.append(o_hat[:, :4])
         actions.append(a_i)
         refs.append(q_r)
-    return PolicyRollout(torch.stack(q_hat, 1), torch.stack(actions, 1), torch.stack(refs, 1))
+    return PolicyRollout(torch.stack(q_hat, 1), torch.stack(actions, 1), torch.stack(refs, 1), obs_hist, qref_hist)
 
 
 def policy_loss(q_hat: torch.Tensor, a: torch.Tensor, q_star: torch.Tensor, gamma: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -370,7 +382,8 @@ def train_policy(
     """
     started = time.perf_counter()
     device = resolve_device(device)
-    H, F, desired = cfg.rollout_length, cfg.future_length, desired_length(cfg, cfg.rollout_length)
+    H, B, F = cfg.rollout_length, cfg.burn_in, cfg.future_length
+    desired = desired_length(cfg, B + H)
     check_training_memory("PolicyConfig", cfg.batch_size, H, [cfg, model.cfg], device)
     if network.channel != model.channel or (init is not None and type(init) is not network):
         raise EfficientTrackError(f"train_policy: a {network.__name__} is trained through a {type(model).__name__}, "
@@ -378,7 +391,7 @@ def train_policy(
     torch.manual_seed(seed)
     history = max(cfg.history_length, model.cfg.history_length)
     data = Sequences(records, history=history, future=desired, device=device, channel=model.channel)
-    starts = data.starts(0)
+    starts = data.starts(B)
     g_theta = type(model)(model.cfg).to(device)
     g_theta.load_state_dict(model.state_dict())
     g_theta.eval().requires_grad_(False)
@@ -397,9 +410,14 @@ def train_policy(
 
     for step in loop:
         window = data.window(starts[loop.sample(len(starts), cfg.batch_size).to(device)], horizon=0, desired=desired)
-        q_star = window.qdes_future
+        obs_hist, qref_hist, q_star = window.obs_hist, window.qref_hist, window.qdes_future
+        # burn-in: B steps under π_φ without gradient, so that the loss starts from the policy's own histories
+        if B:
+            with torch.no_grad():
+                burned = policy_rollout(g_theta, pi_phi, obs_hist, qref_hist, q_star, steps=B)
+            obs_hist, qref_hist, q_star = burned.obs_hist, burned.qref_hist, q_star[:, B:]
         # rollout: H steps of g_θ under π_φ, q^r_{i+1} = q*_{i+1} + a_i, q*_F sliding along q*_{t+1..t+H−1+F}
-        q_hat, a, _ = policy_rollout(g_theta, pi_phi, window.obs_hist, window.qref_hist, q_star, steps=H)
+        q_hat, a, *_ = policy_rollout(g_theta, pi_phi, obs_hist, qref_hist, q_star, steps=H)
         L_track, L_reg = policy_loss(q_hat, a, q_star[:, :H], cfg.gamma)
         loss = L_track.mean() + cfg.k_smooth * L_reg.mean()
         # step
