@@ -8,6 +8,7 @@ import gymnasium
 import numpy as np
 import pytest
 
+from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.data.cycles import generate_references
 from efficienttrack.data.metrics import compute_metrics
 from efficienttrack.data.references import Reference, load_references
@@ -75,6 +76,30 @@ def test_batched_machines_run_as_if_each_were_alone():
         single.reset(q0[i])
         alone = np.stack([single.step(u_t[i]) for u_t in u])
         np.testing.assert_array_equal(together[:, i], alone)
+
+
+def test_the_harder_variant_delays_lags_and_dead_bands_the_paper_simulator():
+    rng = np.random.default_rng(1)
+    q0 = rng.uniform(-0.3, 0.3, size=(3, 4))
+    u = rng.uniform(-120, 120, size=(20, 3, 4))
+    plain, delayed = PaperExcavator(), PaperExcavator(delay=2)
+    plain.reset(q0), delayed.reset(q0)
+    shifted = np.concatenate([np.zeros((2, 3, 4)), u[:-2]])  # the commands before the first act as 0
+    np.testing.assert_array_equal(np.stack([delayed.step(u_t) for u_t in u]), np.stack([plain.step(s) for s in shifted]))
+    banded = PaperExcavator(dead_band=30)
+    banded.reset(q0)
+    obs = banded.step(np.array([[30.0, -30.0, 29.0, 0.0]] * 3))
+    assert np.all(obs[:, 4:7] == 0.0)  # boom, arm and bucket do not respond within the band
+    plain.reset(q0)
+    valve = plain.step(np.full((3, 4), 60.0))[:, 4:]
+    lagged = PaperExcavator(lag=0.1)
+    lagged.reset(q0)
+    np.testing.assert_allclose(lagged.step(np.full((3, 4), 60.0))[:, 4:], (1 - np.exp(-0.5)) * valve)
+    assert SystemSpec(system="paper", options=(("delay", 1), ("lag", 0.1), ("dead_band", 10))).open() is not None
+    with pytest.raises(EfficientTrackError, match="delay must be a whole number of periods"):
+        PaperExcavator(delay=-1)
+    with pytest.raises(EfficientTrackError, match="lag must be a finite number ≥ 0"):
+        PaperExcavator(lag=float("nan"))
 
 
 def test_the_paper_plant_is_closed_with_its_own_pd_unless_told_otherwise():

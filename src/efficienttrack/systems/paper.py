@@ -13,6 +13,12 @@ inertia and no coupling between joints, and integrates it with one explicit Eule
 - **Integration**: ``q += dt·q̇``; boom, arm and bucket are clipped into ``[q_min, q_max]``, the swing wraps at ±π.
   The observation is ``(q, q̇)`` with ``q̇`` the velocity of the step just taken.
 
+Three options make it a harder machine, to check that a method does not fit this one simulator only (all 0 by default,
+the paper's simulator exactly): ``delay`` control periods before a command takes effect, a first-order ``lag`` (time
+constant, s) of the joint velocities towards the valve's (inertia), and a ``dead_band`` of PWM that boom, arm and
+bucket do not respond to (subtracted from |u|). ``--system paper --system-opt delay=1 --system-opt lag=0.1
+--system-opt dead_band=10`` is the variant docs/comparison.md measures as a third plant.
+
 Under :data:`PAPER_PD` (the repository's PD law) on the paper's 8 test references, this gives Table I's PD row
 (docs/paper-simulator.md). The repository stores the swing's in-between law as a pickled scikit-learn model,
 which we do not load; its coefficients were recovered from the repository's recorded simulator logs, which it
@@ -159,14 +165,28 @@ class PaperExcavator:
 
     ``dt`` is 0.05 s. Output rank follows the ``q0`` given to ``reset``. ``reset`` takes ``q0`` as given (the original
     does not clip it); the first step clips it.
+
+    Args:
+        delay: control periods before a command takes effect (the commands before the first are 0), ≥ 0.
+        lag: s, time constant of a first-order lag of the joint velocities towards the valve's, ≥ 0 (0: none).
+        dead_band: PWM subtracted from |u| of boom, arm and bucket before their valve curves, ≥ 0.
     """
 
     batched = True
     dt = DT
 
-    def __init__(self) -> None:
+    def __init__(self, delay: int = 0, lag: float = 0.0, dead_band: float = 0.0) -> None:
+        if not (isinstance(delay, int) and not isinstance(delay, bool) and delay >= 0):
+            raise EfficientTrackError(f"paper simulator: delay must be a whole number of periods ≥ 0, got {delay!r}")
+        for name, value in (("lag", lag), ("dead_band", dead_band)):
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+                raise EfficientTrackError(f"paper simulator: {name} must be a finite number ≥ 0, got {value!r}")
+        self.delay, self.lag, self.dead_band = delay, float(lag), float(dead_band)
+        self._follow = 1.0 - math.exp(-self.dt / self.lag) if self.lag > 0 else 1.0
+        """Share of the way from the joint velocities to the valve's that one period covers."""
         self.q: np.ndarray | None = None
         self.qd: np.ndarray | None = None
+        self._pending: np.ndarray | None = None
         self._single = False
 
     @property
@@ -182,6 +202,7 @@ class PaperExcavator:
         self._single = q0.ndim == 1
         self.q = q0.reshape(-1, N_JOINTS).copy()
         self.qd = np.zeros_like(self.q)
+        self._pending = np.zeros((self.delay, *self.q.shape))
         return self._obs()
 
     def reset_machines(self, index: np.ndarray, q0: np.ndarray) -> np.ndarray:
@@ -199,6 +220,9 @@ class PaperExcavator:
         index, q0 = machines_to_reset(index, q0, "paper simulator")
         self.q, self.qd = self.q.copy(), self.qd.copy()
         self.q[index], self.qd[index] = q0, 0.0
+        if self._pending is not None:
+            self._pending = self._pending.copy()
+            self._pending[:, index] = 0.0
         return np.concatenate([self.q[index], self.qd[index]], axis=1)
 
     def step(self, u: np.ndarray) -> np.ndarray:
@@ -208,7 +232,15 @@ class PaperExcavator:
         u = np.asarray(u, dtype=np.float64).reshape(-1, N_JOINTS)
         if u.shape != self.q.shape:
             raise EfficientTrackError(f"paper simulator: step expects PWM of shape {self.q.shape}, got {u.shape}")
-        self.qd = joint_velocity(self.q, u)
+        if self.delay:
+            assert self._pending is not None  # made by reset
+            self._pending = np.concatenate([self._pending, u[None]])
+            u, self._pending = self._pending[0], self._pending[1:]
+        if self.dead_band:
+            u = u.copy()
+            u[:, :SWING] = np.sign(u[:, :SWING]) * np.maximum(np.abs(u[:, :SWING]) - self.dead_band, 0.0)
+        valve = joint_velocity(self.q, u)
+        self.qd = self.qd + self._follow * (valve - self.qd) if self.lag else valve
         q = self.q + self.dt * self.qd
         q[:, :SWING] = np.clip(q[:, :SWING], Q_MIN[:SWING], Q_MAX[:SWING])
         q[:, SWING] = wrap(q[:, SWING])
@@ -220,11 +252,11 @@ class PaperExcavator:
         return obs[0] if self._single else obs
 
 
-def paper_plant() -> PaperExcavator:
-    """The paper's simulator at PWM level (``load_plant("paper")``, ``--plant paper``)."""
-    return PaperExcavator()
+def paper_plant(delay: int = 0, lag: float = 0.0, dead_band: float = 0.0) -> PaperExcavator:
+    """The paper's simulator at PWM level (``load_plant("paper")``, ``--plant paper``; options as :class:`PaperExcavator`)."""
+    return PaperExcavator(delay, lag, dead_band)
 
 
-def paper_closed_loop() -> ClosedLoop:
-    """The paper's simulator under the paper's PD law (``load_system("paper")``, ``--system paper``)."""
-    return ClosedLoop(PaperExcavator(), PAPER_PD)
+def paper_closed_loop(delay: int = 0, lag: float = 0.0, dead_band: float = 0.0) -> ClosedLoop:
+    """The paper's simulator under its PD law (``load_system("paper")``, ``--system paper``; options: as the plant's)."""
+    return ClosedLoop(PaperExcavator(delay, lag, dead_band), PAPER_PD)
