@@ -6,6 +6,7 @@ import gymnasium
 import pytest
 import torch
 
+from efficienttrack.core.configfile import MAX_CONFIG_BYTES
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.joints import MAX_HORIZON
 from efficienttrack.data.cycles import generate_references
@@ -14,6 +15,7 @@ from efficienttrack.learn.dynamics import MODEL_PRESETS, ClosedLoopModel, ModelC
 from efficienttrack.learn.nets import MAX_HIDDEN, MAX_LAYERS, check_training_memory, training_bytes
 from efficienttrack.learn.policy import POLICY_PRESETS, PolicyConfig
 from efficienttrack.learn.training import MAX_BATCH_SIZE, MAX_EPOCHS, MAX_STEPS
+from efficienttrack.systems.limits import GuardLimits
 from efficienttrack.workflow.collect import MAX_PASSES, CollectConfig
 from efficienttrack.workflow.config import MAX_ROUNDS, PRESETS, RunConfig, load_config
 from test_cli import invoke, refused
@@ -46,6 +48,27 @@ def test_a_json_config_refuses_nan_and_infinity(tmp_path):
         path.write_text('{"model": {"grad_clip": ' + value + "}}")
         with pytest.raises(EfficientTrackError, match="model.grad_clip must be a finite number"):
             load_config(path)
+
+
+def test_a_key_given_twice_is_refused_in_configs_and_limits_files(tmp_path):
+    """YAML and JSON keep the last of two equal keys: a second ``model:`` or ``accept_implausible`` would win silently."""
+    cases = {
+        "cfg.yaml": ("model:\n  lr: 1e-3\nmodel:\n  lr: 1e-2\n", load_config, r"the key 'model' is given twice \(line 3\)"),
+        "cfg.json": ('{"seed": 1, "seed": 2}', load_config, "the key 'seed' is given twice"),
+        "lim.yaml": ("accept_implausible: false\nmax_adjust: [3, 3, 3, 3]\naccept_implausible: true\n", GuardLimits.load,
+                     "the key 'accept_implausible' is given twice"),
+    }  # fmt: skip
+    for name, (text, load, message) in cases.items():
+        (tmp_path / name).write_text(text)
+        with pytest.raises(EfficientTrackError, match=rf"{name}: cannot read the config \(.*{message}"):
+            load(tmp_path / name)
+
+
+def test_a_config_file_past_its_size_cap_is_refused_before_it_is_read(tmp_path):
+    path = tmp_path / "lim.yaml"
+    path.write_text("q_min: [" + "0, " * (MAX_CONFIG_BYTES // 3) + "0]")
+    with pytest.raises(EfficientTrackError, match=r"lim.yaml: cannot read the config \([\d,]+ bytes, more than the 1,048,576"):
+        GuardLimits.load(path)
 
 
 def test_a_config_built_in_code_refuses_an_infinite_grad_clip():

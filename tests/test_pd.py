@@ -175,7 +175,8 @@ def test_a_bad_gains_file_is_refused_naming_the_file_and_field(tmp_path, changes
         ('{"kp": [1, 1, 1, 1], "kd": [1, 1, 1, 1]}', "missing field.*sign"),
         ('{"kp": [1, 1, 1, 1], "kd": [1, 1, 1, 1], "sign": [1, 1, 1, 1], "ki": 3}', "unknown field.*ki"),
         ('{"kp": [1, 1, 1, 1], "kd": [1, 1, 1, 1], "sign": [1, 1, 1, 1], "c": 1e999}', "field 'c'"),
-        ("{truncated", "not a valid PD gains file"),
+        ("{truncated", "cannot read the config .not valid JSON"),
+        ('{"kp": [1, 1, 1, 1], "kd": [1, 1, 1, 1], "sign": [1, 1, 1, 1], "kp": [9, 9, 9, 9]}', "the key 'kp' is given twice"),
     ],
 )
 def test_a_malformed_gains_file_is_refused(tmp_path, text, problem):

@@ -12,13 +12,33 @@ import yaml
 
 from efficienttrack.core.errors import EfficientTrackError
 
+MAX_CONFIG_BYTES = 1 << 20
+"""Largest config, limits, gains or preset file read (1 MiB; the largest shipped is a few kB), checked before parsing."""
+
+
+class DuplicateKey(yaml.YAMLError):
+    """A mapping gives one key twice: YAML and JSON keep the last, which would silently replace the first."""
+
 
 class ConfigLoader(yaml.SafeLoader):
-    """``yaml.SafeLoader`` that reads ``1e-5``, ``3E4`` and ``.5`` as floats (YAML 1.2), where YAML 1.1 gives strings.
+    """``yaml.SafeLoader`` that reads ``1e-5`` as a float and refuses a mapping that gives one key twice.
 
-    PyYAML follows YAML 1.1, whose float pattern needs a dot and a signed exponent (``1.0e-5``); a
-    learning rate written ``lr: 1e-5`` would otherwise be refused as a string.
+    ``3E4`` and ``.5`` are floats too (YAML 1.2), where YAML 1.1 gives strings: PyYAML follows YAML 1.1, whose float
+    pattern needs a dot and a signed exponent (``1.0e-5``); a learning rate written ``lr: 1e-5`` would otherwise be
+    refused as a string. YAML and JSON keep the last of two equal keys, which would silently replace the first.
     """
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        """The mapping, refusing a key given twice (:class:`DuplicateKey`, naming the key and its second line)."""
+        seen: set[Any] = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if isinstance(key, list | dict):
+                continue  # unhashable: PyYAML's own constructor refuses it with its message
+            if key in seen:
+                raise DuplicateKey(f"the key {key!r} is given twice (line {key_node.start_mark.line + 1})")
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
 
 
 ConfigLoader.yaml_implicit_resolvers = {key: list(value) for key, value in yaml.SafeLoader.yaml_implicit_resolvers.items()}
@@ -51,6 +71,11 @@ def read_mapping_file(path: str | Path) -> Any:
     """
     path = Path(path)
     try:
+        size = path.stat().st_size
+        if size > MAX_CONFIG_BYTES:
+            raise EfficientTrackError(
+                f"{path}: cannot read the config ({size:,} bytes, more than the {MAX_CONFIG_BYTES:,} a config may have)"
+            )
         text = path.read_text()
     except OSError as exc:
         raise EfficientTrackError(f"{path}: cannot read the config ({exc.strerror or exc})") from exc
@@ -58,7 +83,9 @@ def read_mapping_file(path: str | Path) -> Any:
         raise EfficientTrackError(f"{path}: cannot read the config (not a text file: {exc.reason})") from exc
     if path.suffix == ".json":
         try:
-            return json.loads(text)
+            return json.loads(text, object_pairs_hook=_unique_keys)
+        except DuplicateKey as exc:
+            raise EfficientTrackError(f"{path}: cannot read the config ({exc})") from exc
         except json.JSONDecodeError as exc:
             raise EfficientTrackError(f"{path}: cannot read the config (not valid JSON: {exc})") from exc
         except ValueError as exc:  # an integer of over 4,300 digits (int()'s limit)
@@ -67,7 +94,7 @@ def read_mapping_file(path: str | Path) -> Any:
             raise EfficientTrackError(f"{path}: cannot read the config (nested too deeply)") from exc
     try:
         return yaml.load(text, Loader=ConfigLoader)
-    except yaml.YAMLError as exc:
+    except yaml.YAMLError as exc:  # DuplicateKey among them
         raise EfficientTrackError(f"{path}: cannot read the config (not valid YAML: {yaml_problem(exc)})") from exc
     except RecursionError as exc:  # brackets nested beyond Python's recursion limit (PyYAML's parser recurses)
         raise EfficientTrackError(f"{path}: cannot read the config (nested too deeply)") from exc
@@ -77,6 +104,16 @@ def read_mapping_file(path: str | Path) -> Any:
         # "2001-13-01", KeyError from "!!bool maybe", AttributeError from "!!timestamp x", IndexError from an empty
         # "!!int". The text is already read, so what is raised here is about the file's content.
         raise EfficientTrackError(f"{path}: cannot read the config (not valid YAML: {_one_line(exc)})") from exc
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """A JSON object's pairs as a dict; a key given twice raises :class:`DuplicateKey`."""
+    data: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in data:
+            raise DuplicateKey(f"the key {key!r} is given twice")
+        data[key] = value
+    return data
 
 
 def _one_line(exc: BaseException) -> str:

@@ -47,7 +47,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from efficienttrack.core.angles import wrap
-from efficienttrack.core.configfile import check_seed
+from efficienttrack.core.configfile import check_seed, read_mapping_file
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.joints import DT, N_JOINTS, SWING
 from efficienttrack.systems.limits import DEFAULT_LIMITS, GuardLimits
@@ -280,14 +280,7 @@ class HydraulicParams:
             path: the JSON preset file; it must give every field.
         """
         path = Path(path)
-        try:
-            values = json.loads(path.read_text())
-        except OSError as exc:
-            raise EfficientTrackError(f"{path}: cannot read the simulator preset ({exc.strerror})") from exc
-        except UnicodeDecodeError as exc:
-            raise EfficientTrackError(f"{path}: not a JSON simulator preset (not a text file: {exc.reason})") from exc
-        except json.JSONDecodeError as exc:
-            raise EfficientTrackError(f"{path}: not valid JSON ({exc})") from exc
+        values = read_mapping_file(path)  # size-capped, duplicated keys refused
         missing = [f.name for f in fields(cls) if isinstance(values, dict) and f.name not in values]
         if missing:
             raise EfficientTrackError(f"{path}: simulator preset lacks parameter(s) {', '.join(missing)}")

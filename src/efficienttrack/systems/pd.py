@@ -11,7 +11,6 @@ logged PWM exactly.
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -19,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from efficienttrack.core.angles import wrap
-from efficienttrack.core.configfile import is_finite_number
+from efficienttrack.core.configfile import is_finite_number, read_mapping_file
 from efficienttrack.core.errors import EfficientTrackError
 
 
@@ -95,10 +94,7 @@ class PDGains:
         path = Path(spec)
         if not path.is_file():
             raise EfficientTrackError(f"PD gains '{spec}': neither a preset ({', '.join(PD_PRESETS)}) nor a JSON file")
-        try:
-            data: Any = json.loads(path.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise EfficientTrackError(f"{path}: not a valid PD gains file: {exc}") from exc
+        data: Any = read_mapping_file(path)  # size-capped, duplicated keys refused
         known = [f.name for f in fields(cls)]
         if not isinstance(data, dict):
             raise EfficientTrackError(f"{path}: not a valid PD gains file: expected an object with {', '.join(known)}")
