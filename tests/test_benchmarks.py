@@ -42,6 +42,7 @@ HELP_ONLY = {
     "baseline_throughput.py": "--steps",
     "model_vs_simulator.py": "--policy",
     "openloop_smoothness.py": "--k",
+    "oracle_floor.py": "--system",
     "precision.py": "--held-speed",
     "rounds.py": "--presets",
     "supertrack_ablation.py": "--variant",

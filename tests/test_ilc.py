@@ -6,7 +6,16 @@ import numpy as np
 import pytest
 
 from efficienttrack.baselines.curve import CURVE_FILE, training_run
-from efficienttrack.baselines.ilc import ILC_PRESETS, ILCSettings, ilc_settings, ilc_update, train_ilc, trial_steps
+from efficienttrack.baselines.ilc import (
+    ILC_PRESETS,
+    ILCSettings,
+    identify_lead,
+    ilc_settings,
+    ilc_update,
+    run_trial,
+    train_ilc,
+    trial_steps,
+)
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.data.cycles import generate_references
 from efficienttrack.data.metrics import compute_metrics
@@ -52,6 +61,22 @@ def test_the_lead_matters_on_the_delayed_toy(tmp_path):
     none = train_ilc(training_run("closed", TOY_DELAYED, refs, refs, 10**6, 0, tmp_path / "b"),
                      preset=ILCSettings(gain=1.0, lead=0, cutoff_hz=None, trials=6))  # fmt: skip
     assert maes(right)[-1] < 0.5 * maes(none)[-1]
+
+
+def test_the_lead_is_identified_from_trial_0_as_the_toys_delay(tmp_path):
+    refs = toy_refs()
+    correction = np.zeros((max(len(r) for r in refs) - 1, len(refs), 4))
+
+    def lead(delay, gain):
+        toy = SystemSpec(system="toy_system:make", options=(("delay", delay), ("gain", gain))).open()
+        return identify_lead(run_trial(toy, refs, correction)[0])
+
+    assert [lead(d, 1.0) for d in (0, DELAY, 5)] == [(0,) * 4, (DELAY,) * 4, (5,) * 4]  # a pure delay, exactly
+    lagging = lead(0, 0.4)
+    assert lead(5, 0.4) == tuple(x + 5 for x in lagging)  # a lag adds its own, the delay on top
+    curve = train_ilc(training_run("closed", TOY_DELAYED, refs, refs, 10**6, 0, tmp_path), preset=ILCSettings(trials=8))
+    assert maes(curve)[-1] < 0.1 * maes(curve)[0]
+    assert json.loads((tmp_path / CURVE_FILE).read_text())["lead_identified"] == [x + DELAY for x in lagging]
 
 
 def test_xe75_trials_lower_the_error_and_trial_0_is_pd(tmp_path):

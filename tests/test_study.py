@@ -383,7 +383,7 @@ def test_the_ilc_oracle_runs_as_a_study_method_below_pd(refs, tmp_path):
     study = tiny_study(refs)
     result = run_study(study, make_jobs(study, ["pd", "ilc"]), tmp_path, log=lambda line: None)
     best = {entry["method"]: entry["mae_deg"] for entry in result.report.entries}
-    assert best["ilc"] < 0.5 * best["pd"]
+    assert best["ilc"] < 0.7 * best["pd"]  # after the few trials of the tiny budget, at the gain of 0.35
     assert "ILC (oracle" in result.report.markdown
     with pytest.raises(EfficientTrackError, match="--method-budget ilc=10: less than one ILC trial .*59 steps"):
         make_jobs(make_study(SystemSpec(), *refs, 2 * 59, "tiny", FAST, {"ilc": 10}), ["ilc"])

@@ -9,11 +9,12 @@ and learns from the tracking error e_k(s) = wrap(q*(s) − q_k(s)) of the trial 
 
     a_{k+1}(t) = clip(Q[a_k(t) + L · e_k(t + 1 + δ)], ±max_adjust),
 
-with L a learning gain per joint, δ the lead per joint (steps the machine answers later than the step after the reference is
-sent), Q a zero-phase low-pass over time (a Butterworth filter run forwards and backwards, ``scipy.signal.filtfilt``;
-it keeps the high-frequency part of the error, which the machine cannot follow, from building up trial after trial),
-clip the system's adjustment bound (``limits.max_adjust``) and clamp its joint limits, as the environments apply an
-action. The error past the end of a reference is unknown and taken as zero.
+with L a learning gain per joint, δ the lead per joint (steps the machine answers later than the step after the
+reference is sent; by default identified from trial 0, :func:`identify_lead`), Q a zero-phase low-pass over time (a
+Butterworth filter run forwards and backwards, ``scipy.signal.filtfilt``; it keeps the high-frequency part of the error,
+which the machine cannot follow, from building up trial after trial), clip the system's adjustment bound
+(``limits.max_adjust``) and clamp its joint limits, as the environments apply an action. The error past the end of a
+reference is unknown and taken as zero.
 
 It is an oracle: it runs on the held-out test references and learns a correction for each of them, so it sees
 exactly what the fair methods are scored on and never generalizes to a new reference. Its curve says how much
@@ -27,7 +28,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -37,7 +38,7 @@ from efficienttrack.baselines.curve import CURVE_FILE, CurveRecorder, TrainingRu
 from efficienttrack.core.angles import wrap
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import output_lock
-from efficienttrack.core.joints import N_JOINTS
+from efficienttrack.core.joints import N_JOINTS, SWING
 from efficienttrack.core.progress import ProgressDisplay
 from efficienttrack.core.settings import canonical_preset
 from efficienttrack.data.metrics import compute_metrics
@@ -46,27 +47,32 @@ from efficienttrack.data.references import Reference
 from efficienttrack.deploy.episodes import Sent, batches, rollout
 from efficienttrack.systems.protocol import BatchedSystem
 
+AUTO = "auto"
+"""``ILCSettings.lead``: identify the lead from trial 0 (:func:`identify_lead`)."""
+MAX_LEAD = 30
+"""Steps: the largest lead :func:`identify_lead` considers (1.5 s at 20 Hz)."""
 METHOD = "ilc"
 """The method's name in ``curve.json`` and the study (an oracle: it sees the test references)."""
 
 
 @dataclass(frozen=True)
 class ILCSettings:
-    """Settings of the ILC oracle (tuned once on the built-in ``xe75`` with generated loading cycles, docs/baselines.md)."""
+    """Settings of the ILC oracle: the same on every system, the lead identified per system (docs/ilc.md)."""
 
-    gain: tuple[float, ...] = (0.7, 0.7, 0.5, 0.7)
+    gain: tuple[float, ...] = (0.35, 0.35, 0.35, 0.35)
     """L, the learning gain per joint (boom, arm, bucket, swing): the share of the last trial's error added to the
     correction each trial; a single number is taken for all four joints."""
-    lead: tuple[int, ...] = (10, 6, 4, 8)
+    lead: tuple[int, ...] | int | str = "auto"
     """δ ≥ 0 per joint, steps by which the closed loop's response lags behind the step after the reference is sent
     (its dead time and, at a cycle's frequencies, most of its phase lag): the correction of step t learns from the
-    error at step t + 1 + δ; a single integer is taken for all four joints."""
+    error at step t + 1 + δ; a single integer is taken for all four joints; ``"auto"``: identified from trial 0's
+    records (:func:`identify_lead`)."""
     cutoff_hz: float | None = 1.5
     """Cut-off frequency of the zero-phase low-pass Q over time, Hz (below the Nyquist frequency 1 / (2 dt));
     None: no filter."""
     filter_order: int = 2
     """Order of the Butterworth low-pass Q (run forwards and backwards: twice the order, no phase lag)."""
-    trials: int = 50
+    trials: int = 80
     """Learning trials after trial 0 (the PD controller alone); each runs every test reference once. Fewer when the
     budget ends first."""
 
@@ -85,12 +91,14 @@ class ILCSettings:
         lead = self.lead
         if isinstance(lead, int) and not isinstance(lead, bool):
             lead = (lead,) * N_JOINTS
-        if (
+        if lead != AUTO and (
             not isinstance(lead, tuple)
             or len(lead) != N_JOINTS
             or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in lead)
         ):
-            raise EfficientTrackError(f"ilc.lead: must be an integer ≥ 0 or 4 such (boom, arm, bucket, swing), got {lead!r}")
+            raise EfficientTrackError(
+                f"ilc.lead: must be 'auto', an integer ≥ 0 or 4 such (boom, arm, bucket, swing), got {lead!r}"
+            )
         object.__setattr__(self, "lead", lead)
         for field, low in (("filter_order", 1), ("trials", 1)):
             value = getattr(self, field)
@@ -104,7 +112,7 @@ class ILCSettings:
 
 
 ILC_PRESETS: dict[str, ILCSettings] = {"cpu": ILCSettings(), "tiny": ILCSettings(trials=5)}
-"""The oracle's presets: ``cpu`` (50 trials) and ``tiny`` (5 trials, for tests)."""
+"""The oracle's presets: ``cpu`` (80 trials) and ``tiny`` (5 trials, for tests)."""
 
 
 def ilc_settings(preset: str | ILCSettings = "cpu") -> ILCSettings:
@@ -125,6 +133,40 @@ def ilc_settings(preset: str | ILCSettings = "cpu") -> ILCSettings:
     return ILC_PRESETS[preset]
 
 
+def identify_lead(records: Sequence[EpisodeRecord], max_lead: int = MAX_LEAD) -> tuple[int, ...]:
+    """δ per joint from runs of the closed loop: the delay at which the measured motion best follows the desired one.
+
+    For each joint, the d ∈ [1, max_lead + 1] at which the desired velocity q*(t+2) − q*(t+1) and the measured one
+    d steps later, q(t+d+1) − q(t+d), pooled over t and the records, have the largest cosine (1 for a pure delay,
+    whatever the number of terms). A machine that reaches q*(s) at s + δ gives d = δ + 1. It reads the runs' motion,
+    not their error; a joint that did not move gets 0.
+
+    Args:
+        records: runs of the closed loop (trial 0: the PD controller alone), each with ``q`` and ``q_des`` (T, 4) rad.
+        max_lead: the largest δ considered, steps.
+
+    Returns:
+        (4,) δ per joint (boom, arm, bucket, swing), steps ≥ 0.
+    """
+    cosine = np.zeros((max_lead + 1, N_JOINTS))
+    for delta in range(max_lead + 1):
+        d = delta + 1
+        pairs = [(v[: len(v) - d], m[d:]) for v, m in map(_velocities, records) if len(v) > d]
+        if not pairs:
+            break
+        desired, measured = (np.concatenate(side) for side in zip(*pairs, strict=True))
+        norm = np.sqrt((desired**2).sum(0) * (measured**2).sum(0))
+        cosine[delta] = np.where(norm > 0, (desired * measured).sum(0) / np.where(norm > 0, norm, 1.0), 0.0)
+    return tuple(int(delta) for delta in np.argmax(cosine, axis=0))
+
+
+def _velocities(record: EpisodeRecord) -> tuple[np.ndarray, np.ndarray]:
+    """(T − 1, 4) rad per step: the changes of ``q_des`` and of ``q`` of one record (the swing's wrapped)."""
+    desired, measured = np.diff(record.q_des, axis=0), np.diff(record.q, axis=0)
+    desired[:, SWING], measured[:, SWING] = wrap(desired[:, SWING]), wrap(measured[:, SWING])
+    return desired, measured
+
+
 def ilc_update(
     correction: np.ndarray, error: np.ndarray, settings: ILCSettings, max_adjust: np.ndarray, dt: float
 ) -> np.ndarray:
@@ -141,6 +183,8 @@ def ilc_update(
     Returns:
         (T, N, 4) rad, a_{k+1}, within ±max_adjust.
     """
+    if not isinstance(settings.lead, tuple):
+        raise EfficientTrackError("ilc_update: the lead is not known yet (identify it first: identify_lead)")
     ahead = np.zeros_like(error)
     for joint, lead in enumerate(settings.lead):
         ahead[: max(len(error) - lead, 0), :, joint] = error[lead:, :, joint]
@@ -287,6 +331,7 @@ def train_ilc(
             "validate on others; give it a run without validation references"
         )
     settings = ilc_settings(preset)
+    auto_lead = settings.lead == AUTO
     test_refs, budget, folder = run.test_refs, run.budget, run.folder
     per_trial = trial_steps(test_refs)
     if budget < per_trial:
@@ -315,6 +360,10 @@ def train_ilc(
             for k in range(trials + 1):
                 wall = time.perf_counter() - recorder.start - scoring
                 records, error = run_trial(opened, test_refs, correction)
+                if k == 0 and auto_lead:
+                    lead = identify_lead(records)
+                    settings = replace(settings, lead=lead)
+                    recorder.header["lead_identified"] = list(lead)
                 if k in record_at:
                     began = time.perf_counter()
                     recorder.add(k * per_trial, wall, compute_metrics(records))

@@ -204,8 +204,13 @@ def coerce(hint: Any, value: Any, where: str, bounds: Bounds | None = None) -> A
         options = get_args(hint)
         if value is None and type(None) in options:
             return None
-        (inner,) = [option for option in options if option is not type(None)]
-        return coerce(inner, value, where, bounds)
+        errors = []
+        for option in (option for option in options if option is not type(None)):  # ``tuple[int, ...] | str``: the
+            try:  # first type that takes the value; when none does, the first type's message
+                return coerce(option, value, where, bounds)
+            except EfficientTrackError as exc:
+                errors.append(exc)
+        raise errors[0]
     if isinstance(hint, type) and is_dataclass(hint):
         if not isinstance(value, hint):
             raise EfficientTrackError(f"{where} must be a {hint.__name__}, got {shown(value)}")
