@@ -77,6 +77,25 @@ def test_joint_range_is_the_range_seen_widened_by_the_margin():
     assert "highest q/q_ref/q_des seen [0.3000, 0.3000, 0.3000, 0.3000] + margin 0.05 rad" in reasons[1]
 
 
+def test_an_isolated_spike_does_not_reach_the_limits_and_is_reported():
+    clean = record(ramp(-0.2, 0.3))
+    glitchy = record(ramp(-0.2, 0.3))
+    glitchy.q[20, 0], glitchy.qd[30, 2] = 6.0, 20.0  # a 6 rad reading, a 20 rad/s one: one sample each
+    expected, _ = propose_limits([clean])
+    limits, reasons = propose_limits([glitchy])
+    assert limits == expected
+    assert reasons[0].startswith("dropped 2 isolated spike(s)")
+    assert "ep at 1.00 s: q boom 6.000" in reasons[0] and "ep at 1.50 s: qd bucket 20.000" in reasons[0]
+    steep = record(ramp(-0.2, 0.3))
+    steep.q[20:, 0] += 1.0  # a step that stays is motion (or a fault the guard judges), not a spike
+    assert not log_stats([steep]).spikes
+
+
+@pytest.mark.skipif(not PD_LOGS.is_dir(), reason="the real XE75 logs are not here (../shared/data/xe75)")
+def test_no_sample_of_the_real_logs_is_taken_for_a_spike():
+    assert log_stats(load_records(PD_LOGS)).spikes == ()
+
+
 def test_the_range_stays_within_two_pi():
     q = ramp(-0.2, 0.3)
     q[:, 0] = np.linspace(6.0, 6.25, len(q))
