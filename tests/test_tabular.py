@@ -142,6 +142,9 @@ def test_units_and_a_column_map(tmp_path):
         read_table(path, {**columns, "qd.boom": "BoomRate"}, time_column="Stamp", time_unit="ms", angle_unit="deg")
     with pytest.raises(EfficientTrackError, match=r"theirs.csv: column 'Boom' \(q.boom\) reaches .* degrees\?"):
         read_table(path, columns, time_column="Stamp", time_unit="ms")
+    radians = write_csv(tmp_path / "rad.csv", header, np.hstack([table[:, :1], np.radians(table[:, 1:])]))
+    with pytest.raises(EfficientTrackError, match=r"rad.csv: field 'q' .* stays within ±6.28 .* radians read as degrees\?"):
+        read_table(radians, columns, time_column="Stamp", time_unit="ms", angle_unit="deg")
 
 
 # --------------------------------------------------------------------------------------------- refusals
@@ -193,6 +196,8 @@ def test_missing_columns_and_unknown_map_keys_are_named(tmp_path):
         ({"q": ["A", "B"]}, r"--column 'q': 2 column\(s\) given; expected 4, for boom, arm, bucket, swing"),
         (["q.boom"], r"--column 'q.boom': expected CHANNEL=COLUMN"),
         (["q.boom="], r"--column 'q.boom': empty column name"),
+        (["q.boom=q_arm"], r"--column: column 'q_arm' is mapped to q.boom and q.arm; each joint of 'q' needs its own"),
+        ({"q": ["A", "B", "A", "D"]}, r"--column: column 'A' is mapped to q.boom and q.bucket"),
     ]:
         with pytest.raises(EfficientTrackError, match=message):
             column_map(columns)

@@ -252,6 +252,14 @@ def column_map(
         else:
             names[name] = values
         given.add(name)
+    for name in sorted(given):
+        twice = next((column for column in names[name] if names[name].count(column) > 1), None)
+        if twice is not None:
+            joints = [JOINT_NAMES[j] for j, column in enumerate(names[name]) if column == twice]
+            raise EfficientTrackError(
+                f"--column: column '{twice}' is mapped to {' and '.join(f'{name}.{joint}' for joint in joints)}; each "
+                f"joint of '{name}' needs its own column (map the other joint with --column {name}.JOINT=COLUMN)"
+            )
     return {name: tuple(cols) for name, cols in names.items()}, frozenset(given)
 
 
@@ -552,6 +560,12 @@ def _field(
         _check_gaps(path, f"field '{name}' (columns {', '.join(names[name])}, empty cells left out)", stamps, max_gap)
     if name == "u":
         return stamps, values
+    if name == "q" and radians != 1.0 and np.abs(values).max() <= MAX_ABS_ANGLE:
+        raise EfficientTrackError(
+            f"{path}: field 'q' (columns {', '.join(names[name])}) stays within ±{MAX_ABS_ANGLE:.2f} over the whole log, "
+            f"{np.abs(values).max() * radians:.4f} rad at most as degrees: radians read as degrees? (--angle-unit deg is "
+            "given; leave it out for radians)"
+        )
     values = values * radians
     if name in ANGLE_FIELDS:
         peak = np.abs(values).max(axis=0)
