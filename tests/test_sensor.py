@@ -145,3 +145,18 @@ def test_collect_arm_stops_at_a_wild_sensor_and_names_joint_and_tick(at_rest, tm
     assert f"sensor_fault: tick {FAULT_TICK}: boom moved" in str(result.exception)
     end = json.loads((tmp_path / "c" / "logs" / "pass_000" / "rest.jsonl").read_text().splitlines()[-1])
     assert end["reason"] == "sensor_fault" and end["ticks"] <= FAULT_TICK + 5
+
+
+def unreachable_machine():
+    """A user's adapter factory (``--machine test_sensor:unreachable_machine``) whose connection fails."""
+    raise ConnectionRefusedError("CAN interface can0 is down")
+
+
+def test_a_machine_factory_that_raises_is_one_clear_error(at_rest, tmp_path):
+    args = [a if a != "test_sensor:WildBoom" else "test_sensor:unreachable_machine" for a in at_rest]
+    result = invoke("deploy", *args, "--out", tmp_path / "o")
+    assert isinstance(result.exception, EfficientTrackError)
+    assert str(result.exception) == (
+        "machine 'test_sensor:unreachable_machine': building the adapter failed (ConnectionRefusedError: CAN interface "
+        "can0 is down); nothing was sent"
+    )

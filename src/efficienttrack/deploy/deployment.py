@@ -134,6 +134,12 @@ def load_machine(spec: str, options: dict[str, Any]) -> Callable[[Reference], Ma
             machine = factory(**options)
         except TypeError as exc:
             raise EfficientTrackError(f"machine '{spec}': cannot be built with options {options}: {exc}") from exc
+        except EfficientTrackError:
+            raise
+        except Exception as exc:  # the user's adapter failed to connect or to start: say so in one line, nothing was sent
+            raise EfficientTrackError(
+                f"machine '{spec}': building the adapter failed ({type(exc).__name__}: {exc}); nothing was sent"
+            ) from exc
         missing = [name for name in ("__enter__", "__exit__", "read", "send") if not hasattr(machine, name)]
         if missing:
             raise EfficientTrackError(
