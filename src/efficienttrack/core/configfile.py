@@ -29,7 +29,12 @@ class ConfigLoader(yaml.SafeLoader):
     """
 
     def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
-        """The mapping, refusing a key given twice (:class:`DuplicateKey`, naming the key and its second line)."""
+        """The mapping, refusing a key given twice (:class:`DuplicateKey`, naming the key and its second line).
+
+        Args:
+            node: the YAML mapping node.
+            deep: construct nested objects at once (PyYAML's own argument).
+        """
         seen: set[Any] = set()
         for key_node, _ in node.value:
             key = self.construct_object(key_node, deep=deep)

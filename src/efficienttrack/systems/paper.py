@@ -253,10 +253,22 @@ class PaperExcavator:
 
 
 def paper_plant(delay: int = 0, lag: float = 0.0, dead_band: float = 0.0) -> PaperExcavator:
-    """The paper's simulator at PWM level (``load_plant("paper")``, ``--plant paper``; options as :class:`PaperExcavator`)."""
+    """The paper's simulator at PWM level (``load_plant("paper")``, ``--plant paper``).
+
+    Args:
+        delay: control periods before a command takes effect (0: the paper's).
+        lag: s, velocity lag time constant (0: none, the paper's).
+        dead_band: PWM of boom, arm and bucket that does not move them (0: the paper's).
+    """
     return PaperExcavator(delay, lag, dead_band)
 
 
 def paper_closed_loop(delay: int = 0, lag: float = 0.0, dead_band: float = 0.0) -> ClosedLoop:
-    """The paper's simulator under its PD law (``load_system("paper")``, ``--system paper``; options: as the plant's)."""
+    """The paper's simulator under its PD law (``load_system("paper")``, ``--system paper``).
+
+    Args:
+        delay: control periods before a command takes effect (0: the paper's).
+        lag: s, velocity lag time constant (0: none, the paper's).
+        dead_band: PWM of boom, arm and bucket that does not move them (0: the paper's).
+    """
     return ClosedLoop(PaperExcavator(delay, lag, dead_band), PAPER_PD)
