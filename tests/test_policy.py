@@ -87,8 +87,9 @@ def test_a_rollout_split_in_two_at_its_histories_is_the_rollout_in_one(model):
     torch.testing.assert_close(torch.cat([first.a, second.a], 1), whole.a)
 
 
-def test_a_policy_trained_after_a_burn_in_cuts_the_true_tracking_error(model):
-    cfg = dataclasses.replace(POLICY_PRESETS["tiny"], burn_in=6)
+@pytest.mark.parametrize("share", [1.0, 0.5])
+def test_a_policy_trained_after_a_burn_in_cuts_the_true_tracking_error(model, share):
+    cfg = dataclasses.replace(POLICY_PRESETS["tiny"], burn_in=6, burn_in_share=share)
     assert plain_form(cfg)["burn_in"] == 6 and "burn_in" not in plain_form(POLICY_PRESETS["tiny"])  # old folders resume
     trained = train_policy(cfg, model, lag_records(), device="cpu", progress=False)
     test = lag_records(n=4, seed=1, sigma=0.0)

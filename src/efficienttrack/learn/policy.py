@@ -16,7 +16,7 @@ in rad² (the paper's units, for which γ = 0.98 and k_smooth = 1.0 are tuned). 
 4. With ``burn_in`` B > 0, the policy first drives the model B steps from the window's start without gradient, and the
    loss is taken over the h steps after them: the histories it then sees hold its own adjustments, as when deployed,
    where the recorded windows hold the collection's references and noise. Windows start where B steps still lie
-   within the episode.
+   within the episode; with ``burn_in_share`` below 1, the rest of each batch are recorded windows from any step.
 
 The open loop (:class:`PWMPolicy` through a :class:`~efficienttrack.learn.dynamics.PlantModel`): the policy outputs the
 command u_t / 1000 = π_φ(o_H, u_H, q*_F) ∈ (−1, 1)⁴ (tanh × 1: PWM within ±1000), the model is driven by it, and the
@@ -87,6 +87,9 @@ class PolicyConfig(TrainingSchedule):
     """B: steps the policy drives the frozen model from each training start, without gradient, before the loss's h
     steps, so that the histories the loss sees hold the policy's own adjustments, as when deployed (0: the paper's,
     the histories are the recorded ones)."""
+    burn_in_share: float = setting(1.0, gt=0, le=1, added_later=True)
+    """With ``burn_in``: the share of each batch's windows that get the burn-in; the others start from the recorded
+    histories, at any step of an episode, its first B included (1: all windows are burned in)."""
 
     @property
     def history_length(self) -> int:
@@ -392,6 +395,8 @@ def train_policy(
     history = max(cfg.history_length, model.cfg.history_length)
     data = Sequences(records, history=history, future=desired, device=device, channel=model.channel)
     starts = data.starts(B)
+    recorded = data.starts(0) if B and cfg.burn_in_share < 1 else None
+    burned_windows = cfg.batch_size if recorded is None else round(cfg.batch_size * cfg.burn_in_share)
     g_theta = type(model)(model.cfg).to(device)
     g_theta.load_state_dict(model.state_dict())
     g_theta.eval().requires_grad_(False)
@@ -409,13 +414,18 @@ def train_policy(
     loop = TrainLoop("policy", cfg, total, pi_phi, optimizer, seed, checkpoint, progress, inputs, log_dir, evaluate)
 
     for step in loop:
-        window = data.window(starts[loop.sample(len(starts), cfg.batch_size).to(device)], horizon=0, desired=desired)
+        window = data.window(starts[loop.sample(len(starts), burned_windows).to(device)], horizon=0, desired=desired)
         obs_hist, qref_hist, q_star = window.obs_hist, window.qref_hist, window.qdes_future
         # burn-in: B steps under π_φ without gradient, so that the loss starts from the policy's own histories
         if B:
             with torch.no_grad():
                 burned = policy_rollout(g_theta, pi_phi, obs_hist, qref_hist, q_star, steps=B)
             obs_hist, qref_hist, q_star = burned.obs_hist, burned.qref_hist, q_star[:, B:]
+        if recorded is not None:  # the rest of the batch: recorded windows from any step
+            plain = data.window(recorded[loop.sample(len(recorded), cfg.batch_size - burned_windows).to(device)],
+                                horizon=0, desired=desired - B)  # fmt: skip
+            obs_hist, qref_hist = torch.cat([obs_hist, plain.obs_hist]), torch.cat([qref_hist, plain.qref_hist])
+            q_star = torch.cat([q_star, plain.qdes_future])
         # rollout: H steps of g_θ under π_φ, q^r_{i+1} = q*_{i+1} + a_i, q*_F sliding along q*_{t+1..t+H−1+F}
         q_hat, a, *_ = policy_rollout(g_theta, pi_phi, obs_hist, qref_hist, q_star, steps=H)
         L_track, L_reg = policy_loss(q_hat, a, q_star[:, :H], cfg.gamma)
