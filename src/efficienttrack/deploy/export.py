@@ -15,7 +15,6 @@ than :data:`PARITY_TOLERANCE` is refused.
 from __future__ import annotations
 
 import copy
-import dataclasses
 import hashlib
 import io
 import json
@@ -30,6 +29,7 @@ import efficienttrack
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import atomic_write, write_json
 from efficienttrack.core.joints import DT, JOINT_NAMES
+from efficienttrack.core.settings import plain_form
 from efficienttrack.deploy.onnx_runtime import (
     CONTRACT_FILE,
     CONTRACT_FORMAT,
@@ -141,7 +141,7 @@ def contract(policy: AdjustmentPolicy, onnx_sha256: str, source: dict[str, Any] 
         "bound": "the output is tanh(·) × max_adjust per joint inside the graph; the runtime's guard takes its limits "
         "from the machine, and max_adjust here can only tighten its adjustment bound",
         "standardization": "inside the graph: features standardized with the training windows' mean and std",
-        "policy_config": dataclasses.asdict(policy.cfg),
+        "policy_config": plain_form(policy.cfg),
         "source": source,
         "package_version": efficienttrack.__version__,
         "torch_version": torch.__version__,

@@ -396,7 +396,7 @@ def train_policy(
     data = Sequences(records, history=history, future=desired, device=device, channel=model.channel)
     starts = data.starts(B)
     recorded = data.starts(0) if B and cfg.burn_in_share < 1 else None
-    burned_windows = cfg.batch_size if recorded is None else round(cfg.batch_size * cfg.burn_in_share)
+    burned_windows = cfg.batch_size if recorded is None else max(1, round(cfg.batch_size * cfg.burn_in_share))
     g_theta = type(model)(model.cfg).to(device)
     g_theta.load_state_dict(model.state_dict())
     g_theta.eval().requires_grad_(False)
