@@ -584,7 +584,8 @@ WRITERS = sorted(name for name, function in _registered(cli.app) if "_lock(" in 
 
 
 def test_the_writers_are_found():
-    assert {"collect", "run", "train-model", "round", "convert", "import-rosbag", "study", "deploy"} <= set(WRITERS)
+    assert {"collect", "run", "train-model", "round", "convert", "import-rosbag", "study", "deploy", "limits",
+            "sim calibrate"} <= set(WRITERS)  # fmt: skip
 
 
 @pytest.mark.parametrize("command", WRITERS)
@@ -592,7 +593,7 @@ def test_every_writer_refuses_an_output_another_process_is_writing(command, good
     monkeypatch.chdir(tmp_path)
     paths = {**good, **{slot: tmp_path / "out" / name for slot, name in OUTPUTS.items()}}
     argv = [arg.format(**paths) for arg in COMMANDS[command].split()]
-    slot = next(slot for slot in ("out_folder", "out_pt") if f"{{{slot}}}" in COMMANDS[command])
+    slot = next(slot for slot in ("out_folder", "out_pt", "out_json") if f"{{{slot}}}" in COMMANDS[command])
     with output_lock(paths[slot], folder=slot == "out_folder"):
         line = one_line_error(*run_main(argv, monkeypatch, capsys))
     assert f"{paths[slot]}: another efficienttrack process" in line and "is writing it" in line, line

@@ -10,7 +10,7 @@ from typing import Annotated
 import typer
 
 import efficienttrack
-from efficienttrack.cli.common import RecursiveOpt, app
+from efficienttrack.cli.common import RecursiveOpt, _lock, app
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import check_output_file
 from efficienttrack.core.joints import JOINT_NAMES, SWING
@@ -83,6 +83,7 @@ def _command(paths: list[Path], out: Path, margin: float, speed_factor: float, r
 
 @app.command("limits")
 def limits_command(
+    ctx: typer.Context,
     paths: Annotated[
         list[Path] | None,
         typer.Argument(
@@ -133,6 +134,7 @@ def limits_command(
         raise EfficientTrackError("limits --from-logs: give --out FILE (YAML, or JSON when it ends in .json)")
     check_proposal_options(margin, speed_factor, "--")
     check_output_file(out)
+    _lock(ctx, out, folder=False, resumable=False)  # two proposals at once would replace each other's file
     from efficienttrack.data.records import load_records
     from efficienttrack.systems.limits_from_logs import propose_limits, write_limits
 

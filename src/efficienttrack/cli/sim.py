@@ -10,7 +10,7 @@ from typing import Annotated
 
 import typer
 
-from efficienttrack.cli.common import PdOpt, PlantOpt, RecursiveOpt, SystemOpt, SystemOpts, _system_spec
+from efficienttrack.cli.common import PdOpt, PlantOpt, RecursiveOpt, SystemOpt, SystemOpts, _lock, _system_spec
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import check_output_file, check_output_folder, finite_json, prepare_output_folder
 from efficienttrack.systems.fit import FitConfig
@@ -47,6 +47,7 @@ def parse_ints(text: str, flag: str) -> tuple[int, ...]:
 
 @sim_app.command("calibrate")
 def sim_calibrate_command(
+    ctx: typer.Context,
     logs: LogsOpt,
     out: Annotated[Path, typer.Option("--out", help="JSON preset to write (load it with --system-opt params_file=...).")],
     start: Annotated[Path | None, typer.Option("--start", help="Preset to start from (default: the shipped xe75).")] = None,
@@ -65,6 +66,7 @@ def sim_calibrate_command(
     from efficienttrack.systems.hydraulic import HydraulicParams
 
     check_output_file(out)
+    _lock(ctx, out, folder=False, resumable=False)  # two fits at once would replace each other's preset
     candidates = parse_ints(delays, "--delays")
     config = replace(FIT, delays=candidates, max_windows=max_windows, max_nfev=max_nfev, max_ref_jitter=max_ref_jitter)
     first = HydraulicParams.load(start) if start is not None else None
