@@ -172,12 +172,14 @@ def test_a_gap_of_dropped_samples_falls_back_and_starts_the_histories_afresh():
     after = runtime.step(_obs(0.24), q_des, t=10.0 + 10 * DT)  # the next period: the policy again, from a = 0
     assert not after.fallback[0] and np.all(np.abs(after.adjustment) <= np.asarray(DEFAULT_LIMITS.max_adjust_rate))
     assert runtime.counts["obs_stale"].tolist() == [1] and runtime.fallbacks.tolist() == [1]
-    # without time stamps each call is one period: the same jump is a plausible one-period move, and passes
+    # without time stamps each call is one period: the jump is within max_speed, but not what the velocities (0) allow
     unstamped = Runtime(LinearPolicy(horizon=3), limits=None)
     unstamped.start(_obs(0.0))
     for k in range(1, 4):
         unstamped.step(_obs(0.01 * k), q_des)
-    assert not unstamped.step(jumped, q_des).fallback[0]
+    sent = unstamped.step(jumped, q_des)
+    assert sent.fallback[0] and sent.guard[0] == Guard.OBS_JUMP
+    np.testing.assert_array_equal(unstamped._history.obs, np.repeat(jumped[:, None], 3, axis=1))  # afresh, as a gap
 
 
 def test_a_gap_up_to_max_gap_periods_is_not_one():
@@ -222,8 +224,9 @@ def test_time_stamps_must_be_finite_and_increase():
 SEQUENCE_LIMITS = GuardLimits(
     q_min=(-0.6, -0.6, -0.6, -math.pi), q_max=(0.6, 0.6, 0.6, math.pi), max_speed=(2.0,) * 4, stale_steps=3
 )
-SEQUENCE_SHA256 = "51e207fbcdfbf4625809747c78ba78faee98e110448e37898d7dfb72a53c0e23"
-"""What the guarded step sent on :func:`seeded_calls` before time stamps existed (float64 arithmetic only: exact)."""
+SEQUENCE_SHA256 = "c65fc682768a7e27cf0236b8798ff58daa8a9a066cb86427b8285f8b6a4ccdd8"
+"""What the guarded step sends on :func:`seeded_calls` (float64 arithmetic only: exact), since a jump starts the
+histories afresh (the same steps are jumps as before: 5, 6, 16, 17, … of machine 0)."""
 
 
 def linear_act(obs_hist, qref_hist, q_des_future):

@@ -8,7 +8,10 @@
 The guard owns its limits (:class:`~efficienttrack.systems.limits.GuardLimits`, from the system or a limits
 file, never from the policy file, whose ``max_adjust`` can only tighten the bound). Every step, per machine:
 
-1. a non-finite observation, one that jumped farther than ``max_speed · dt``, one repeated bit for bit for
+1. a non-finite observation, one that jumped farther than ``max_speed · dt`` or farther than its velocities allow
+   (:func:`~efficienttrack.deploy.sensor.motion_excess` beyond :data:`~efficienttrack.deploy.sensor.SENSOR_TOLERANCE`:
+   dropped samples the caller did not stamp, or a faulty sensor; that machine's histories start afresh), one repeated
+   bit for bit for
    ``stale_steps`` steps, one that comes more than ``max_gap`` periods after the last (dropped samples, see below), or a
    desired position the policy sees outside the joint limits: fall back;
 2. a policy that raises, returns a shape other than (N, 4), a non-finite value or |a| beyond the bound: fall back;
@@ -43,6 +46,7 @@ from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.joints import DT, SWING
 from efficienttrack.data.windows import History, initial_history, push_observation, push_reference
 from efficienttrack.deploy.episodes import FALLBACK, Guard, Sent
+from efficienttrack.deploy.sensor import SENSOR_TOLERANCE, motion_excess
 from efficienttrack.systems.limits import DEFAULT_LIMITS, GuardLimits
 
 GUARD_TOLERANCE = 1e-6
@@ -193,7 +197,9 @@ class GuardedRuntime:
         gap = periods > self.max_gap  # samples were dropped: a = 0, and the histories start afresh
         guard |= _bits(np.full(n, gap), Guard.OBS_STALE)
         obs = np.where(guard[:, None] & Guard.OBS_NONFINITE, self._history.obs[:, -1], obs)  # keep the last good one
-        history = initial_history(obs, self.history_length) if gap else self._history
+        afresh = (gap | (guard & Guard.OBS_JUMP) != 0)[:, None, None]  # a jump is not one period's motion either
+        fresh = initial_history(obs, self.history_length)
+        history = History(np.where(afresh, fresh.obs, self._history.obs), np.where(afresh, fresh.q_ref, self._history.q_ref))
         history = push_observation(history, obs)
         a = np.zeros((n, 4))
         if self._policy_call is not None:
@@ -268,7 +274,10 @@ class GuardedRuntime:
         with np.errstate(invalid="ignore"):
             move = np.abs(obs[:, :4] - last[:, :4])
             move[:, SWING] = np.abs(wrap(move[:, SWING]))
-            jump = finite & np.any(move > self._max_move * periods, axis=1)
+            inexplicable = periods <= self.max_gap and np.any(  # a stamped gap is judged as one (OBS_STALE)
+                motion_excess(last, obs, periods * self.dt) > SENSOR_TOLERANCE, axis=1
+            )
+            jump = finite & (np.any(move > self._max_move * periods, axis=1) | inexplicable)
         self._repeats = np.where(np.all(obs == last, axis=1), self._repeats + 1, 0)
         stale = np.zeros(len(obs), dtype=bool) if self.limits.stale_steps is None else self._repeats >= self.limits.stale_steps
         outside = np.any(self.limits.outside(q_des_seen), axis=(1, 2))

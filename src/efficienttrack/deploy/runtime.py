@@ -18,7 +18,8 @@ Two levels:
   (dropped samples, a busy computer) passes the observation's time, ``rt.start(obs0, t=time.monotonic())`` and
   ``rt.step(obs, q_des_future, t=time.monotonic())``: the jump check then allows the real time since the last
   observation, and a gap of more than ``max_gap`` periods falls back (a = 0) and starts the histories afresh
-  (:mod:`efficienttrack.deploy.guard`).
+  (:mod:`efficienttrack.deploy.guard`). Without stamps a gap still shows in the readings themselves: a position that
+  moved farther than its velocities allow falls back and starts that machine's histories afresh too.
 - :func:`track`, whole episodes: runs :class:`Runtime` over references on a (batched) system
   and returns :class:`~efficienttrack.data.records.EpisodeRecord` s. ``policy=None`` is the PD
   controller alone (a = 0) through the same loop.

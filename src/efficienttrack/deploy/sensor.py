@@ -64,6 +64,25 @@ class SensorFault(NamedTuple):
         return f"{joint} moved {self.value:.3f} rad in one reading, where its velocities allow {self.limit:.3f} rad"
 
 
+def motion_excess(previous: np.ndarray, obs: np.ndarray, gap: np.ndarray | float) -> np.ndarray:
+    """How far each joint's change between two readings lies outside what their velocities allow over ``gap``.
+
+    Args:
+        previous: (N, 8) [rad, rad/s], the earlier readings ``(q, q̇)``.
+        obs: (N, 8) [rad, rad/s], the later ones.
+        gap: (N,) or a number, s between them (> 0).
+
+    Returns:
+        (N, 4) rad: the change's distance outside ``[min(q̇_prev, q̇) · gap, max(q̇_prev, q̇) · gap]`` (≤ 0 inside; the
+        swing's change wrapped).
+    """
+    moved = obs[:, :4] - previous[:, :4]
+    moved[:, SWING] = wrap(moved[:, SWING])
+    gap = np.reshape(gap, (-1, 1))
+    low, high = np.minimum(previous[:, 4:], obs[:, 4:]) * gap, np.maximum(previous[:, 4:], obs[:, 4:]) * gap
+    return np.maximum(low - moved, moved - high)
+
+
 def first_sensor_fault(
     obs: np.ndarray,
     stamps: np.ndarray,
@@ -92,12 +111,10 @@ def first_sensor_fault(
     if limits.q_min[SWING] <= -math.pi and limits.q_max[SWING] >= math.pi:
         below[:, SWING] = above[:, SWING] = -np.inf
     speed = np.abs(qd) - np.asarray(limits.max_speed)
-    gap = np.diff(np.asarray(stamps, dtype=np.float64))[:, None]
-    moved = np.diff(q, axis=0)
-    moved[:, SWING] = wrap(moved[:, SWING])
-    low, high = np.minimum(qd[:-1], qd[1:]) * gap, np.maximum(qd[:-1], qd[1:]) * gap
+    gap = np.diff(np.asarray(stamps, dtype=np.float64))
+    excess = motion_excess(obs[:-1], obs[1:], np.maximum(gap, 0.0))
     motion = np.full_like(q, -np.inf)
-    motion[1:] = np.where(gap > 0, np.maximum(low - moved, moved - high) - tolerance, -np.inf)
+    motion[1:] = np.where(gap[:, None] > 0, excess - tolerance, -np.inf)
     broken = np.stack([np.maximum(below, above), speed, motion], axis=1) > 0  # (T, 3 kinds, 4 joints)
     if not broken.any():
         return None
@@ -108,6 +125,8 @@ def first_sensor_fault(
     elif kind == 1:
         value, limit = float(qd[index, joint]), float(limits.max_speed[joint])
     else:
-        value = float(moved[index - 1, joint])
-        limit = float(high[index - 1, joint] if value > high[index - 1, joint] else low[index - 1, joint])
+        moved = q[index, joint] - q[index - 1, joint]
+        value = float(wrap(moved) if joint == SWING else moved)
+        pair = qd[index - 1 : index + 1, joint] * gap[index - 1]
+        limit = float(pair.max() if value > pair.max() else pair.min())
     return SensorFault(index, joint, KINDS[kind], value, limit)
