@@ -160,3 +160,21 @@ def test_a_machine_factory_that_raises_is_one_clear_error(at_rest, tmp_path):
         "machine 'test_sensor:unreachable_machine': building the adapter failed (ConnectionRefusedError: CAN interface "
         "can0 is down); nothing was sent"
     )
+
+
+PAPER_REF_28 = REAL_LOGS.parent / "references" / "train" / "ref_28.npy"
+
+
+@pytest.mark.skipif(not PAPER_REF_28.is_file(), reason="the shared references are not here (../shared/data/references)")
+def test_the_paper_simulators_fast_bucket_is_no_sensor_fault_in_the_loop():
+    """ref_28 drives the paper simulator's bucket at 6.6 rad/s under PD, beyond the default 2π rad/s."""
+    from efficienttrack.data.references import load_references
+    from efficienttrack.systems.spec import SystemSpec
+
+    [ref] = load_references(PAPER_REF_28)
+    system = SystemSpec(system="paper").open()
+    clock = FakeClock()
+    result = Loop(Runtime(None, limits=None), SimulatedMachine(system, ref.q[0], clock), system.limits, clock=clock).run(
+        ref.q, ref.name
+    )
+    assert result.reason == "done", result.error
