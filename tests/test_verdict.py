@@ -44,3 +44,23 @@ def test_deploy_arms_a_policy_worse_than_pd_only_when_told_and_warns_in_shadow(d
         result = invoke(*args, "--out", tmp_path / extra, extra)
         assert result.exit_code == 0, result.output
         assert f"warning: {policy}: it tracks worse" in result.stderr
+
+
+def test_the_verdict_travels_with_the_policy_into_copies_and_exports(deploy_inputs, tmp_path):  # noqa: F811
+    refs, policy = deploy_inputs
+    evaluated = invoke("evaluate", "--refs", refs, "--policy", policy, "--out", tmp_path / "eval", "--plots", "0")
+    assert evaluated.exit_code == 0, evaluated.output
+    evaluation = json.loads(policy.with_suffix(".json").read_text())["evaluation"]
+    assert evaluation["mae_deg"] > evaluation["pd_mae_deg"] and "do not deploy it" in evaluation["worse_than_pd"]
+    assert evaluation["references"] == ["ref_01", "ref_02"]
+    (tmp_path / "eval" / "metrics.json").unlink()  # the run folder that measured it is gone
+    copy = tmp_path / "elsewhere" / "mine.pt"
+    copy.parent.mkdir()
+    copy.write_bytes(policy.read_bytes())
+    copy.with_suffix(".json").write_text(policy.with_suffix(".json").read_text())
+    assert invoke("export", "--policy", copy, "--out", tmp_path / "export").exit_code == 0
+    for deployed in (policy, copy, tmp_path / "export"):
+        assert recorded_verdict(deployed) == evaluation["worse_than_pd"]
+        refused = invoke("deploy", "--refs", refs, "--policy", deployed, "--fast", "--arm", "--out", tmp_path / "armed")
+        assert "its recorded evaluation tracked worse than PD" in str(refused.exception), refused.output
+    assert not (tmp_path / "armed").exists()

@@ -404,10 +404,12 @@ def _save_run_records(log: Path, folder: Path, shadow: bool) -> None:
 
 
 def recorded_verdict(policy: str | Path | None) -> str | None:
-    """The ``worse_than_pd`` warning of the run that tested ``policy``, when its ``metrics.json`` says it tracked worse.
+    """The ``worse_than_pd`` warning of the last evaluation of ``policy``, when it tracked worse than PD.
 
-    A run writes ``metrics.json`` with the path of the policy it evaluated (its own folder, or two levels up for a
-    later round's policy in ``OUT/rounds/<k>/``).
+    The policy's own record comes first: a run or ``evaluate`` keeps it in the checkpoint's JSON config
+    (``"evaluation"``), and an export carries it in its contract (``source.evaluation``), so a copy or an export is
+    judged like the original. Without one, the run that tested it: a run writes ``metrics.json`` with the path of the
+    policy it evaluated (its own folder, or two levels up for a later round's policy in ``OUT/rounds/<k>/``).
 
     Args:
         policy: the policy deployed (a ``policy.pt`` or an export folder), or None.
@@ -418,6 +420,10 @@ def recorded_verdict(policy: str | Path | None) -> str | None:
     if policy is None:
         return None
     path = Path(policy).resolve()
+    own = _own_evaluation(path)
+    if own is not None:
+        verdict = own.get("worse_than_pd")
+        return verdict if isinstance(verdict, str) else None
     for folder in list(path.parents)[:3]:
         try:
             metrics = json.loads((folder / "metrics.json").read_text())
@@ -429,6 +435,24 @@ def recorded_verdict(policy: str | Path | None) -> str | None:
             verdict = metrics.get("worse_than_pd")
             return verdict if isinstance(verdict, str) else None
     return None
+
+
+def _own_evaluation(path: Path) -> dict[str, Any] | None:
+    """The evaluation a policy checkpoint (``policy.pt`` → ``policy.json``) or an export (its contract) carries, or None."""
+    if path.is_dir():  # an export, run by ONNX Runtime: its module's import is needed to deploy it anyway
+        from efficienttrack.deploy.onnx_runtime import CONTRACT_FILE
+
+        meta = path / CONTRACT_FILE
+    else:
+        meta = path.with_suffix(".json")
+    try:
+        data = json.loads(meta.read_text())
+    except (OSError, ValueError):
+        return None
+    if path.is_dir():
+        data = data.get("source") if isinstance(data, dict) else None
+    evaluation = data.get("evaluation") if isinstance(data, dict) else None
+    return evaluation if isinstance(evaluation, dict) else None
 
 
 def machine_parts(

@@ -71,17 +71,18 @@ def check_windows(h: int, F: int, n: int = CHECK_WINDOWS, seed: int = 0) -> tupl
 
 
 def checkpoint_source(path: str | Path) -> dict[str, Any]:
-    """Where a policy checkpoint came from, for the contract: its file, weights hash and provenance.
+    """Where a policy checkpoint came from, for the contract: its file, weights hash, provenance and last evaluation.
 
     Args:
         path: the policy checkpoint (``policy.pt``); its JSON config lies next to it (already checked by loading it).
 
     Returns:
-        ``{"checkpoint": file name, "weights_sha256": …, "training_fingerprint": …, "provenance": …}`` as its JSON
-        config states them (``training_fingerprint`` is None for a checkpoint saved without one).
+        ``{"checkpoint": file name, "weights_sha256": …, "training_fingerprint": …, "provenance": …, "evaluation": …}``
+        as its JSON config states them (``training_fingerprint`` is None for a checkpoint saved without one,
+        ``evaluation`` for one never measured: :func:`~efficienttrack.learn.checkpoints.record_evaluation`).
     """
     meta = json.loads(config_path(path).read_text())
-    facts = ("weights_sha256", "training_fingerprint", "provenance")
+    facts = ("weights_sha256", "training_fingerprint", "provenance", "evaluation")
     return {"checkpoint": Path(path).name, **{name: meta.get(name) for name in facts}}
 
 

@@ -89,6 +89,24 @@ def config_path(path: str | Path) -> Path:
     return path.with_suffix(".json")
 
 
+def record_evaluation(path: str | Path, evaluation: dict[str, Any]) -> None:
+    """Keep what the checkpoint at ``path`` was last measured with in its own JSON config (``"evaluation"``).
+
+    The verdict then travels with the checkpoint: a copy holds it (a checkpoint is its ``.pt`` with its ``.json``), and
+    an export carries it into its contract, so ``deploy --arm`` finds it without the run folder that measured it.
+
+    Args:
+        path: the checkpoint (``policy.pt``); its JSON config must lie next to it.
+        evaluation: JSON-serializable facts (``mae_deg``, ``pd_mae_deg``, ``worse_than_pd``, the references, the system).
+    """
+    cfg_file = config_path(path)
+    try:
+        meta = json.loads(cfg_file.read_text())
+    except (OSError, ValueError) as exc:
+        raise EfficientTrackError(f"{cfg_file}: cannot record the evaluation in the checkpoint's config ({exc})") from exc
+    write_json(cfg_file, {**meta, "evaluation": evaluation})
+
+
 def save_checkpoint(module: nn.Module, kind: str, config: Any, path: str | Path, fingerprint: str | None = None) -> Path:
     """Write ``module``'s state_dict (``torch.save``) and its config as JSON next to it, both atomically.
 

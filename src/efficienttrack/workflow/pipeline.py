@@ -53,6 +53,7 @@ import json
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -69,6 +70,7 @@ from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.data.references import Reference, references_sha256, save_references
 from efficienttrack.deploy.runtime import check_references
 from efficienttrack.learn import dynamics, policy
+from efficienttrack.learn.checkpoints import record_evaluation
 from efficienttrack.learn.nets import resolve_device
 from efficienttrack.learn.training import read_scalars
 from efficienttrack.systems.protocol import BatchedSystem
@@ -221,6 +223,19 @@ def _metrics(
         "time_budget": None,
         "provenance": provenance(device, wall_seconds),
     }
+
+
+def _record_evaluation(policy_path: str | Path, metrics: dict[str, Any]) -> None:
+    """Keep the policy's measured verdict in its own config, so that copies and exports carry it (deploy's gate)."""
+    evaluation = {
+        "mae_deg": metrics["efficienttrack"]["mae_deg"],
+        "pd_mae_deg": metrics["pd"]["mae_deg"],
+        "worse_than_pd": metrics["worse_than_pd"],
+        "references": metrics["references"],
+        "system": metrics["system"],
+        "when": datetime.now(UTC).isoformat(timespec="seconds"),
+    }
+    record_evaluation(policy_path, evaluation)
 
 
 def _publish(
@@ -412,6 +427,7 @@ def _run_stages(
     }
     plots.plot_training_curves(curves, out / "plots" / "training_curves.png")
     _publish(out, log, metrics, test_refs, pd_records, state.test_records, max_plots, "test")
+    _record_evaluation(state.folder / "policy.pt", metrics)
     if cfg.rounds > 1:
         rows = rounds_rows(metrics["pd"], summaries)
         write_rounds(rows, out)
@@ -515,6 +531,8 @@ def evaluate(
         wall_seconds=time.perf_counter() - start,
     )
     _publish(out, log, metrics, refs, pd_records, et_records, max_plots, "evaluation")
+    if policy_path is not None:
+        _record_evaluation(policy_path, metrics)
     return metrics
 
 
