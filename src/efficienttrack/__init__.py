@@ -11,6 +11,7 @@ Importing the package registers the Gymnasium environments ``EfficientTrack/Clos
 gymnasium-free runtime install) the package imports all the same.
 """
 
+import inspect
 from importlib import import_module
 from typing import Any
 
@@ -50,6 +51,10 @@ def __getattr__(name: str) -> Any:
         raise AttributeError(f"module 'efficienttrack' has no attribute '{name}'")
     module, attribute = API[name]
     value = getattr(import_module(module), attribute)
+    if inspect.isfunction(value):  # a wrong argument is one EfficientTrackError naming it (core/api_check.py)
+        from efficienttrack.core.api_check import checked
+
+        value = checked(name, value)
     globals()[name] = value
     return value
 
