@@ -148,10 +148,11 @@ def identify_lead(records: Sequence[EpisodeRecord], max_lead: int = MAX_LEAD) ->
     Returns:
         (4,) δ per joint (boom, arm, bucket, swing), steps ≥ 0.
     """
+    velocities = [_velocities(record) for record in records]
     cosine = np.zeros((max_lead + 1, N_JOINTS))
     for delta in range(max_lead + 1):
         d = delta + 1
-        pairs = [(v[: len(v) - d], m[d:]) for v, m in map(_velocities, records) if len(v) > d]
+        pairs = [(v[: len(v) - d], m[d:]) for v, m in velocities if len(v) > d]
         if not pairs:
             break
         desired, measured = (np.concatenate(side) for side in zip(*pairs, strict=True))
