@@ -118,10 +118,11 @@ def isolated_spikes(records: Sequence[EpisodeRecord]) -> tuple[np.ndarray, list[
         hit = np.zeros(len(record), dtype=bool)
         for name, height in SPIKE_HEIGHT.items():
             x = getattr(record, name)
-            before, after = x[1:-1] - x[:-2], x[2:] - x[1:-1]
-            if name != "qd":
-                before[:, SWING], after[:, SWING] = wrap(before[:, SWING]), wrap(after[:, SWING])
-            span = np.abs(x[2:] - x[:-2])
+            before, after, span = x[1:-1] - x[:-2], x[2:] - x[1:-1], x[2:] - x[:-2]
+            if name != "qd":  # angles: the swing's differences wrapped
+                for diff in (before, after, span):
+                    diff[:, SWING] = wrap(diff[:, SWING])
+            span = np.abs(span)
             out = (np.sign(before) * np.sign(after) < 0) & (np.minimum(np.abs(before), np.abs(after)) - span > height)
             for t, j in np.argwhere(out):
                 found.append(f"{record.meta.get('name', '?')} at {record.t[t + 1]:.2f} s: {name} "
