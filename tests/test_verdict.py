@@ -64,3 +64,18 @@ def test_the_verdict_travels_with_the_policy_into_copies_and_exports(deploy_inpu
         refused = invoke("deploy", "--refs", refs, "--policy", deployed, "--fast", "--arm", "--out", tmp_path / "armed")
         assert "its recorded evaluation tracked worse than PD" in str(refused.exception), refused.output
     assert not (tmp_path / "armed").exists()
+
+
+def test_a_policy_config_that_cannot_be_written_is_a_warning_after_the_evaluation(deploy_inputs, tmp_path, monkeypatch):  # noqa: F811
+    from efficienttrack.core.errors import EfficientTrackError
+    from efficienttrack.workflow import pipeline
+
+    def refuse(path, evaluation):
+        raise EfficientTrackError(f"{path}: read-only")
+
+    monkeypatch.setattr(pipeline, "record_evaluation", refuse)
+    refs, policy = deploy_inputs
+    result = invoke("evaluate", "--refs", refs, "--policy", policy, "--out", tmp_path / "eval", "--plots", "0")
+    assert result.exit_code == 0, result.output
+    assert "warning: the verdict is not kept with the policy" in result.output
+    assert json.loads((tmp_path / "eval" / "metrics.json").read_text())["worse_than_pd"] is not None

@@ -102,9 +102,9 @@ def record_evaluation(path: str | Path, evaluation: dict[str, Any]) -> None:
     cfg_file = config_path(path)
     try:
         meta = json.loads(cfg_file.read_text())
+        write_json(cfg_file, {**meta, "evaluation": evaluation})
     except (OSError, ValueError) as exc:
         raise EfficientTrackError(f"{cfg_file}: cannot record the evaluation in the checkpoint's config ({exc})") from exc
-    write_json(cfg_file, {**meta, "evaluation": evaluation})
 
 
 def save_checkpoint(module: nn.Module, kind: str, config: Any, path: str | Path, fingerprint: str | None = None) -> Path:

@@ -225,8 +225,11 @@ def _metrics(
     }
 
 
-def _record_evaluation(policy_path: str | Path, metrics: dict[str, Any]) -> None:
-    """Keep the policy's measured verdict in its own config, so that copies and exports carry it (deploy's gate)."""
+def _record_evaluation(policy_path: str | Path, metrics: dict[str, Any], log: RunLog) -> None:
+    """Keep the policy's measured verdict in its own config, so that copies and exports carry it (deploy's gate).
+
+    A config that cannot be written (a read-only copy) gets a warning: the evaluation itself is done and kept.
+    """
     evaluation = {
         "mae_deg": metrics["efficienttrack"]["mae_deg"],
         "pd_mae_deg": metrics["pd"]["mae_deg"],
@@ -235,7 +238,10 @@ def _record_evaluation(policy_path: str | Path, metrics: dict[str, Any]) -> None
         "system": metrics["system"],
         "when": datetime.now(UTC).isoformat(timespec="seconds"),
     }
-    record_evaluation(policy_path, evaluation)
+    try:
+        record_evaluation(policy_path, evaluation)
+    except EfficientTrackError as exc:
+        log.print(f"[bold red]warning: the verdict is not kept with the policy ({exc}); deploy reads metrics.json[/]")
 
 
 def _publish(
@@ -427,7 +433,7 @@ def _run_stages(
     }
     plots.plot_training_curves(curves, out / "plots" / "training_curves.png")
     _publish(out, log, metrics, test_refs, pd_records, state.test_records, max_plots, "test")
-    _record_evaluation(state.folder / "policy.pt", metrics)
+    _record_evaluation(state.folder / "policy.pt", metrics, log)
     if cfg.rounds > 1:
         rows = rounds_rows(metrics["pd"], summaries)
         write_rounds(rows, out)
@@ -532,7 +538,7 @@ def evaluate(
     )
     _publish(out, log, metrics, refs, pd_records, et_records, max_plots, "evaluation")
     if policy_path is not None:
-        _record_evaluation(policy_path, metrics)
+        _record_evaluation(policy_path, metrics, log)
     return metrics
 
 
