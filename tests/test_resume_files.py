@@ -6,7 +6,7 @@ import torch
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.provenance import claim_folder
 from efficienttrack.learn import checkpoints, training
-from efficienttrack.workflow.stages import Stages
+from efficienttrack.workflow.ledger import Ledger
 
 IDENTITY = {"config": {"passes": 2}, "references": ["a", "b"]}
 
@@ -36,12 +36,12 @@ def test_a_truncated_identity_file_says_how_to_recover(tmp_path, name):
     ],
 )
 def test_a_damaged_stage_marker_names_the_file_and_how_to_recover(tmp_path, text, problem):
-    stages = Stages(tmp_path)
-    stages.finish("model", {"seconds": 3.0, "log": "logs/model"})
-    assert stages.done("model", ("seconds", "log")) == {"seconds": 3.0, "log": "logs/model"}
+    ledger = Ledger(tmp_path, 0.0)
+    ledger.once("model", lambda: {"seconds": 3.0, "log": "logs/model"})
+    assert ledger.done("model", keys=("seconds", "log")) == {"seconds": 3.0, "log": "logs/model"}
     (tmp_path / "stages" / "model.json").write_text(text)
     with pytest.raises(EfficientTrackError, match=rf"model.json: the marker of finished stage 'model' is {problem}") as caught:
-        Stages(tmp_path).done("model", ("seconds", "log"))
+        Ledger(tmp_path, 0.0).done("model", keys=("seconds", "log"))
     assert "delete that file to redo the stage on the next run, or start afresh with --force" in str(caught.value)
 
 

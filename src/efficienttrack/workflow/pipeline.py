@@ -10,8 +10,7 @@ Output folder layout (everything written atomically)::
     OUT/logs/{model,policy}/        scalars.csv and TensorBoard events of each training (docs/logged-metrics.md)
     OUT/records/{pd,efficienttrack}/<reference>.npz
     OUT/stages/<stage>.json         written last by each finished stage (its facts: seconds, log folder)
-    OUT/stages/time_budget*.json    with ``time_budget``: the step times measured, the factor on each round's steps,
-                                    and the wall time every invocation of the run spent (``time_budget_spent.json``)
+    OUT/stages/time_spent.json      the run's wall time over all its invocations (:mod:`efficienttrack.workflow.ledger`)
     OUT/metrics.json                PD and EfficientTrack metrics, training interactions, provenance
     OUT/plots/*.png                 tracking per test reference, tracking error over time, training curves
     OUT/run.log                     what the console showed, plain text, a header line per invocation
@@ -26,11 +25,8 @@ unseen references, under the position controller alone. Each evaluation uses at 
 ``training.HELD_OUT_STEPS`` recorded steps; with the demo's settings they add 0.7 % to the model's and 2.7 % to
 the policy's training time (docs/logged-metrics.md).
 
-With ``time_budget`` (minutes), the trainings' steps are scaled to fit the run into it, planned after the PD evaluation
-and again before round 1's policy training and before each later round (:mod:`efficienttrack.workflow.time_budget`);
-``metrics.json`` gets ``"time_budget"``: the minutes, the factors, the step times measured and the seconds spent (null
-without a budget). A killed and rerun budgeted run counts the time its earlier invocations spent, and plans from what is
-actually left (the module's docstring says how).
+With ``time_budget`` (minutes), each training's steps are scaled to fit the rest of the run into it, planned just
+before it (:mod:`efficienttrack.workflow.time_budget`); ``metrics.json`` gets ``"time_budget"`` (null without a budget).
 
 A rerun with the same run.json skips every finished stage; an interrupted stage resumes
 (collection at its first unwritten pass, training from its checkpoint). A rerun with other
@@ -47,11 +43,10 @@ yet recorded (each is written as soon as it has run, :func:`efficienttrack.workf
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from functools import partial
@@ -78,17 +73,10 @@ from efficienttrack.systems.spec import SystemSpec
 from efficienttrack.workflow import plots
 from efficienttrack.workflow.collect import collect
 from efficienttrack.workflow.config import DEMO, RunConfig
-from efficienttrack.workflow.rounds import (
-    INTERACTIONS_STAGE,
-    RoundState,
-    round_summary,
-    rounds_rows,
-    rounds_table,
-    run_round,
-    write_rounds,
-)
-from efficienttrack.workflow.stages import RunLog, Stages, evaluate_stage, track_and_save, train_stage
-from efficienttrack.workflow.time_budget import TimeBudget
+from efficienttrack.workflow.ledger import Ledger
+from efficienttrack.workflow.rounds import RoundState, Run, rounds_rows, rounds_table, run_round, write_rounds
+from efficienttrack.workflow.stages import COLLECT, INTERACTIONS, RunLog, evaluate_stage, track_and_save
+from efficienttrack.workflow.time_budget import Planner, measure_step_times
 
 DEMO_REFERENCES = 40
 """Loading cycles the demo generates (train + test)."""
@@ -331,117 +319,69 @@ def run_pipeline(
     write_json(out / "config.json", {**cfg.to_dict(), "provenance": provenance(device)})
     log = RunLog(out, console)
     log.header(command)
-    stages = Stages(out)
-    budget = None if cfg.time_budget is None else TimeBudget(cfg, stages, log, start)  # counts earlier invocations too
-    with contextlib.nullcontext() if budget is None else budget.counting():
-        return _run_stages(system, train_refs, test_refs, out, cfg, env, device, log, stages, budget, max_plots, start)
+    ledger = Ledger(out, start)  # counts earlier invocations' time too
+    with ledger.counting():
+        collecting = partial(_collect, env, train_refs, cfg, out)
+        records, facts = ledger.run(COLLECT, collecting, lambda: collecting()[0], keys=("interaction_steps",))
+        log.print(f"collected {len(records)} episodes, {facts['interaction_steps']} interaction steps")
+        # the PD controller alone on the test references: the baseline, and the held-out episodes of both trainings
+        pd_records = evaluate_stage(ledger, 1, "pd", env, None, test_refs, device)
+        planner = Planner(cfg, ledger, log, partial(measure_step_times, cfg, records, pd_records, device))
+        run = Run(cfg, env, train_refs, test_refs, pd_records, ledger, planner, log, device)
+        state = RoundState(None, None, records, facts["interaction_steps"], [], {}, {})
+        summaries = []
+        for k in range(1, cfg.rounds + 1):
+            state = run_round(k, state, run)
+            summaries.append(state.summary)
+        metrics = _report(run, state, summaries, system, max_plots, start)
+    return RunResult(out=out, metrics=metrics, skipped=tuple(ledger.skipped))
 
 
-def _run_stages(
-    system: SystemSpec,
-    train_refs: Sequence[Reference],
-    test_refs: Sequence[Reference],
-    out: Path,
-    cfg: RunConfig,
-    env: BatchedSystem,
-    device: torch.device,
-    log: RunLog,
-    stages: Stages,
-    budget: TimeBudget | None,
-    max_plots: int | None,
-    start: float,
-) -> RunResult:
-    """:func:`run_pipeline`'s stages, once its folder is claimed (``budget``: the time budget, or None)."""
+def _collect(
+    env: BatchedSystem, refs: Sequence[Reference], cfg: RunConfig, out: Path
+) -> tuple[list[EpisodeRecord], dict[str, Any]]:
+    """Algorithm 1 (resumes pass by pass): the records and the collection's facts."""
+    collected = collect(env, refs, cfg.collect, out / "records" / "train")
+    return collected.records, {"interaction_steps": collected.interaction_steps}
 
-    def begin(name: str) -> None:
-        if budget is not None:
-            budget.begin(name)
 
-    def took(name: str, seconds: float) -> float:  # what work a kill split took, all of it (TimeBudget.took)
-        return seconds if budget is None else budget.took(name, seconds)
-
-    # Algorithm 1: collection (resumes pass by pass)
-    collecting = time.perf_counter()
-    begin("collect")
-    collected = collect(env, train_refs, cfg.collect, out / "records" / "train")
-    pass_seconds = took("collect", time.perf_counter() - collecting) / cfg.collect.passes
-    steps = collected.interaction_steps
-    facts = stages.done("collect", ("interaction_steps",)) or stages.finish("collect", {"interaction_steps": steps})
-    log.print(f"collected {len(collected.records)} episodes, {facts['interaction_steps']} interaction steps")
-
-    # the PD controller alone on the test references: the baseline, and the held-out episodes of both trainings
-    evaluating = time.perf_counter()
-    begin("evaluate_pd")
-    pd_records = evaluate_stage(stages, "pd", out, env, None, test_refs, device)
-    evaluation_seconds = took("evaluate_pd", time.perf_counter() - evaluating)
-    train_cfg = cfg
-    if budget is not None:  # fewer training steps, to fit the run into its minutes
-        train_cfg = budget.first_round(collected.records, pd_records, device, pass_seconds, evaluation_seconds)
-
-    # closed-loop dynamics model g_θ, then the adjustment policy π_φ trained through it
-    common: dict[str, Any] = {"device": device, "seed": cfg.seed, "held_out": pd_records}
-    trainer: Callable[..., Any] = partial(dynamics.train_model, train_cfg.model, collected.records, **common)
-    begin("round_1_model")
-    g_theta, model_facts = train_stage(stages, "model", out, log, trainer, dynamics.save_model, dynamics.load_model, device)
-    model_seconds = took("round_1_model", model_facts["seconds"])
-    if budget is not None:  # the policy's steps planned again, from how long the model's training really took
-        train_cfg = budget.first_policy(model_seconds)
-    trainer = partial(policy.train_policy, train_cfg.policy, g_theta, collected.records, **common)
-    begin("round_1_policy")
-    pi_phi, policy_facts = train_stage(stages, "policy", out, log, trainer, policy.save_policy, policy.load_policy, device)
-    trained = [round(model_seconds + took("round_1_policy", policy_facts["seconds"]), 2)]  # each round's, for the plans
-
-    # Algorithm 2 on the held-out references
-    et_records = evaluate_stage(stages, "efficienttrack", out, env, pi_phi, test_refs, device)
-    seconds = model_facts["seconds"] + policy_facts["seconds"]
-    summary = round_summary(1, facts["interaction_steps"], et_records, g_theta, collected.records, seconds)
-    state = RoundState(
-        g_theta, pi_phi, collected.records, facts["interaction_steps"], et_records, summary, out,
-        {"model": model_facts, "policy": policy_facts},
-    )  # fmt: skip
-    summaries = [summary]
-
-    # continual learning: deploy, record, retrain from the previous weights, evaluate
-    for k in range(2, cfg.rounds + 1):
-        round_cfg = cfg if budget is None else budget.later_round(k, sum(trained))
-        state = run_round(k, state, round_cfg, env, train_refs, test_refs, pd_records, out, log, device, budget=budget)
-        summaries.append(state.summary)
-        trained.append(round(sum(took(f"round_{k}_{name}", state.facts[name]["seconds"]) for name in ("model", "policy")), 2))
-
-    # report (the last round's policy)
+def _report(
+    run: Run, state: RoundState, summaries: list[dict[str, Any]], system: SystemSpec, max_plots: int | None, start: float
+) -> dict[str, Any]:
+    """The last round's results: ``metrics.json``, plots, the tables, and the verdict kept with the policy."""
+    cfg, out = run.cfg, run.ledger.out
+    folder = run.ledger.folder(cfg.rounds)
     metrics = _metrics(
         system,
-        test_refs,
-        pd_records,
+        run.test_refs,
+        list(run.held_out),
         state.test_records,
         interaction_steps=state.interaction_steps,
         train_seconds=round(sum(entry["train_seconds"] for entry in summaries), 2),
         model=state.summary["model"],
-        policy_path=str(state.folder / "policy.pt"),
+        policy_path=str(folder / "policy.pt"),
         config=cfg.to_dict(),
-        device=device,
+        device=run.device,
         wall_seconds=time.perf_counter() - start,
     )
     metrics["rounds"] = summaries
-    metrics["time_budget"] = None if budget is None else budget.summary()
+    metrics["time_budget"] = run.planner.summary()
     curves = {
-        name: plots.TrainingCurves(read_scalars(state.folder / state.facts[name]["log"]), *labels)
+        name: plots.TrainingCurves(read_scalars(folder / state.facts[name]["log"]), *labels)
         for name, labels in (
             ("model", (dynamics.LOSS_LABEL, dynamics.HELD_OUT_TAG, dynamics.HELD_OUT_LABEL)),
             ("policy", (policy.LOSS_LABEL, policy.HELD_OUT_TAG, policy.HELD_OUT_LABEL)),
         )
     }
     plots.plot_training_curves(curves, out / "plots" / "training_curves.png")
-    _publish(out, log, metrics, test_refs, pd_records, state.test_records, max_plots, "test")
-    _record_evaluation(state.folder / "policy.pt", metrics, log)
+    _publish(out, run.log, metrics, run.test_refs, list(run.held_out), state.test_records, max_plots, "test")
+    _record_evaluation(folder / "policy.pt", metrics, run.log)
     if cfg.rounds > 1:
         rows = rounds_rows(metrics["pd"], summaries)
         write_rounds(rows, out)
         plots.plot_rounds(rows, out / "plots" / "rounds.png")
-        log.print(rounds_table(rows, title=f"rounds ({out})"))
-    if budget is not None:
-        budget.finish()  # a rerun that adds rounds counts its own minutes
-    return RunResult(out=out, metrics=metrics, skipped=tuple(stages.skipped))
+        run.log.print(rounds_table(rows, title=f"rounds ({out})"))
+    return metrics
 
 
 def _training_interactions(policy_path: Path) -> int | None:
@@ -449,7 +389,7 @@ def _training_interactions(policy_path: Path) -> int | None:
 
     A run folder notes them in ``stages/collect.json``, a later round's folder in ``stages/interactions.json``.
     """
-    for stage in ("collect", INTERACTIONS_STAGE):
+    for stage in (COLLECT, INTERACTIONS):
         try:
             steps = json.loads((policy_path.parent / "stages" / f"{stage}.json").read_text()).get("interaction_steps")
         except (OSError, ValueError, AttributeError):

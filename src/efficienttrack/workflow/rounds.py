@@ -1,13 +1,11 @@
-"""Continual-learning rounds: deploy the policy, record, retrain from the previous weights, evaluate; and their table.
+"""The rounds of a run: collect or deploy, train g_θ and π_φ, evaluate; and their table.
 
-Round 1 is Algorithm 1 (:func:`efficienttrack.workflow.pipeline.run_pipeline`). Round k ≥ 2 deploys π_{k−1} on the
-training references (one pass, no noise, as the paper's real-machine rounds), then trains g_θ and π_φ starting
-from θ_{k−1} and φ_{k−1} (warm starts, with their feature scaling) on every episode recorded so far
-(``round_data = "all"``) or on the new pass only (``"new"``, the paper's choice), and evaluates the new policy on
-the test references. A later round trains ``warm_budget`` × round 1's optimizer steps, with the same sizes and the
-same way of training as the ``round`` command (:func:`~efficienttrack.workflow.next_round.continued_config`). Each round
-k ≥ 2 lives in ``OUT/rounds/<k>/`` with the layout of a run folder (its own
-``stages/``, so an interrupted round resumes where it stopped)::
+Round 1 trains on the collection (Algorithm 1). Round k ≥ 2 deploys π_{k−1} on the training references (one pass, no
+noise, as the paper's real-machine rounds), then trains g_θ and π_φ starting from θ_{k−1} and φ_{k−1} (warm starts,
+with their feature scaling) on every episode recorded so far (``round_data = "all"``) or on the new pass only
+(``"new"``, the paper's choice), ``warm_budget`` × round 1's optimizer steps, as the ``round`` command does
+(:func:`~efficienttrack.workflow.next_round.continued_config`). Round k ≥ 2 lives in ``OUT/rounds/<k>/``, laid out as a
+run folder, with its own ``stages/``::
 
     OUT/rounds/<k>/records/deploy/          π_{k−1} on the training references: the round's new data
     OUT/rounds/<k>/model.pt, policy.pt      θ_k, φ_k (configs beside them); checkpoints/, logs/ while training
@@ -19,7 +17,7 @@ The rounds table has the columns of the paper's Table IV: interactions used for 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from functools import partial
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -36,14 +34,11 @@ from efficienttrack.learn.dynamics import ClosedLoopModel
 from efficienttrack.learn.policy import AdjustmentPolicy
 from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.workflow.config import RunConfig
-from efficienttrack.workflow.next_round import continued_config
-from efficienttrack.workflow.stages import RunLog, Stages, evaluate_stage, train_stage
-from efficienttrack.workflow.time_budget import TimeBudget
+from efficienttrack.workflow.ledger import Ledger
+from efficienttrack.workflow.next_round import ConfigT, continued_config
+from efficienttrack.workflow.stages import INTERACTIONS, RunLog, evaluate_stage, train_stage
+from efficienttrack.workflow.time_budget import Planner
 
-ROUNDS = "rounds"
-"""Folder of the rounds after the first in a run folder: ``rounds/<k>/``."""
-INTERACTIONS_STAGE = "interactions"
-"""Stage of a later round noting the training interactions up to it (``stages/interactions.json``), for ``evaluate``."""
 TABLE_COLUMNS = (
     ("I.S.", "interaction_steps", "{:d}"),
     ("I.T. (h)", "interaction_hours", "{:.2f}"),
@@ -60,8 +55,34 @@ TABLE_COLUMNS = (
 """The rounds table's columns: heading, key of a row, format (the paper's Table IV, plus the model's errors)."""
 
 
+class Run(NamedTuple):
+    """What every round of a run shares.
+
+    Attributes:
+        cfg: the run's settings.
+        system: the closed-loop system.
+        train_refs: the training references (round k ≥ 2 deploys on them once, without noise).
+        test_refs: the held-out references.
+        held_out: episodes for the held-out figures of the training logs (PD on the test references).
+        ledger: the run's finished stages and time.
+        planner: the factor on each training's steps (1 without a time budget).
+        log: the run's console log.
+        device: where the networks run.
+    """
+
+    cfg: RunConfig
+    system: BatchedSystem
+    train_refs: Sequence[Reference]
+    test_refs: Sequence[Reference]
+    held_out: Sequence[EpisodeRecord]
+    ledger: Ledger
+    planner: Planner
+    log: RunLog
+    device: torch.device
+
+
 class RoundState(NamedTuple):
-    """Where a round leaves off: what the next one starts from.
+    """Where a round leaves off: what the next one starts from (before round 1: the collection, no networks).
 
     Attributes:
         g_theta: the round's closed-loop dynamics model.
@@ -70,17 +91,15 @@ class RoundState(NamedTuple):
         interaction_steps: steps the machine was driven for training up to this round (I.S.).
         test_records: the round's policy on the test references.
         summary: the round's entry of ``metrics.json``'s ``rounds`` (:func:`round_summary`).
-        folder: the round's folder (``OUT`` for round 1).
         facts: the training stages' facts of the round, ``{"model": {...}, "policy": {...}}`` (seconds, log folder).
     """
 
-    g_theta: ClosedLoopModel
-    pi_phi: AdjustmentPolicy
+    g_theta: ClosedLoopModel | None
+    pi_phi: AdjustmentPolicy | None
     records: list[EpisodeRecord]
     interaction_steps: int
     test_records: list[EpisodeRecord]
     summary: dict[str, Any]
-    folder: Path
     facts: dict[str, dict[str, Any]]
 
 
@@ -119,67 +138,48 @@ def round_summary(
     }
 
 
-def run_round(
-    k: int,
-    previous: RoundState,
-    cfg: RunConfig,
-    system: BatchedSystem,
-    train_refs: Sequence[Reference],
-    test_refs: Sequence[Reference],
-    held_out: Sequence[EpisodeRecord],
-    out: Path,
-    log: RunLog,
-    device: torch.device,
-    budget: TimeBudget | None = None,
-) -> RoundState:
-    """Round k ≥ 2: deploy π_{k−1} on the training references, retrain from θ_{k−1}, φ_{k−1}, evaluate (resumable).
+def run_round(k: int, previous: RoundState, run: Run) -> RoundState:
+    """Round k (resumable stage by stage): deploy π_{k−1} (k ≥ 2), train g_θ, then π_φ through it, evaluate π_φ.
 
     Args:
-        k: the round, ≥ 2.
-        previous: where round k − 1 left off.
-        cfg: the run's settings (``round_data`` decides what the round trains on).
-        system: the closed-loop system.
-        train_refs: the training references, deployed on once without noise.
-        test_refs: the held-out references.
-        held_out: episodes for the held-out figures of the training logs (the PD runs of the test references).
-        out: the run folder; the round writes ``out/rounds/<k>/``.
-        log: the run's console log.
-        device: where the networks run.
-        budget: the run's time budget, which notes when each training begins and what it took, all of it when a kill
-            split it (:meth:`~efficienttrack.workflow.time_budget.TimeBudget.took`: ``round_<k>_model``,
-            ``round_<k>_policy``); None without one.
+        k: the round, from 1.
+        previous: where round k − 1 left off (before round 1: the collected records, no networks).
+        run: what the rounds share.
 
     Returns:
         Where round k leaves off.
     """
-    folder = out / ROUNDS / str(k)
-    stages = Stages(folder)
-    log.print(f"round {k}: deploying the round-{k - 1} policy on the {len(train_refs)} training references")
-    deployed = evaluate_stage(stages, "deploy", folder, system, previous.pi_phi, train_refs, device)
+    cfg, ledger, device = run.cfg, run.ledger, run.device
+    deployed: list[EpisodeRecord] = []
+    if k > 1:
+        run.log.print(f"round {k}: deploying the round-{k - 1} policy on the {len(run.train_refs)} training references")
+        deployed = evaluate_stage(ledger, k, "deploy", run.system, previous.pi_phi, run.train_refs, device)
     records = [*previous.records, *deployed]
-    train_records = records if cfg.round_data == "all" else deployed
-    common: dict[str, Any] = {"device": device, "seed": cfg.seed, "held_out": held_out}
-    model_cfg = continued_config(cfg.model.scaled(cfg.warm_budget), previous.g_theta.cfg)
-    policy_cfg = continued_config(cfg.policy.scaled(cfg.warm_budget), previous.pi_phi.cfg)
-    trainer: Callable[..., Any] = partial(dynamics.train_model, model_cfg, train_records, init=previous.g_theta, **common)
-    if budget is not None:
-        budget.begin(f"round_{k}_model")
-    g_theta, model_facts = train_stage(stages, "model", folder, log, trainer, dynamics.save_model, dynamics.load_model, device)
-    if budget is not None:
-        budget.took(f"round_{k}_model", model_facts["seconds"])
-        budget.begin(f"round_{k}_policy")
-    trainer = partial(policy.train_policy, policy_cfg, g_theta, train_records, init=previous.pi_phi, **common)
-    pi_phi, policy_facts = train_stage(stages, "policy", folder, log, trainer, policy.save_policy, policy.load_policy, device)
-    if budget is not None:
-        budget.took(f"round_{k}_policy", policy_facts["seconds"])
-    test_records = evaluate_stage(stages, "efficienttrack", folder, system, pi_phi, test_refs, device)
+    train_records = deployed if k > 1 and cfg.round_data == "new" else records
+    common: dict[str, Any] = {"device": device, "seed": cfg.seed, "held_out": run.held_out}
+
+    def share(part: str) -> float:  # of round 1's steps, planned when the training is about to begin
+        return run.planner.scale(k, part) * (1.0 if k == 1 else cfg.warm_budget)
+
+    g_cfg = _warm(cfg.model.scaled(share("model")), None if previous.g_theta is None else previous.g_theta.cfg)
+    trainer: partial[Any] = partial(dynamics.train_model, g_cfg, train_records, init=previous.g_theta, **common)
+    g_theta, model_facts = train_stage(ledger, k, "model", run.log, trainer, dynamics.save_model, dynamics.load_model, device)
+    pi_cfg = _warm(cfg.policy.scaled(share("policy")), None if previous.pi_phi is None else previous.pi_phi.cfg)
+    trainer = partial(policy.train_policy, pi_cfg, g_theta, train_records, init=previous.pi_phi, **common)
+    pi_phi, policy_facts = train_stage(ledger, k, "policy", run.log, trainer, policy.save_policy, policy.load_policy, device)
+    test_records = evaluate_stage(ledger, k, "efficienttrack", run.system, pi_phi, run.test_refs, device)
     steps = previous.interaction_steps + sum(len(r) for r in deployed)
-    stages.done(INTERACTIONS_STAGE, ("interaction_steps",)) or stages.finish(INTERACTIONS_STAGE, {"interaction_steps": steps})
     seconds = model_facts["seconds"] + policy_facts["seconds"]
     summary = round_summary(k, steps, test_records, g_theta, train_records, seconds)
-    log.print(f"round {k}: test MAE {summary['efficienttrack']['mae_deg']:.3f}° after {steps} interaction steps")
-    facts = {"model": model_facts, "policy": policy_facts}
-    return RoundState(g_theta, pi_phi, records, steps, test_records, summary, folder, facts)
+    if k > 1:
+        ledger.once(INTERACTIONS, lambda: {"interaction_steps": steps}, k, ("interaction_steps",))
+        run.log.print(f"round {k}: test MAE {summary['efficienttrack']['mae_deg']:.3f}° after {steps} interaction steps")
+    return RoundState(g_theta, pi_phi, records, steps, test_records, summary, {"model": model_facts, "policy": policy_facts})
+
+
+def _warm(config: ConfigT, previous: ConfigT | None) -> ConfigT:
+    """``config``'s schedule with the sizes of the network it continues (:func:`continued_config`); round 1's as it is."""
+    return config if previous is None else continued_config(config, previous)
 
 
 def rounds_rows(pd: dict[str, Any], rounds: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:

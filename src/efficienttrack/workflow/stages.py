@@ -1,15 +1,15 @@
-"""The resumable stages of a run: finished-stage markers, the console log, a training stage and an evaluation stage.
+"""The stages of a run: their names, the console log, an evaluation stage and a training stage.
 
-A run folder (``run``, and each later round of it) is built stage by stage; a stage writes its marker
-``<folder>/stages/<name>.json`` last, so a rerun skips what finished and resumes what did not.
+Each stage runs through the run's :class:`~efficienttrack.workflow.ledger.Ledger`, which skips it when it finished and
+notes what it took.
 """
 
 from __future__ import annotations
 
 import io
-import json
 import os
 from collections.abc import Callable, Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -17,70 +17,41 @@ import torch
 from rich.console import Console
 
 from efficienttrack.core.errors import EfficientTrackError
-from efficienttrack.core.fileio import atomic_write, write_json
+from efficienttrack.core.fileio import atomic_write
 from efficienttrack.core.provenance import provenance
 from efficienttrack.data.records import EpisodeRecord, find_record_files, load_named_records, load_record, save_records
 from efficienttrack.data.references import Reference
 from efficienttrack.deploy.runtime import track
 from efficienttrack.systems.protocol import BatchedSystem
+from efficienttrack.workflow.ledger import Ledger
+
+COLLECT = "collect"
+"""Round 1's collection (facts: ``interaction_steps``)."""
+PARTS = ("model", "policy")
+"""A round's training stages, in order: g_θ, then π_φ through it."""
+INTERACTIONS = "interactions"
+"""Round k ≥ 2's tally of the training interactions up to it (``interaction_steps``), read by ``evaluate``."""
+PROBE = "time_budget"
+"""The step times a time budget measured (:mod:`efficienttrack.workflow.time_budget`)."""
 
 LOGS = "logs"
 """Folder of the training logs in a run folder: ``logs/model``, ``logs/policy``."""
 LOG_WIDTH = 160
 """Characters per line of ``OUT/run.log`` (wide enough for the results table)."""
 
+
+def evaluation(name: str) -> str:
+    """The stage that tracks references into ``records/<name>``."""
+    return f"evaluate_{name}"
+
+
+def plan(part: str) -> str:
+    """The stage that keeps the time budget's factor on a round's training ``part`` (one of :data:`PARTS`)."""
+    return f"{PROBE}_{part}"
+
+
 NetworkT = TypeVar("NetworkT", bound=torch.nn.Module)
 """The network a training stage trains, saves and loads (g_θ or π_φ)."""
-
-
-class Stages:
-    """Finished-stage markers in ``OUT/stages``: a stage is done when its marker exists.
-
-    Args:
-        out: the run (or round) folder.
-    """
-
-    def __init__(self, out: Path) -> None:
-        self.folder = out / "stages"
-        self.skipped: list[str] = []
-
-    def done(self, name: str, keys: tuple[str, ...] = ()) -> dict[str, Any] | None:
-        """The facts of finished stage ``name`` (noted as skipped), or None when it has not finished.
-
-        Args:
-            name: the stage.
-            keys: facts the caller reads; a marker without them is refused like a truncated one.
-
-        Raises:
-            EfficientTrackError: the marker is unreadable, truncated or lacks ``keys``, naming the file and the fix.
-        """
-        path = self.folder / f"{name}.json"
-        if not path.exists():
-            return None
-        try:
-            facts = json.loads(path.read_text())
-        except (OSError, ValueError) as exc:
-            raise _broken_marker(path, name, f"unreadable ({exc})") from exc
-        if not isinstance(facts, dict):
-            raise _broken_marker(path, name, "not a mapping of facts")
-        missing = [key for key in keys if key not in facts]
-        if missing:
-            raise _broken_marker(path, name, f"missing {', '.join(missing)}")
-        self.skipped.append(name)
-        return facts
-
-    def finish(self, name: str, facts: dict[str, Any]) -> dict[str, Any]:
-        """Mark stage ``name`` finished with its ``facts`` (JSON-serializable); returns the facts."""
-        write_json(self.folder / f"{name}.json", facts)
-        return facts
-
-
-def _broken_marker(path: Path, name: str, problem: str) -> EfficientTrackError:
-    """The error for a stage marker that cannot be used: what is wrong, and how to recover."""
-    return EfficientTrackError(
-        f"{path}: the marker of finished stage '{name}' is {problem}, truncated or corrupted; delete that file to redo "
-        "the stage on the next run, or start afresh with --force"
-    )
 
 
 class RunLog:
@@ -170,59 +141,57 @@ def track_and_save(
 
 
 def evaluate_stage(
-    stages: Stages, name: str, out: Path, system: BatchedSystem, pi: torch.nn.Module | None, refs: Sequence[Reference], device
+    ledger: Ledger, k: int, name: str, system: BatchedSystem, pi: torch.nn.Module | None, refs: Sequence[Reference], device
 ) -> list[EpisodeRecord]:
-    """Track ``refs`` with ``pi`` (PD alone when None) as stage ``evaluate_<name>``, or read back its records when done.
-
-    Args:
-        stages: the folder's finished-stage markers.
-        name: the records' folder ``<out>/records/<name>`` and the stage's name.
-        out: the run (or round) folder.
-        system: the closed-loop system.
-        pi: the adjustment policy, or None for the PD controller alone.
-        refs: the references, one episode each.
-        device: where the policy runs.
+    """Round k's stage ``evaluate_<name>``: track ``refs`` with ``pi`` (PD alone when None) into ``records/<name>``.
 
     Returns:
-        One record per reference, in the order of ``refs``.
+        One record per reference, in the order of ``refs`` (read back when the stage finished earlier).
     """
-    if stages.done(f"evaluate_{name}") is not None:
-        return load_named_records(out / "records" / name, [ref.name for ref in refs])
-    records = track_and_save(name, out, system, pi, refs, device)
-    stages.finish(f"evaluate_{name}", {"episodes": len(records), "fallbacks": sum(r.meta["fallbacks"] for r in records)})
-    return records
+    folder = ledger.folder(k)
+
+    def work() -> tuple[list[EpisodeRecord], dict[str, Any]]:
+        records = track_and_save(name, folder, system, pi, refs, device)
+        return records, {"episodes": len(records), "fallbacks": sum(r.meta["fallbacks"] for r in records)}
+
+    load = partial(load_named_records, folder / "records" / name, [ref.name for ref in refs])
+    return ledger.run(evaluation(name), work, load, k)[0]
 
 
 def train_stage(
-    stages: Stages,
+    ledger: Ledger,
+    k: int,
     name: str,
-    out: Path,
     log: RunLog,
     train: Callable[..., Any],
     save: Callable[[NetworkT, Path, str], Path],
     load: Callable[[Path], NetworkT],
     device: torch.device,
 ) -> tuple[NetworkT, dict[str, Any]]:
-    """One resumable training stage: train (from ``OUT/checkpoints/<name>.ckpt``), save ``OUT/<name>.pt``, load it back.
+    """Round k's training stage ``name`` (``model`` or ``policy``): train from ``checkpoints/<name>.ckpt``, save ``<name>.pt``.
 
     Args:
-        stages: the run's finished-stage markers; a finished stage is loaded, not trained again.
-        name: ``model`` or ``policy``: the checkpoint, log folder (``OUT/logs/<name>``) and stage are named after it.
-        out: the run folder.
+        ledger: the run's ledger.
+        k: the round.
+        name: the stage, its checkpoint, network file and log folder (``logs/<name>``).
         log: where to note that the stage is done.
         train: the trainer with everything but ``checkpoint`` and ``log_dir`` bound; returns a result whose first
-            field is the network and which has ``seconds`` and ``fingerprint``.
+            field is the network and which has ``fingerprint``.
         save: writes the network to a path, with the fingerprint of what it was trained from.
         load: reads it back.
         device: where the loaded network goes.
 
     Returns:
-        The trained network (eval mode, on ``device``) and the stage's facts (``seconds``, ``log``).
+        The trained network (eval mode, on ``device``, as read back) and the stage's facts (``seconds``, ``log``).
     """
-    facts = stages.done(name, ("seconds", "log"))
-    if facts is None:
-        result = train(checkpoint=out / "checkpoints" / f"{name}.ckpt", log_dir=out / LOGS / name)
-        save(result[0], out / f"{name}.pt", result.fingerprint)
-        facts = stages.finish(name, {"seconds": result.seconds, "log": f"{LOGS}/{name}"})
-    log.print(f"{name} trained ({facts['seconds']:.0f} s{', earlier run' if name in stages.skipped else ''})")
-    return load(out / f"{name}.pt").to(device), facts
+    folder = ledger.folder(k)
+
+    def work() -> tuple[None, dict[str, Any]]:
+        result = train(checkpoint=folder / "checkpoints" / f"{name}.ckpt", log_dir=folder / LOGS / name)
+        save(result[0], folder / f"{name}.pt", result.fingerprint)
+        return None, {"log": f"{LOGS}/{name}"}
+
+    _, facts = ledger.run(name, work, lambda: None, k, ("seconds", "log"))
+    skipped = ", earlier run" if ledger.key(name, k) in ledger.skipped else ""
+    log.print(f"{name} trained ({facts['seconds']:.0f} s{skipped})")
+    return load(folder / f"{name}.pt").to(device), facts
