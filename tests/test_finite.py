@@ -14,7 +14,7 @@ from efficienttrack.data.records import EpisodeRecord, load_record
 from efficienttrack.learn import checkpoints, training
 from efficienttrack.learn.dynamics import MODEL_PRESETS, ClosedLoopModel, load_model, save_model, train_model
 from efficienttrack.systems.spec import SystemSpec
-from efficienttrack.workflow import pipeline
+from efficienttrack.workflow import evaluation
 from efficienttrack.workflow.stages import RunLog
 from test_dynamics import lag_records
 from test_records import make_record
@@ -104,9 +104,9 @@ def _records(fallbacks):
 
 
 def test_fallback_share_warns_above_the_limit():
-    assert pipeline.fallback_share(None) == (None, None)
-    assert pipeline.fallback_share(_records([0, 3])) == (0.05, None)
-    share, warning = pipeline.fallback_share(_records([30, 30]))
+    assert evaluation.fallback_share(None) == (None, None)
+    assert evaluation.fallback_share(_records([0, 3])) == (0.05, None)
+    share, warning = evaluation.fallback_share(_records([30, 30]))
     assert share == 1.0 and "on 100% of the policy's steps" in warning and "not EfficientTrack's" in warning
 
 
@@ -114,12 +114,12 @@ def test_results_mostly_fallen_back_are_not_reported_as_efficienttrack(tmp_path)
     console = Console(record=True, width=200)
     refs = [type("Ref", (), {"name": f"ep{i}"})() for i in range(2)]
     pd, et = _records([0, 0]), _records([30, 25])
-    metrics = pipeline._metrics(
+    metrics = evaluation.results(
         SystemSpec(), refs, pd, et, interaction_steps=None, train_seconds=None, model=None, policy_path="p.pt",
         config=None, device=None, wall_seconds=1.0,
     )  # fmt: skip
     assert metrics["fallback_share"] == pytest.approx(55 / 60, abs=1e-4) and "not EfficientTrack's" in metrics["warning"]
-    pipeline._publish(tmp_path, RunLog(tmp_path, console), metrics, refs, pd, et, 0, "evaluation")
+    evaluation.publish(tmp_path, RunLog(tmp_path, console), metrics, refs, pd, et, 0, "evaluation")
     shown = console.export_text()
     assert "guard fallback (not EfficientTrack)" in shown and "warning: the guard fell back" in shown
     assert "EfficientTrack " not in shown.replace("(not EfficientTrack)", "").replace("EfficientTrack's", "")

@@ -15,7 +15,8 @@ from efficienttrack.data.references import Reference, save_references
 from efficienttrack.learn import dynamics, policy
 from efficienttrack.learn.training import read_scalars
 from efficienttrack.workflow.config import PRESETS, RunConfig, from_dict, load_config
-from efficienttrack.workflow.pipeline import evaluate, run_pipeline
+from efficienttrack.workflow.evaluation import evaluate
+from efficienttrack.workflow.pipeline import run_pipeline
 from toy_system import TOY, TOY_CFG
 
 

@@ -11,7 +11,8 @@ from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.learn import dynamics, policy
 from efficienttrack.learn.training import read_scalars
 from efficienttrack.workflow.config import RunConfig, from_dict, preset
-from efficienttrack.workflow.pipeline import evaluate, run_pipeline
+from efficienttrack.workflow.evaluation import evaluate
+from efficienttrack.workflow.pipeline import run_pipeline
 from efficienttrack.workflow.rounds import rounds_rows, write_rounds
 from toy_system import TOY, TOY_CFG
 

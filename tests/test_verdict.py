@@ -5,7 +5,7 @@ import json
 import pytest
 
 from efficienttrack.deploy.deployment import recorded_verdict
-from efficienttrack.workflow.pipeline import worse_than_pd
+from efficienttrack.workflow.evaluation import worse_than_pd
 from test_loop import deploy_inputs, invoke  # noqa: F401  (the fixture)
 
 
@@ -68,12 +68,12 @@ def test_the_verdict_travels_with_the_policy_into_copies_and_exports(deploy_inpu
 
 def test_a_policy_config_that_cannot_be_written_is_a_warning_after_the_evaluation(deploy_inputs, tmp_path, monkeypatch):  # noqa: F811
     from efficienttrack.core.errors import EfficientTrackError
-    from efficienttrack.workflow import pipeline
+    from efficienttrack.workflow import evaluation as evaluation_module
 
     def refuse(path, evaluation):
         raise EfficientTrackError(f"{path}: read-only")
 
-    monkeypatch.setattr(pipeline, "record_evaluation", refuse)
+    monkeypatch.setattr(evaluation_module, "record_evaluation", refuse)
     refs, policy = deploy_inputs
     result = invoke("evaluate", "--refs", refs, "--policy", policy, "--out", tmp_path / "eval", "--plots", "0")
     assert result.exit_code == 0, result.output

@@ -99,7 +99,7 @@ def evaluate_command(
     An interrupted evaluation (or one whose system failed) resumes with the episodes not yet recorded.
     """
     from efficienttrack.data.references import load_references
-    from efficienttrack.workflow.pipeline import EVALUATE_JSON, EVALUATE_OUTPUTS, evaluate
+    from efficienttrack.workflow.evaluation import EVALUATE_JSON, EVALUATE_OUTPUTS, evaluate
 
     check_output_folder(out)
     spec, references = _system_spec(system, plant, pd, system_opt, limits), load_references(refs)

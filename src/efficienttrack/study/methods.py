@@ -9,7 +9,7 @@ held-out references at regular interaction counts, as a list of points::
 
 Each point is measured on the study's validation references by the path that measures it on the test references:
 the PD controller's and EfficientTrack's runtime (:func:`~efficienttrack.deploy.runtime.track`, through
-:func:`~efficienttrack.workflow.pipeline.evaluate` for a trained policy), a baseline's own recorder (its
+:func:`~efficienttrack.workflow.evaluation.evaluate` for a trained policy), a baseline's own recorder (its
 :class:`~efficienttrack.baselines.curve.TrainingRun` holds them; :class:`~efficienttrack.baselines.curve.CurveRecorder`
 measures each point on them right after the test references). The ILC oracle learns on the test references themselves
 and has none.
@@ -46,7 +46,8 @@ from efficienttrack.envs.core import LOOPS
 from efficienttrack.study.ablations import run_variant
 from efficienttrack.study.jobs import STUDY_PRESETS, Job, Point, Study, check_seeds, point
 from efficienttrack.workflow.collect import pass_counts
-from efficienttrack.workflow.pipeline import evaluate, run_pipeline
+from efficienttrack.workflow.evaluation import evaluate
+from efficienttrack.workflow.pipeline import run_pipeline
 
 
 @dataclass(frozen=True)
@@ -132,7 +133,7 @@ def run_efficienttrack(job: Job, folder: Path) -> list[Point]:
     ``folder/passes_<p>/`` is a run folder (:func:`~efficienttrack.workflow.pipeline.run_pipeline`, which resumes) with the
     study's ``run_config``, ``job.seed`` as the seed of training and of the collection noise, and ``p`` collection
     passes; with validation references, its policy is then scored on them in ``folder/validation/passes_<p>/``
-    (:func:`~efficienttrack.workflow.pipeline.evaluate`, which resumes too). The point is written to
+    (:func:`~efficienttrack.workflow.evaluation.evaluate`, which resumes too). The point is written to
     ``folder/passes_<p>/point.json`` when both are finished, and read from there on a rerun.
 
     Args:
