@@ -80,3 +80,51 @@ def test_the_top_level_holds_only_packages_and_no_folder_more_than_15_modules():
     for folder in [p for p in PACKAGE.rglob("*") if p.is_dir() and p.name != "__pycache__"]:
         modules = [p for p in folder.glob("*.py") if p.name != "__init__.py"]
         assert len(modules) <= 15, f"{folder.relative_to(PACKAGE)} holds {len(modules)} modules"
+
+
+def import_time_edges(module: str) -> set[str]:
+    """Modules that ``module`` imports when it is imported (its top-level statements, type-only ones included)."""
+    parts = module.split(".")
+    path = PACKAGE.parent.joinpath(*parts)
+    path = path / "__init__.py" if path.is_dir() else path.with_suffix(".py")
+    statements, names = list(ast.parse(path.read_text()).body), set()
+    while statements:
+        node = statements.pop()
+        if isinstance(node, (ast.If, ast.Try)):
+            statements += [*node.body, *getattr(node, "orelse", []), *getattr(node, "finalbody", [])]
+            statements += [s for handler in getattr(node, "handlers", []) for s in handler.body]
+        elif isinstance(node, ast.Import):
+            names |= {alias.name for alias in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("efficienttrack"):
+            sub = {f"{node.module}.{alias.name}" for alias in node.names}
+            modules = {name for name in sub if name in ALL_MODULES}
+            names |= modules or {node.module}
+            names |= {node.module} if sub - modules else set()
+    return {name for name in names if name in ALL_MODULES and name != module}
+
+
+ALL_MODULES = {*package_modules(), "efficienttrack"}
+
+
+def import_cycle() -> list[str] | None:
+    """One circle of import-time imports between the package's modules, or None."""
+    edges = {module: import_time_edges(module) for module in ALL_MODULES}
+    done: set[str] = set()
+
+    def visit(module: str, path: list[str]) -> list[str] | None:
+        if module in path:
+            return path[path.index(module) :] + [module]
+        if module in done:
+            return None
+        for name in sorted(edges[module]):
+            cycle = visit(name, [*path, module])
+            if cycle:
+                return cycle
+        done.add(module)
+        return None
+
+    return next((cycle for module in sorted(ALL_MODULES) if (cycle := visit(module, []))), None)
+
+
+def test_no_import_circle_between_modules_the_package_init_included():
+    assert import_cycle() is None, " → ".join(import_cycle() or [])

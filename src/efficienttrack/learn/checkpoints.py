@@ -15,7 +15,7 @@ import warnings
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import Any, TypeVar
 
 import torch
 from torch import nn
@@ -26,9 +26,6 @@ from efficienttrack.core.npyfile import MAX_EXPANDED_BYTES
 from efficienttrack.core.provenance import provenance
 from efficienttrack.core.settings import plain_form
 from efficienttrack.learn.nets import resolve_device
-
-if TYPE_CHECKING:
-    from efficienttrack.learn.training import TrainingSchedule
 
 NetworkT = TypeVar("NetworkT", bound=nn.Module)
 
@@ -165,14 +162,18 @@ def _file_sha256(path: Path) -> str:
 
 
 def load_checkpoint(
-    path: str | Path, kind: str, config: type[TrainingSchedule], network: Callable[[Any], NetworkT], device: str | torch.device
+    path: str | Path,
+    kind: str,
+    config: Callable[[dict, str], Any],
+    network: Callable[[Any], NetworkT],
+    device: str | torch.device,
 ) -> NetworkT:
     """Read a checkpoint written by :func:`save_checkpoint`: tensors only (``weights_only=True``), never code.
 
     Args:
         path: the checkpoint file; its JSON config must lie next to it.
         kind: the expected kind.
-        config: the config class the JSON config is validated as, field by field.
+        config: reads the JSON config, field by field, naming its source in errors (a config class's ``from_dict``).
         network: builds the network from its config (the module class).
         device: where to put the network (``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or a torch device).
 
@@ -206,7 +207,7 @@ def load_checkpoint(
         raise EfficientTrackError(
             f"{path}: weights hold NaN/inf values ({', '.join(bad[:3])}); the training diverged, retrain"
         )
-    module = network(config.from_dict(meta["config"], f"{path} config"))
+    module = network(config(meta["config"], f"{path} config"))
     try:
         module.load_state_dict(state)
     except RuntimeError as exc:

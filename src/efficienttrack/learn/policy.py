@@ -517,4 +517,4 @@ def load_policy(
         device: where to put the policy (``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or a torch device).
         network: the class saved: :class:`AdjustmentPolicy` or :class:`PWMPolicy` (a file of the other is refused).
     """
-    return load_checkpoint(path, network.kind, PolicyConfig, network, device)
+    return load_checkpoint(path, network.kind, PolicyConfig.from_dict, network, device)
