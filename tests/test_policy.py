@@ -8,10 +8,12 @@ import torch
 
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.settings import plain_form
+from efficienttrack.data.dataset import Sequences
 from efficienttrack.data.windows import initial_history, push_observation, push_reference
 from efficienttrack.learn.policy import (
     POLICY_PRESETS,
     AdjustmentPolicy,
+    ImaginedDeployments,
     PolicyConfig,
     load_policy,
     policy_rollout,
@@ -96,6 +98,35 @@ def test_a_policy_trained_after_a_burn_in_cuts_the_true_tracking_error(model, sh
     pd_mae, policy_mae = track_lag_system(None, test), track_lag_system(trained.policy, test)
     assert policy_mae < 0.45 * pd_mae, (pd_mae, policy_mae)
     assert trained.windows == sum(len(r.q) - 6 for r in lag_records())  # B steps still within each episode
+
+
+def test_a_policy_trained_on_imagined_deployments_cuts_the_true_tracking_error(model):
+    cfg = dataclasses.replace(POLICY_PRESETS["tiny"], imagined_share=0.5)
+    assert plain_form(cfg)["imagined_share"] == 0.5 and "imagined_share" not in plain_form(POLICY_PRESETS["tiny"])
+    trained = train_policy(cfg, model, lag_records(), device="cpu", progress=False)
+    test = lag_records(n=4, seed=1, sigma=0.0)
+    pd_mae, policy_mae = track_lag_system(None, test), track_lag_system(trained.policy, test)
+    assert policy_mae < 0.45 * pd_mae, (pd_mae, policy_mae)
+    with pytest.raises(EfficientTrackError, match="burn_in and imagined_share"):
+        train_policy(dataclasses.replace(cfg, burn_in=2), model, lag_records(), device="cpu", progress=False)
+
+
+def test_imagined_deployments_go_on_from_the_model_and_restart_at_an_episode_start(model):
+    records = lag_records(n=2, T=10)
+    data = Sequences(records, history=4, future=8)
+    generator = torch.Generator().manual_seed(0)
+    rows = ImaginedDeployments(data, data.starts(0), 5, 4, lambda n, k: torch.randint(n, (k,), generator=generator))
+    for _ in range(6):
+        obs_hist, qref_hist, q_star = rows.batch(desired=7)
+        assert q_star.shape == (5, 7, 4) and obs_hist.shape == (5, 4, 8)
+        before = rows.t.clone()
+        with torch.no_grad():
+            rolled = policy_rollout(model, None, obs_hist, qref_hist, q_star, steps=4)
+        rows.advance(rolled.obs_hist, rolled.qref_hist)
+        went_on = rows.t == before + 4
+        assert torch.equal(rows.obs_hist[went_on], rolled.obs_hist[went_on])  # the model's own predictions, not records
+        assert torch.isin(rows.t[~went_on], data.origin).all()  # the others begin an episode
+        assert (rows.t + 4 <= rows.end + 1).all()
 
 
 def test_untrained_policy_is_the_position_controller_and_output_is_bounded():

@@ -17,6 +17,8 @@ in rad² (the paper's units, for which γ = 0.98 and k_smooth = 1.0 are tuned). 
    loss is taken over the h steps after them: the histories it then sees hold its own adjustments, as when deployed,
    where the recorded windows hold the collection's references and noise. Windows start where B steps still lie
    within the episode; with ``burn_in_share`` below 1, the rest of each batch are recorded windows from any step.
+5. With ``imagined_share`` > 0, that share of each batch are imagined deployments carried across optimizer steps
+   (truncated backpropagation through whole episodes, :class:`ImaginedDeployments`); the rest are recorded windows.
 
 The open loop (:class:`PWMPolicy` through a :class:`~efficienttrack.learn.dynamics.PlantModel`): the policy outputs the
 command u_t / 1000 = π_φ(o_H, u_H, q*_F) ∈ (−1, 1)⁴ (tanh × 1: PWM within ±1000), the model is driven by it, and the
@@ -26,7 +28,7 @@ smoothness term weighs the change of the command (PWM / 1000)². The loss and th
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
@@ -90,6 +92,11 @@ class PolicyConfig(TrainingSchedule):
     burn_in_share: float = setting(1.0, gt=0, le=1, added_later=True)
     """With ``burn_in``: the share of each batch's windows that get the burn-in; the others start from the recorded
     histories, at any step of an episode, its first B included (1: all windows are burned in)."""
+    imagined_share: float = setting(0.0, ge=0, le=1, added_later=True)
+    """Share of each batch whose rows go on through an imagined deployment, h steps per optimizer step: each row
+    continues from where the frozen model, driven by the policy, left it at the previous step (gradients truncated
+    there), and restarts at a random episode's start after its end. The loss then sees the policy's own closed loop as
+    deployed, over whole episodes (0: every window starts from recorded histories)."""
 
     @property
     def history_length(self) -> int:
@@ -327,6 +334,49 @@ def policy_loss(q_hat: torch.Tensor, a: torch.Tensor, q_star: torch.Tensor, gamm
     return L_track, L_reg
 
 
+class ImaginedDeployments:
+    """Rows that deploy the policy on the frozen model across optimizer steps, h steps each (``imagined_share``).
+
+    The rows begin at recorded windows of random steps, then go on from the model's own predictions; a row that would
+    run past its episode's end restarts at the start of a random episode, at rest, as a deployment begins.
+
+    Args:
+        data: the training episodes.
+        starts: (M,) flat indices to begin the first rows at.
+        rows: R, rows in the batch.
+        horizon: h, steps per optimizer step.
+        sample: draws (n,) indices from range(m) with the training loop's generator: ``sample(m, n)``.
+    """
+
+    def __init__(
+        self, data: Sequences, starts: torch.Tensor, rows: int, horizon: int, sample: Callable[[int, int], torch.Tensor]
+    ) -> None:
+        self.data, self.horizon, self.sample = data, horizon, sample
+        self.t = starts[sample(len(starts), rows).to(starts.device)]
+        episode = torch.searchsorted(data.origin.to(self.t.device), self.t, right=True) - 1
+        self.end = (data.origin + data.lengths - 1).to(self.t.device)[episode]
+        window = data.window(self.t, horizon=0)
+        self.obs_hist, self.qref_hist = window.obs_hist, window.qref_hist
+
+    def batch(self, desired: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(R, h', 8) observation and (R, h', 4) reference histories where the rows stand, (R, ``desired``, 4) q* ahead."""
+        return self.obs_hist, self.qref_hist, self.data.window(self.t, horizon=0, desired=desired).qdes_future
+
+    def advance(self, obs_hist: torch.Tensor, qref_hist: torch.Tensor) -> None:
+        """Move the rows on to the histories the rollout ended with (first R rows of the batch's), without gradient."""
+        rows = len(self.t)
+        self.obs_hist, self.qref_hist = obs_hist[:rows].detach(), qref_hist[:rows].detach()
+        self.t = self.t + self.horizon
+        over = torch.nonzero(self.t + self.horizon > self.end + 1).flatten()
+        if len(over):
+            device = self.t.device
+            episode = self.sample(len(self.data.origin), len(over)).to(device)
+            self.t[over] = self.data.origin.to(device)[episode]
+            self.end[over] = self.t[over] + self.data.lengths.to(device)[episode] - 1
+            window = self.data.window(self.t[over], horizon=0)
+            self.obs_hist[over], self.qref_hist[over] = window.obs_hist, window.qref_hist
+
+
 class PolicyTrainResult(NamedTuple):
     """Outcome of :func:`train_policy`.
 
@@ -386,6 +436,8 @@ def train_policy(
     started = time.perf_counter()
     device = resolve_device(device)
     H, B, F = cfg.rollout_length, cfg.burn_in, cfg.future_length
+    if B and cfg.imagined_share:
+        raise EfficientTrackError("PolicyConfig: burn_in and imagined_share are two ways of one thing; set one of them")
     desired = desired_length(cfg, B + H)
     check_training_memory("PolicyConfig", cfg.batch_size, H, [cfg, model.cfg], device)
     if network.channel != model.channel or (init is not None and type(init) is not network):
@@ -413,9 +465,18 @@ def train_policy(
     total = cfg.total_steps(len(starts))
     loop = TrainLoop("policy", cfg, total, pi_phi, optimizer, seed, checkpoint, progress, inputs, log_dir, evaluate)
 
+    imagined_rows = round(cfg.batch_size * cfg.imagined_share)
+    imagined = ImaginedDeployments(data, starts, imagined_rows, H, loop.sample) if imagined_rows else None
+
     for step in loop:
-        window = data.window(starts[loop.sample(len(starts), burned_windows).to(device)], horizon=0, desired=desired)
+        window = data.window(starts[loop.sample(len(starts), burned_windows - imagined_rows).to(device)], horizon=0,
+                             desired=desired)  # fmt: skip
         obs_hist, qref_hist, q_star = window.obs_hist, window.qref_hist, window.qdes_future
+        if imagined is not None:  # the rows that go on deploying the policy on the model
+            rows = imagined.batch(desired)
+            obs_hist, qref_hist, q_star = (
+                torch.cat([mine, recorded]) for mine, recorded in zip(rows, (obs_hist, qref_hist, q_star), strict=True)
+            )
         # burn-in: B steps under π_φ without gradient, so that the loss starts from the policy's own histories
         if B:
             with torch.no_grad():
@@ -427,7 +488,9 @@ def train_policy(
             obs_hist, qref_hist = torch.cat([obs_hist, plain.obs_hist]), torch.cat([qref_hist, plain.qref_hist])
             q_star = torch.cat([q_star, plain.qdes_future])
         # rollout: H steps of g_θ under π_φ, q^r_{i+1} = q*_{i+1} + a_i, q*_F sliding along q*_{t+1..t+H−1+F}
-        q_hat, a, *_ = policy_rollout(g_theta, pi_phi, obs_hist, qref_hist, q_star, steps=H)
+        q_hat, a, _, end_obs, end_qref = policy_rollout(g_theta, pi_phi, obs_hist, qref_hist, q_star, steps=H)
+        if imagined is not None:
+            imagined.advance(end_obs, end_qref)
         L_track, L_reg = policy_loss(q_hat, a, q_star[:, :H], cfg.gamma)
         loss = L_track.mean() + cfg.k_smooth * L_reg.mean()
         # step
