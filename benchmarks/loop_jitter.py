@@ -20,8 +20,9 @@ import numpy as np
 import torch
 
 from efficienttrack.data.cycles import generate_references
-from efficienttrack.deploy.deployment import SimulatedMachine, deploy
+from efficienttrack.deploy.deployment import deploy
 from efficienttrack.deploy.loop import MONOTONIC
+from efficienttrack.deploy.machine import SimulatedMachine
 from efficienttrack.deploy.runtime import Runtime
 from efficienttrack.learn.policy import POLICY_PRESETS, AdjustmentPolicy, load_policy
 from efficienttrack.systems.spec import load_system

@@ -40,7 +40,8 @@ from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.joints import JOINT_NAMES
 from efficienttrack.data.references import load_references
 from efficienttrack.deploy.deployment import deploy
-from efficienttrack.deploy.loop import MONOTONIC, LoopConfig, Reading
+from efficienttrack.deploy.loop import LoopConfig
+from efficienttrack.deploy.machine import MONOTONIC, Reading
 from efficienttrack.systems.limits import GuardLimits
 
 FIRST_READING_TIMEOUT = 2.0

@@ -17,8 +17,9 @@ from efficienttrack.cli import app
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.data.records import load_records
 from efficienttrack.data.references import Reference, load_references, save_references
-from efficienttrack.deploy.deployment import SimulatedClock, SimulatedMachine, deploy, load_machine, records_from_log
+from efficienttrack.deploy.deployment import deploy, load_machine, records_from_log
 from efficienttrack.deploy.loop import Loop, LoopConfig, Reading, TickLog
+from efficienttrack.deploy.machine import SimulatedClock, SimulatedMachine
 from efficienttrack.deploy.runtime import Runtime, track
 from efficienttrack.learn.policy import POLICY_PRESETS, AdjustmentPolicy, save_policy
 from efficienttrack.systems.limits import DEFAULT_LIMITS
@@ -526,7 +527,7 @@ def test_deploy_a_machine_needs_its_limits_and_real_time(deploy_inputs, tmp_path
     (tmp_path / "lim.json").write_text("{}")
     args = ("deploy", "--refs", refs, "--out", tmp_path / "o", "--arm", "--machine", "test_loop:DyingMachine")
     result = invoke(*args, "--limits", tmp_path / "lim.json", "--fast")
-    assert "--fast runs the simulator" in str(result.exception)
+    assert "--fast runs on a simulated clock, which a real machine does not keep" in str(result.exception)
 
 
 def test_deploy_exits_1_when_a_watchdog_stops_a_run(tmp_path):

@@ -12,7 +12,7 @@ import pytest
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.data.records import load_records
 from efficienttrack.data.references import Reference, load_references, save_references
-from efficienttrack.deploy.deployment import SimulatedMachine
+from efficienttrack.deploy.machine import SimulatedMachine
 from efficienttrack.systems.limits import DEFAULT_LIMITS
 from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.workflow.collect import CollectConfig, LoopMachine, collect, episode_noise

@@ -10,8 +10,8 @@ import pytest
 
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.data.references import Reference, save_references
-from efficienttrack.deploy.deployment import SimulatedMachine
 from efficienttrack.deploy.loop import Loop, Reading, TickLog
+from efficienttrack.deploy.machine import SimulatedMachine
 from efficienttrack.deploy.runtime import Runtime
 from efficienttrack.deploy.sensor import first_sensor_fault
 from efficienttrack.systems.limits import DEFAULT_LIMITS, GuardLimits, limits_preset_path

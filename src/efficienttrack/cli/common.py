@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -52,6 +53,14 @@ MachineOpt = Annotated[
     str | None, typer.Option("--machine", help="A real machine's adapter, module.path:callable (needs --limits).")
 ]
 MachineOpts = Annotated[list[str] | None, typer.Option("--machine-opt", help="key=value option of the adapter (repeatable).")]
+BetweenOpt = Annotated[
+    str,
+    typer.Option(
+        "--between-episodes",
+        help="When the machine is not at a reference's start: approach it slowly through the loop (logged in "
+        "approach/, never scored or trained on), or stop.",
+    ),
+]
 ArmOpt = Annotated[bool, typer.Option("--arm", help="Allow the machine to move (nothing is sent without it).")]
 FastOpt = Annotated[
     bool, typer.Option("--fast", help="Simulator only: a simulated clock, as fast as it computes (no real-time timing).")
@@ -92,6 +101,15 @@ ThreadsOpt = Annotated[
 ]
 
 
+def between(value: str) -> str:
+    """``--between-episodes``: one of :data:`~efficienttrack.deploy.deployment.BETWEEN_EPISODES`, else a clear error."""
+    from efficienttrack.deploy.deployment import BETWEEN_EPISODES
+
+    if value not in BETWEEN_EPISODES:
+        raise EfficientTrackError(f"--between-episodes {value}: expected one of {', '.join(BETWEEN_EPISODES)}")
+    return value
+
+
 def parse_options(pairs: list[str] | None, flag: str = "--system-opt") -> dict[str, object]:
     """Turn repeated ``key=value`` strings into keyword options (numbers and booleans parsed).
 
@@ -100,7 +118,7 @@ def parse_options(pairs: list[str] | None, flag: str = "--system-opt") -> dict[s
         flag: the option's name, used in error messages.
 
     Returns:
-        ``{key: value}``, each value an int, float or bool where it parses as one, else the string.
+        ``{key: value}``, each value an int, finite float or bool where it parses as one, else the string.
 
     Raises:
         EfficientTrackError: a string without ``=`` or with an empty key.
@@ -117,9 +135,11 @@ def parse_options(pairs: list[str] | None, flag: str = "--system-opt") -> dict[s
             for cast in (int, float):
                 try:
                     value = cast(raw)
-                    break
                 except ValueError:
                     continue
+                if not math.isfinite(value):  # "nan", "inf" are words here (a fault's name), never numbers
+                    value = raw
+                break
         options[key] = value
     return options
 

@@ -10,6 +10,7 @@ import typer
 
 from efficienttrack.cli.common import (
     ArmOpt,
+    BetweenOpt,
     FastOpt,
     LimitsOpt,
     MachineOpt,
@@ -22,6 +23,7 @@ from efficienttrack.cli.common import (
     _lock,
     _system_spec,
     app,
+    between,
     parse_options,
     wide_console,
 )
@@ -249,6 +251,7 @@ def collect_command(
     limits: LimitsOpt = None,
     machine: MachineOpt = None,
     machine_opt: MachineOpts = None,
+    between_episodes: BetweenOpt = "approach",
     loop: Annotated[
         bool,
         typer.Option("--loop", help="Drive the simulator through the fixed-rate loop, one episode at a time, as --machine."),
@@ -291,7 +294,7 @@ def collect_command(
         options = parse_options(machine_opt, "--machine-opt")
         make_machine, machine_limits, clock = machine_parts(spec, machine, options, fast)
         simulator = f"simulator {spec.plant or spec.system_name}"
-        driven = LoopMachine(make_machine, machine_limits, clock, machine or simulator)
+        driven = LoopMachine(make_machine, machine_limits, clock, machine or simulator, between=between(between_episodes))
     _lock(ctx, out)
     result = collect(driven if looped else spec.open(), references, cfg, out)
     typer.echo(

@@ -9,6 +9,7 @@ import typer
 
 from efficienttrack.cli.common import (
     ArmOpt,
+    BetweenOpt,
     FastOpt,
     LimitsOpt,
     MachineOpt,
@@ -20,6 +21,7 @@ from efficienttrack.cli.common import (
     _lock,
     _system_spec,
     app,
+    between,
     parse_options,
 )
 from efficienttrack.core.errors import EfficientTrackError
@@ -76,6 +78,7 @@ def deploy_command(
     limits: LimitsOpt = None,
     machine: MachineOpt = None,
     machine_opt: MachineOpts = None,
+    between_episodes: BetweenOpt = "approach",
     fast: FastOpt = False,
     hold_after: Annotated[int, typer.Option("--hold-after", help="Overruns in a row from which a = 0.")] = LOOP.hold_after,
     stop_after: Annotated[int, typer.Option("--stop-after", help="Overruns in a row that stop the run.")] = LOOP.stop_after,
@@ -146,7 +149,9 @@ def deploy_command(
             f"fallbacks {s.get('fallback', 0)}" + (f" ({result.error})" if result.error else "")
         )
 
-    results = deploy(references, runtime, make_machine, machine_limits, out, cfg, clock, shadow, settings, report)
+    results = deploy(
+        references, runtime, make_machine, machine_limits, out, cfg, clock, shadow, settings, report, between(between_episodes)
+    )
     if not results:
         typer.echo(f"every run of {out} was done earlier; nothing was sent (--force starts afresh)")
         return

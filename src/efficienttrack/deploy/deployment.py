@@ -13,6 +13,7 @@ path ``module:callable`` returning a :class:`~efficienttrack.deploy.loop.Machine
 
 from __future__ import annotations
 
+import inspect
 import json
 import warnings
 from collections.abc import Callable, Sequence
@@ -21,27 +22,18 @@ from typing import Any
 
 import numpy as np
 
+from efficienttrack.core.angles import wrap
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import write_json
-from efficienttrack.core.joints import DT
+from efficienttrack.core.joints import DT, SWING
 from efficienttrack.core.provenance import differences
 from efficienttrack.data.metrics import MIN_STEPS, compute_metrics
 from efficienttrack.data.records import EpisodeRecord, load_records
 from efficienttrack.data.references import Reference
-from efficienttrack.deploy.loop import (
-    MONOTONIC,
-    Clock,
-    Loop,
-    LoopConfig,
-    LoopResult,
-    LoopRuntime,
-    Machine,
-    Reading,
-    TickLog,
-    set_aside,
-)
+from efficienttrack.deploy.guard import GuardedRuntime
+from efficienttrack.deploy.loop import Loop, LoopConfig, LoopResult, LoopRuntime, NotAtStart, TickLog, set_aside
+from efficienttrack.deploy.machine import MONOTONIC, Clock, Machine, SimulatedClock, SimulatedMachine
 from efficienttrack.systems.limits import GuardLimits
-from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.systems.spec import SystemSpec, load_callable
 
 DEPLOY_JSON = "deploy.json"
@@ -54,80 +46,129 @@ UNUSABLE_TICK_EVENTS = frozenset({"dropped", "nonfinite", "stale"})
 """Loop events of a tick whose reading is missing or old: no record row (:func:`records_from_log`)."""
 
 
-class SimulatedClock:
-    """A clock that only moves when slept on: a simulator runs as fast as it computes.
+BETWEEN_EPISODES = ("approach", "stop")
+"""What happens when the machine is not at a reference's start: a slow approach through the loop, or a stop."""
+APPROACH_SPEED = 0.1
+"""rad/s of the joint that moves farthest on an approach (the others slower, all arriving together)."""
+APPROACH_HOLD = 2.0
+"""s an approach holds the reference's start, for the position controller to settle there."""
+APPROACH_PUSH = 1.0
+"""Gain of an approach's adjustment, a = gain × (q*_{t+1} − q_t) within the limits: it pushes a position controller with
+a dead band or a slow settling the rest of the way (the xe75's swing stops 0.14 rad short of a start without it)."""
+APPROACH_TRIES = 3
+"""Approaches to one reference's start before the episode is given up (the loop's refusal is the error)."""
+
+
+def approach_path(q_from: np.ndarray, q_to: np.ndarray, dt: float = DT) -> np.ndarray:
+    """The references of an approach: a straight line in joint space at :data:`APPROACH_SPEED`, then a hold.
 
     Args:
-        start: the clock's time at first, s.
+        q_from: (4,) rad, where the machine stands.
+        q_to: (4,) rad, where it should be (a reference's start); the swing goes the short way round.
+        dt: s, the control period.
+
+    Returns:
+        (L, 4) rad: ``q_from`` … ``q_to``, then :data:`APPROACH_HOLD` s of ``q_to``.
     """
-
-    def __init__(self, start: float = 0.0) -> None:
-        self.t = float(start)
-
-    def now(self) -> float:
-        """The simulated time, s."""
-        return self.t
-
-    def sleep(self, seconds: float) -> None:
-        """Advance the time by ``seconds`` at once.
-
-        Args:
-            seconds: how long, ≥ 0.
-        """
-        self.t += max(float(seconds), 0.0)
+    delta = np.asarray(q_to, dtype=np.float64) - q_from
+    delta[SWING] = wrap(delta[SWING])
+    steps = max(int(np.ceil(np.abs(delta).max() / (APPROACH_SPEED * dt))), 1)
+    path = q_from + np.linspace(0.0, 1.0, steps + 1)[:, None] * delta
+    path[:, SWING] = wrap(path[:, SWING])
+    return np.concatenate([path, np.repeat(path[-1:], int(round(APPROACH_HOLD / dt)), axis=0)])
 
 
-class SimulatedMachine:
-    """A closed-loop system (``SystemSpec.open()``, e.g. the built-in ``xe75``) as a :class:`Machine`.
+def approach(
+    ref: Reference, away: NotAtStart, make_machine: Callable[[Reference], Machine], limits: GuardLimits, cfg: LoopConfig,
+    clock: Clock, logs: Path,
+) -> LoopResult:  # fmt: skip
+    """Bring the machine from where the refused start found it to ``ref``'s start, through the guarded loop (a = 0).
 
-    Opening resets the simulator at ``q0``; ``read`` returns its state stamped with the clock's time; ``send`` steps it
-    once (one control period) and returns the reference as given.
+    The approach sends :func:`approach_path`, each reference pushed by :data:`APPROACH_PUSH`, through the same guard
+    and watchdogs as an episode; it is logged as ``logs/approach/<reference>.jsonl`` (an earlier try's set aside), never
+    made into records (it is not scored or trained on).
 
     Args:
-        system: the checked system (one machine).
-        q0: (4,) rad, the start position (the reference's first).
-        clock: the loop's clock (for the stamps).
+        ref: the reference whose start to reach.
+        away: the loop's refusal to start ``ref`` (where the machine stood).
+        make_machine: reference → a new adapter.
+        limits: the machine's limits.
+        cfg: the loop's timing and watchdogs.
+        clock: the loop's clock.
+        logs: the folder of the episodes' logs.
+
+    Returns:
+        The approach's result (``stopped`` when a watchdog ended it).
     """
-
-    def __init__(self, system: BatchedSystem, q0: np.ndarray, clock: Clock = MONOTONIC) -> None:
-        self.system, self.q0, self.clock = system, np.asarray(q0, dtype=np.float64), clock
-        self._obs: np.ndarray | None = None
-
-    def __enter__(self) -> SimulatedMachine:
-        """Reset the simulator at ``q0``."""
-        self._obs = np.asarray(self.system.reset(self.q0[None]), dtype=np.float64)[0]
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        """Nothing to release."""
-        self._obs = None
-
-    def read(self) -> Reading:
-        """The simulator's state, stamped now."""
-        if self._obs is None:
-            raise EfficientTrackError(f"{self.system.name}: read before open")
-        return Reading(self._obs.copy(), self.clock.now())
-
-    def send(self, q_ref: np.ndarray) -> np.ndarray:
-        """One simulator step towards ``q_ref`` (4,) rad; returns it."""
-        if self._obs is None:
-            raise EfficientTrackError(f"{self.system.name}: send before open")
-        self._obs = np.asarray(self.system.step(np.asarray(q_ref, dtype=np.float64)[None]), dtype=np.float64)[0]
-        return np.asarray(q_ref, dtype=np.float64)
+    folder = logs / "approach"
+    folder.mkdir(parents=True, exist_ok=True)
+    log_path = folder / f"{ref.name}.jsonl"
+    set_aside(log_path)
+    runtime = GuardedRuntime(_push, (1, 1), None, limits, cfg.dt)
+    with TickLog(log_path, cfg.fsync_every) as log:
+        path = approach_path(away.position, ref.q[0], cfg.dt)
+        return Loop(runtime, make_machine(ref), limits, cfg, clock, log).run(path, f"{ref.name} (approach)")
 
 
-def load_machine(spec: str, options: dict[str, Any]) -> Callable[[Reference], Machine]:
+def run_episode(
+    ref: Reference,
+    run: Callable[[], LoopResult],
+    between: str,
+    make_machine: Callable[[Reference], Machine],
+    limits: GuardLimits,
+    cfg: LoopConfig,
+    clock: Clock,
+    logs: Path,
+) -> LoopResult:
+    """``run()`` (the loop along ``ref``); when the machine is not at its start, approach it first (``between``).
+
+    Args:
+        ref: the reference.
+        run: runs the episode's loop (opens its log and adapter).
+        between: ``"approach"`` (:func:`approach`, then the episode) or ``"stop"`` (the refusal is the error).
+        make_machine: reference → a new adapter.
+        limits: the machine's limits.
+        cfg: the loop's timing and watchdogs.
+        clock: the loop's clock.
+        logs: the folder of the episodes' logs (the approach's go to ``logs/approach``).
+
+    Returns:
+        The episode's result, or the approach's when a watchdog stopped it (the episode did not run).
+    """
+    for tries in range(APPROACH_TRIES + 1):
+        try:
+            return run()
+        except NotAtStart as away:
+            if between != "approach" or tries == APPROACH_TRIES:
+                raise
+            approached = approach(ref, away, make_machine, limits, cfg, clock, logs)
+            if approached.stopped:
+                return approached
+    raise AssertionError("unreachable: the last try returns or raises")
+
+
+def _push(obs_hist: np.ndarray, qref_hist: np.ndarray, q_des_future: np.ndarray) -> np.ndarray:
+    """An approach's adjustment (:data:`~efficienttrack.deploy.guard.PolicyCall`): towards the path, ahead of the lag."""
+    error = q_des_future[:, 0] - obs_hist[:, -1, :4]
+    error[:, SWING] = wrap(error[:, SWING])
+    return APPROACH_PUSH * error
+
+
+def load_machine(spec: str, options: dict[str, Any], clock: Clock = MONOTONIC) -> Callable[[Reference], Machine]:
     """A user's machine adapter by import path: a factory of one adapter per reference.
 
     Args:
         spec: ``"module.path:callable"``; the callable is called with ``options`` and returns a
-            :class:`~efficienttrack.deploy.loop.Machine` (a context manager with ``read`` and ``send``).
+            :class:`~efficienttrack.deploy.machine.Machine` (a context manager with ``read`` and ``send``).
         options: its keyword options (``--machine-opt key=value``).
+        clock: the loop's clock, passed as ``clock=`` to a callable that takes one (a simulated machine).
 
     Returns:
         reference → a new adapter (the reference is not passed on: a real machine starts where it stands).
     """
     factory = load_callable(spec, "machine")
+    if takes_clock(factory):
+        options = {**options, "clock": clock}
 
     def make(ref: Reference) -> Machine:
         try:
@@ -143,7 +184,7 @@ def load_machine(spec: str, options: dict[str, Any]) -> Callable[[Reference], Ma
         missing = [name for name in ("__enter__", "__exit__", "read", "send") if not hasattr(machine, name)]
         if missing:
             raise EfficientTrackError(
-                f"machine '{spec}': the adapter has no {', '.join(missing)} (see efficienttrack.deploy.loop.Machine)"
+                f"machine '{spec}': the adapter has no {', '.join(missing)} (see efficienttrack.deploy.machine.Machine)"
             )
         return machine
 
@@ -161,6 +202,7 @@ def deploy(
     shadow: bool = False,
     settings: dict[str, Any] | None = None,
     on_done: Callable[[LoopResult], None] | None = None,
+    between: str = "approach",
 ) -> list[LoopResult]:
     """Run the loop along each reference in turn; stop at the first run a watchdog stopped.
 
@@ -177,6 +219,8 @@ def deploy(
         shadow: send the raw reference; only log the adjustment.
         settings: what to record in :data:`DEPLOY_JSON` besides the loop's settings (the policy, the system, …).
         on_done: called with each run's result as soon as it ends.
+        between: when the machine is not at a reference's start: ``"approach"`` it slowly through the loop first
+            (logged in ``out/approach``), or ``"stop"``.
 
     Returns:
         One result per run started (the last one stopped early when ``results[-1].stopped``); none when every run was
@@ -200,10 +244,15 @@ def deploy(
         aside = set_aside(log_path)
         if aside is not None:  # the earlier try's records go by the name its log now has
             _rename_run_records(log_path, aside, out / DEPLOY_RECORDS, shadow)
-        with TickLog(log_path, cfg.fsync_every) as log:
-            result = Loop(runtime, make_machine(ref), limits, cfg, clock, log, shadow).run(ref.q, ref.name)
+
+        def run(ref: Reference = ref, log_path: Path = log_path) -> LoopResult:
+            with TickLog(log_path, cfg.fsync_every) as log:
+                return Loop(runtime, make_machine(ref), limits, cfg, clock, log, shadow).run(ref.q, ref.name)
+
+        result = run_episode(ref, run, between, make_machine, limits, cfg, clock, out)
         results.append(result)
-        _save_run_records(log.path, out / DEPLOY_RECORDS, shadow)
+        if log_path.exists():
+            _save_run_records(log_path, out / DEPLOY_RECORDS, shadow)
         summaries = {**done, **{r.name: r.summary() for r in results}}
         runs = [summaries[r.name] for r in references if r.name in summaries]
         write_json(out / DEPLOY_JSON, {**header, "runs": runs, "tracking": deployed_tracking(out)})
@@ -470,24 +519,34 @@ def machine_parts(
         Reference → machine adapter (a simulator is reset at the reference's start), the machine's limits, the clock.
     """
     if machine is not None:
-        if fast:
+        clock: Clock = SimulatedClock() if fast else MONOTONIC
+        if fast and not takes_clock(load_callable(machine, "machine")):
             raise EfficientTrackError(
-                "--fast runs the simulator on a simulated clock; a machine (--machine) runs in real time only"
+                "--fast runs on a simulated clock, which a real machine does not keep: it runs in real time only (a "
+                "simulated machine that takes the loop's clock, such as efficienttrack.deploy.machine:simulated, may)"
             )
         if spec.limits is None:
             raise EfficientTrackError("--machine needs --limits FILE: the joint limits and adjustment bounds of that machine")
         if spec.system is not None or spec.plant is not None:
             raise EfficientTrackError("give --machine SPEC or a simulated --system/--plant, not both")
-        return load_machine(machine, machine_options), GuardLimits.load(spec.limits), MONOTONIC
+        return load_machine(machine, machine_options, clock), GuardLimits.load(spec.limits), clock
     system = spec.open()
     if system.dt != DT:
         raise EfficientTrackError(f"{system.name}: runs at dt = {system.dt} s; the loop runs at {DT} s (20 Hz)")
-    clock: Clock = SimulatedClock() if fast else MONOTONIC
+    clock = SimulatedClock() if fast else MONOTONIC
 
     def make_machine(ref: Reference) -> Machine:
         return SimulatedMachine(system, ref.q[0], clock)
 
     return make_machine, system.limits, clock
+
+
+def takes_clock(factory: Callable[..., Any]) -> bool:
+    """Whether a machine factory keeps the loop's time (a simulated machine): it has a ``clock`` parameter."""
+    try:
+        return "clock" in inspect.signature(factory).parameters
+    except (TypeError, ValueError):  # a builtin or C callable without a signature
+        return False
 
 
 def policy_runtime(policy: str | Path | None, limits: GuardLimits, device: str) -> LoopRuntime:

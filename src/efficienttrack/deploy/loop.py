@@ -30,7 +30,8 @@ the end), and the run ends with a summary line (``"event": "end"``); a log witho
 fields are listed in ``docs/loop.md``.
 
 The clock is injectable (:class:`Clock`): :data:`MONOTONIC` (``time.monotonic``) for a machine, or
-:class:`~efficienttrack.deploy.deployment.SimulatedClock` to run a simulator as fast as it computes (a test's fake clock too).
+:class:`~efficienttrack.deploy.machine.SimulatedClock` to run a simulator as fast as it computes (a test's fake clock too).
+The machine side (the :class:`Machine` protocol, its simulated twins) is :mod:`efficienttrack.deploy.machine`.
 :mod:`efficienttrack.deploy.deployment` runs the loop over a folder of references against a simulator or a user's adapter.
 """
 
@@ -39,11 +40,10 @@ from __future__ import annotations
 import json
 import math
 import os
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any, NamedTuple, Protocol
+from typing import IO, Any, Protocol
 
 import numpy as np
 
@@ -52,91 +52,12 @@ from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.joints import DT, SWING
 from efficienttrack.core.stop_signals import interrupt_name, stop_signals_as_interrupt
 from efficienttrack.deploy.episodes import Guard, Sent
+from efficienttrack.deploy.machine import MONOTONIC, Clock, Machine, Reading
 from efficienttrack.deploy.sensor import SENSOR_MARGIN, SENSOR_TOLERANCE, first_sensor_fault
 from efficienttrack.systems.limits import GuardLimits
 
 STOP_REASONS = ("overruns", "stale_sensor", "sensor_fault", "read_error", "send_error", "runtime_error", "interrupted")
 """Why a run can end before its reference does (``done``: it ran to the end)."""
-
-
-class Clock(Protocol):
-    """Where the loop reads the time and waits: seconds on one monotonic clock shared with the readings' stamps."""
-
-    def now(self) -> float:
-        """Seconds on the clock."""
-        ...
-
-    def sleep(self, seconds: float) -> None:
-        """Wait.
-
-        Args:
-            seconds: how long, ≥ 0.
-        """
-        ...
-
-
-class MonotonicClock:
-    """The real clock: ``time.monotonic`` and ``time.sleep``."""
-
-    def now(self) -> float:
-        """Seconds of ``time.monotonic``."""
-        return time.monotonic()
-
-    def sleep(self, seconds: float) -> None:
-        """``time.sleep``.
-
-        Args:
-            seconds: how long, ≥ 0.
-        """
-        time.sleep(seconds)
-
-
-MONOTONIC = MonotonicClock()
-"""The clock of a run on a real machine."""
-
-
-class Reading(NamedTuple):
-    """One sample of the machine's sensors.
-
-    Attributes:
-        obs: (8,) [rad, rad/s], ``(q, q̇)``, joints boom, arm, bucket, swing.
-        stamp: s, when it was measured, on the loop's clock (``time.monotonic`` for :data:`MONOTONIC`).
-    """
-
-    obs: np.ndarray
-    stamp: float
-
-
-class Machine(Protocol):
-    """A machine adapter: one machine's sensors in, position references out, with a lifecycle.
-
-    ``with machine:`` opens it (connect, or reset a simulator) and closes it however the run ends. ``read``
-    returns the newest sample, or None when there is none (a dropped sample); ``send`` hands the position
-    controller a reference and returns the reference it really took (a machine that clamps says so).
-    """
-
-    def __enter__(self) -> Machine:
-        """Open the machine."""
-        ...
-
-    def __exit__(self, *exc: object) -> None:
-        """Close the machine."""
-        ...
-
-    def read(self) -> Reading | None:
-        """The newest sample, or None (dropped)."""
-        ...
-
-    def send(self, q_ref: np.ndarray) -> np.ndarray:
-        """Send a position reference.
-
-        Args:
-            q_ref: (4,) rad.
-
-        Returns:
-            (4,) rad, the reference the machine really took.
-        """
-        ...
 
 
 class LoopRuntime(Protocol):
@@ -209,8 +130,8 @@ class LoopConfig:
 class TickLog:
     """A crash-safe JSONL log: one line per tick, flushed at once, fsynced every ``fsync_every`` lines and at close.
 
-    Opened by ``with`` (no file I/O before); an existing file is refused, not overwritten. Non-finite numbers are
-    written as ``null`` (JSON has no NaN).
+    Opened by ``with`` (no file I/O before); an existing file is refused, not overwritten, and one closed without a line
+    (a run that never started) is removed. Non-finite numbers are written as ``null`` (JSON has no NaN).
 
     Args:
         path: the ``.jsonl`` file to create.
@@ -222,6 +143,8 @@ class TickLog:
         self.fsync_every = fsync_every
         self._file: IO[str] | None = None
         self._unsynced = 0
+        self.lines = 0
+        """Lines written so far."""
 
     def __enter__(self) -> TickLog:
         """Create the file (refused when it exists)."""
@@ -234,11 +157,13 @@ class TickLog:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        """Flush, fsync and close."""
+        """Flush, fsync and close; remove the file when it holds no line."""
         if self._file is not None:
             self._sync()
             self._file.close()
             self._file = None
+            if not self.lines:
+                self.path.unlink(missing_ok=True)
 
     def write(self, entry: dict[str, Any]) -> None:
         """Append one line.
@@ -250,6 +175,7 @@ class TickLog:
             raise EfficientTrackError(f"{self.path}: the log is not open")
         self._file.write(json.dumps(_jsonable(entry), allow_nan=False) + "\n")
         self._file.flush()
+        self.lines += 1
         self._unsynced += 1
         if self._unsynced >= self.fsync_every:
             self._sync()
@@ -332,6 +258,18 @@ class LoopResult:
                 p50, p99 = np.percentile(values, [50, 99])
                 stats[key] = {"p50": float(p50), "p99": float(p99), "max": float(values.max())}
         return {"name": self.name, "reason": self.reason, "ticks": self.ticks, "error": self.error, **self.counts, **stats}
+
+
+class NotAtStart(EfficientTrackError):
+    """The loop refused to start: the machine stands too far from the reference's first position (nothing was sent).
+
+    Attributes:
+        position: (4,) rad, where the machine stood.
+    """
+
+    def __init__(self, message: str, position: np.ndarray) -> None:
+        super().__init__(message)
+        self.position = position
 
 
 class _Stop(Exception):
@@ -555,9 +493,11 @@ class Loop:
         gap[SWING] = abs(wrap(gap[SWING]))
         if np.any(gap > self.cfg.start_tolerance):
             j = int(np.argmax(gap))
-            raise EfficientTrackError(
+            raise NotAtStart(
                 f"loop '{name}': the machine is {gap[j]:.3f} rad from the reference's first position "
-                f"(joint {j}, tolerance {self.cfg.start_tolerance} rad); move it to the start first; nothing was sent"
+                f"(joint {j}, tolerance {self.cfg.start_tolerance} rad); move it to the start first, or let it approach "
+                "(--between-episodes approach); nothing was sent",
+                reading.obs[:4].copy(),
             )
         return reading
 

@@ -30,6 +30,7 @@ import os
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -44,9 +45,10 @@ from efficienttrack.core.provenance import claim_folder
 from efficienttrack.core.settings import check_fields, plain_form, setting
 from efficienttrack.data.records import EpisodeRecord, load_records, save_records
 from efficienttrack.data.references import Reference
-from efficienttrack.deploy.deployment import records_from_log
+from efficienttrack.deploy.deployment import records_from_log, run_episode
 from efficienttrack.deploy.episodes import Guard, Sent, batches, rollout
-from efficienttrack.deploy.loop import Clock, Loop, LoopConfig, Machine, TickLog, set_aside
+from efficienttrack.deploy.loop import Loop, LoopConfig, LoopResult, TickLog, set_aside
+from efficienttrack.deploy.machine import Clock, Machine
 from efficienttrack.systems.limits import GuardLimits
 from efficienttrack.systems.protocol import BatchedSystem
 
@@ -308,6 +310,8 @@ class LoopMachine:
         clock: the loop's clock (``MONOTONIC`` on a machine; a simulated one runs a simulator as fast as it computes).
         name: what ``collect.json`` calls the machine (the adapter's import path, or the simulator's name).
         loop: the loop's timing and watchdogs.
+        between: when the machine is not at an episode's start: ``"approach"`` it slowly through the loop first, or
+            ``"stop"`` (:data:`~efficienttrack.deploy.deployment.BETWEEN_EPISODES`).
     """
 
     make: Callable[[Reference], Machine]
@@ -315,6 +319,7 @@ class LoopMachine:
     clock: Clock
     name: str
     loop: LoopConfig = LoopConfig()
+    between: str = "approach"
 
 
 def run_pass_through_loop(
@@ -367,16 +372,9 @@ def run_pass_through_loop(
             sigma, noise = episode_noise(cfg, pass_index, i, ref.steps) if noisy[i] else (0.0, np.zeros((ref.steps, 4)))
             log_path = logs / f"{ref.name}.jsonl"
             set_aside(log_path)
-            with TickLog(log_path, machine.loop.fsync_every) as log:
-                loop = Loop(
-                    NoiseDriver(noise[:, None], machine.limits),
-                    machine.make(ref),
-                    machine.limits,
-                    machine.loop,
-                    machine.clock,
-                    log,
-                )
-                result = loop.run(ref.q, ref.name)
+
+            run = partial(_loop_episode, machine, ref, noise, log_path)
+            result = run_episode(ref, run, machine.between, machine.make, machine.limits, machine.loop, machine.clock, logs)
             if result.reason == "interrupted":
                 raise KeyboardInterrupt(result.error)
             if result.stopped:
@@ -397,6 +395,15 @@ def run_pass_through_loop(
         if progress is not None and task is not None:
             progress.advance(task)
     return records
+
+
+def _loop_episode(machine: LoopMachine, ref: Reference, noise: np.ndarray, log_path: Path) -> LoopResult:
+    """One episode of collection through the loop: the reference with ``noise`` (T, 4) rad added, logged to ``log_path``."""
+    with TickLog(log_path, machine.loop.fsync_every) as log:
+        loop = Loop(
+            NoiseDriver(noise[:, None], machine.limits), machine.make(ref), machine.limits, machine.loop, machine.clock, log
+        )
+        return loop.run(ref.q, ref.name)
 
 
 def by_reference(records: Sequence[EpisodeRecord]) -> dict[str, list[EpisodeRecord]]:

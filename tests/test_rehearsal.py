@@ -1,0 +1,102 @@
+"""Rehearsing a real machine: the built-in simulated machine for ``--machine``, and the approach between episodes."""
+
+import json
+
+import numpy as np
+import pytest
+
+from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.data.records import load_records
+from efficienttrack.deploy.deployment import APPROACH_SPEED, approach_path
+from efficienttrack.deploy.machine import SimulatedClock, simulated
+from test_loop import invoke
+
+SIMULATED = "efficienttrack.deploy.machine:simulated"
+
+
+@pytest.fixture
+def refs(tmp_path):
+    assert invoke("refs", "generate", "--n", "8", "--seed", "3", "--out", tmp_path / "refs").exit_code == 0
+    (tmp_path / "lim.json").write_text("{}")
+    return tmp_path / "refs"
+
+
+def machine_args(tmp_path, name, *options):
+    opts = [arg for option in (f"name={name}", *options) for arg in ("--machine-opt", option)]
+    return ("--machine", SIMULATED, *opts, "--limits", tmp_path / "lim.json", "--arm", "--fast")
+
+
+def test_the_simulated_machine_stays_where_its_last_episode_left_it():
+    clock = SimulatedClock()
+    first = simulated(start="0.1,0.2,0.3,0.4", name="stays", clock=clock)
+    with first:
+        assert np.allclose(first.read().obs[:4], [0.1, 0.2, 0.3, 0.4])
+        for _ in range(40):
+            first.send(np.array([0.3, 0.2, 0.3, 0.4]))
+        moved = first.read().obs[:4]
+    assert moved[0] > 0.2
+    with simulated(start="0.1,0.2,0.3,0.4", name="stays", clock=clock) as again:  # the same machine, not reset
+        assert np.allclose(again.read().obs[:4], moved)
+    with simulated(name="another", clock=clock) as other:
+        assert not np.allclose(other.read().obs[:4], moved)
+    for bad, match in (({"fault": "smoke"}, "fault 'smoke' is none of"), ({"start": "1,2"}, "not four finite numbers"),
+                       ({"system": "learned"}, "no built-in physical system")):  # fmt: skip
+        with pytest.raises(EfficientTrackError, match=match):
+            simulated(name="bad", **bad)
+
+
+def test_an_approach_goes_the_short_way_round_at_its_speed_then_holds():
+    path = approach_path(np.array([0.0, 0.1, 0.2, 3.0]), np.array([0.1, 0.1, 0.2, -3.0]))
+    steps = np.abs(np.diff(path, axis=0))
+    steps[:, 3] = np.minimum(steps[:, 3], 2 * np.pi - steps[:, 3])
+    assert steps.max() <= APPROACH_SPEED * 0.05 + 1e-9  # 2π − 6 rad of swing through ±π, not 6 rad
+    assert np.allclose(path[-40:], [0.1, 0.1, 0.2, -3.0])
+
+
+@pytest.mark.slow
+def test_collect_on_the_simulated_machine_approaches_every_start_and_runs_every_episode(tmp_path, refs):
+    result = invoke("collect", "--refs", refs, "--out", tmp_path / "c", *machine_args(tmp_path, "collect"), "--passes", "2")
+    assert result.exit_code == 0, result.output
+    assert "collected 16 episodes" in result.output
+    for k in (0, 1):
+        logs = tmp_path / "c" / "logs" / f"pass_{k:03d}"
+        assert sorted(p.name for p in logs.glob("*.jsonl")) == [f"ref_{i:02d}.jsonl" for i in range(1, 9)]
+        approaches = sorted(p.name for p in (logs / "approach").glob("*.jsonl"))
+        assert approaches, "the machine never had to move to a start"
+        for path in (logs / "approach").glob("*.jsonl"):
+            assert json.loads(path.read_text().splitlines()[-1])["reason"] == "done"
+    records = load_records(tmp_path / "c", recursive=True)
+    assert len(records) == 16 and all(not r.meta["name"].endswith("(approach)") for r in records)
+
+
+def test_without_an_approach_an_episode_away_from_its_start_stops_and_leaves_no_empty_log(tmp_path, refs):
+    args = ("collect", "--refs", refs, "--out", tmp_path / "c", *machine_args(tmp_path, "stop"), "--passes", "1")
+    result = invoke(*args, "--between-episodes", "stop")
+    assert "from the reference's first position" in str(result.exception) and "--between-episodes approach" in str(
+        result.exception
+    )
+    logs = tmp_path / "c" / "logs" / "pass_000"
+    assert sorted(p.name for p in logs.iterdir()) == []  # the first episode starts away from where the machine stands
+    assert "expected one of approach, stop" in str(invoke(*args, "--between-episodes", "pray").exception)
+
+
+@pytest.mark.parametrize(
+    ("fault", "reason"),
+    [("read_error", "read_error"), ("send_error", "send_error"), ("stale", "stale_sensor"), ("nan", "stale_sensor"),
+     ("drop", "stale_sensor"), ("late", "overruns")],
+)  # fmt: skip
+def test_the_simulated_machines_faults_stop_a_deployment(tmp_path, refs, fault, reason):
+    one = tmp_path / "one"
+    one.mkdir()
+    (one / "ref_01.npy").write_bytes((refs / "ref_01.npy").read_bytes())
+    options = (f"fault={fault}", "fault_at=30", "fault_episode=3")  # opened: a refused start, the approach, the episode
+    result = invoke("deploy", "--refs", one, "--out", tmp_path / "d", *machine_args(tmp_path, f"fault-{fault}", *options))
+    assert result.exit_code == 1, result.output
+    assert f"stopped: ref_01: {reason}" in result.output
+
+
+def test_adapter_options_parse_numbers_and_booleans_but_keep_nan_and_inf_as_words():
+    from efficienttrack.cli.common import parse_options
+
+    parsed = parse_options(["fault=nan", "level=inf", "fault_at=30", "scale=0.5", "armed=true"], "--machine-opt")
+    assert parsed == {"fault": "nan", "level": "inf", "fault_at": 30, "scale": 0.5, "armed": True}
