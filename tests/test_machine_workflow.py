@@ -11,7 +11,7 @@ import pytest
 
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.data.records import load_records
-from efficienttrack.data.references import Reference, load_references, save_references
+from efficienttrack.data.references import Reference, save_references
 from efficienttrack.deploy.machine import SimulatedMachine
 from efficienttrack.systems.limits import DEFAULT_LIMITS
 from efficienttrack.systems.protocol import BatchedSystem
@@ -130,21 +130,22 @@ def test_collect_on_a_users_machine_adapter_runs_in_real_time_and_needs_arm_and_
 
 
 @pytest.mark.slow
-def test_from_first_collection_to_a_second_round_through_the_loop_alone(tmp_path):
-    """collect → train-model → train-policy → deploy --shadow → deploy (armed) → round, each on the loop's machine."""
-    refs = [there_and_back(f"cycle_{i}", 80, 0.3, i) for i in range(3)]
-    save_references(refs, tmp_path / "refs")
-    loop = ("--loop", "--fast", "--arm")
+def test_from_first_collection_to_a_second_round_on_the_simulated_machine(tmp_path):
+    """docs/your-machine.md's rehearsal: collect → train-model → train-policy → deploy --shadow → deploy → round, on one
+    simulated machine through --machine, which stays where each episode left it and approaches every start."""
+    assert invoke("refs", "generate", "--n", "3", "--seed", "5", "--out", tmp_path / "refs").exit_code == 0
+    (tmp_path / "limits.yaml").write_text("{}")
+    machine = ("--machine", "efficienttrack.deploy.machine:simulated", "--machine-opt", f"name={tmp_path}",
+               "--limits", tmp_path / "limits.yaml", "--arm", "--fast")  # fmt: skip
     steps = ("--preset", "tiny", "--set", "model.steps=30", "--set", "policy.steps=20")
     for args in (
-        ("collect", "--refs", tmp_path / "refs", "--out", tmp_path / "round1", *loop, "--passes", "2"),
+        ("collect", *machine, "--refs", tmp_path / "refs", "--out", tmp_path / "round1", "--passes", "2"),
         ("train-model", "--data", tmp_path / "round1", "-r", "--out", tmp_path / "model.pt", *steps),
         ("train-policy", "--model", tmp_path / "model.pt", "--data", tmp_path / "round1", "-r",
          "--out", tmp_path / "policy.pt", *steps),
-        ("deploy", "--refs", tmp_path / "refs", "--policy", tmp_path / "policy.pt", "--out", tmp_path / "shadow",
-         "--fast", "--arm", "--shadow"),
-        ("deploy", "--refs", tmp_path / "refs", "--policy", tmp_path / "policy.pt", "--out", tmp_path / "armed",
-         "--fast", "--arm"),
+        ("deploy", *machine, "--refs", tmp_path / "refs", "--policy", tmp_path / "policy.pt", "--out", tmp_path / "shadow",
+         "--shadow"),
+        ("deploy", *machine, "--refs", tmp_path / "refs", "--policy", tmp_path / "policy.pt", "--out", tmp_path / "armed"),
         ("round", "--model", tmp_path / "model.pt", "--policy", tmp_path / "policy.pt", "--data", tmp_path / "armed/records",
          "--old-data", tmp_path / "round1", "-r", "--out", tmp_path / "round2", *steps),
     ):  # fmt: skip
@@ -153,9 +154,8 @@ def test_from_first_collection_to_a_second_round_through_the_loop_alone(tmp_path
         if args[0] == "deploy":
             assert "tracking with" in result.output and "3 run(s) done" in result.output
     assert len(load_records(tmp_path / "round1", recursive=True)) == 6
+    assert list((tmp_path / "round1" / "logs" / "pass_000" / "approach").glob("*.jsonl")), "no start was approached"
     shadow = json.loads((tmp_path / "shadow" / "deploy.json").read_text())["tracking"]
     armed = json.loads((tmp_path / "armed" / "deploy.json").read_text())["tracking"]
     assert shadow["episodes"] == armed["episodes"] == 3 and shadow["mae_deg"] != armed["mae_deg"]
     assert (tmp_path / "round2" / "policy.pt").exists() and (tmp_path / "round2" / "round.json").exists()
-    loaded = load_references(tmp_path / "refs")
-    assert [r.name for r in loaded] == [r.name for r in refs]
