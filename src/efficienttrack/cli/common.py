@@ -102,7 +102,11 @@ ThreadsOpt = Annotated[
 
 
 def between(value: str) -> str:
-    """``--between-episodes``: one of :data:`~efficienttrack.deploy.deployment.BETWEEN_EPISODES`, else a clear error."""
+    """``--between-episodes``: one of :data:`~efficienttrack.deploy.deployment.BETWEEN_EPISODES`, else a clear error.
+
+    Args:
+        value: as given on the command line.
+    """
     from efficienttrack.deploy.deployment import BETWEEN_EPISODES
 
     if value not in BETWEEN_EPISODES:

@@ -263,8 +263,9 @@ class LoopResult:
 class NotAtStart(EfficientTrackError):
     """The loop refused to start: the machine stands too far from the reference's first position (nothing was sent).
 
-    Attributes:
-        position: (4,) rad, where the machine stood.
+    Args:
+        message: what the loop says.
+        position: (4,) rad, where the machine stood (kept as :attr:`position`).
     """
 
     def __init__(self, message: str, position: np.ndarray) -> None:

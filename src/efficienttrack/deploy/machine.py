@@ -174,6 +174,14 @@ class RehearsalMachine(SimulatedMachine):
 
     Built by :func:`simulated`; opening it does not reset the simulator (only its first opening does, at ``q0``), and
     on request it injects one kind of fault (:data:`FAULTS`) from read ``fault_at`` on of its ``fault_episode``-th opening.
+
+    Args:
+        system: the simulator (one machine).
+        q0: (4,) rad, where it stands at first.
+        clock: the loop's clock (for the stamps).
+        fault: one of :data:`FAULTS`, or None.
+        fault_at: the read of an opening from which on the fault is injected.
+        fault_episode: the opening (from 1) that gets it; None: every one.
     """
 
     def __init__(

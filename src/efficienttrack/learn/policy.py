@@ -363,7 +363,12 @@ class ImaginedDeployments:
         return self.obs_hist, self.qref_hist, self.data.window(self.t, horizon=0, desired=desired).qdes_future
 
     def advance(self, obs_hist: torch.Tensor, qref_hist: torch.Tensor) -> None:
-        """Move the rows on to the histories the rollout ended with (first R rows of the batch's), without gradient."""
+        """Move the rows on to the histories the rollout ended with, without gradient.
+
+        Args:
+            obs_hist: (B, h', 8) the rollout's end observation histories; the first R rows are these rows'.
+            qref_hist: (B, h', 4) its end reference histories.
+        """
         rows = len(self.t)
         self.obs_hist, self.qref_hist = obs_hist[:rows].detach(), qref_hist[:rows].detach()
         self.t = self.t + self.horizon

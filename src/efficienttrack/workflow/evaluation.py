@@ -42,7 +42,11 @@ no longer reported as EfficientTrack's: above it they are mostly the PD controll
 
 
 def check_plots(max_plots: int | None) -> None:
-    """Refuse a negative ``--plots``."""
+    """Refuse a negative ``--plots``.
+
+    Args:
+        max_plots: the number of references to plot, or None for every one.
+    """
     if max_plots is not None and max_plots < 0:
         raise EfficientTrackError(f"--plots {max_plots}: expected a number of references ≥ 0")
 
@@ -99,7 +103,27 @@ def results(
     device: torch.device | None,
     wall_seconds: float,
 ) -> dict[str, Any]:
-    """The one ``metrics.json`` schema of :func:`run_pipeline` and :func:`evaluate` (see their Returns)."""
+    """The one ``metrics.json`` schema of a run and of :func:`evaluate`.
+
+    Args:
+        system: the system evaluated on.
+        refs: the references, in the order of the records.
+        pd_records: PD alone on ``refs``.
+        et_records: the policy on ``refs``, or None without a policy.
+        interaction_steps: training interactions of the policy (I.S.), or None when not known.
+        train_seconds: the trainings' time, or None.
+        model: the model's ``{"tr_mpe_deg", "te_mpe_deg"}``, or None.
+        policy_path: the policy's checkpoint, or None.
+        config: the run's settings, or None.
+        device: where the policy ran (provenance).
+        wall_seconds: the command's time so far (provenance).
+
+    Returns:
+        ``{"pd", "efficienttrack": compute_metrics' dicts (None without a policy), "interaction_steps",
+        "interaction_hours", "train_seconds", "model", "fallbacks", "fallback_share", "warning" (:func:`fallback_share`),
+        "worse_than_pd" (:func:`worse_than_pd`), "references", "policy", "system", "config", "rounds": None,
+        "time_budget": None, "provenance"}`` (a run fills ``rounds`` and ``time_budget``).
+    """
     share, warning = fallback_share(et_records)
     pd, efficienttrack = (
         rounded(compute_metrics(pd_records)),
@@ -130,6 +154,11 @@ def record_verdict(policy_path: str | Path, metrics: dict[str, Any], log: RunLog
     """Keep the policy's measured verdict in its own config, so that copies and exports carry it (deploy's gate).
 
     A config that cannot be written (a read-only copy) gets a warning: the evaluation itself is done and kept.
+
+    Args:
+        policy_path: the policy's checkpoint.
+        metrics: its evaluation (:func:`results`).
+        log: where to warn.
     """
     evaluation = {
         "mae_deg": metrics["efficienttrack"]["mae_deg"],
@@ -155,7 +184,18 @@ def publish(
     max_plots: int | None,
     title: str,
 ) -> None:
-    """Write ``metrics.json``, the tracking plots (every reference, or the first ``max_plots``) and print the table."""
+    """Write ``metrics.json``, the tracking plots (every reference, or the first ``max_plots``) and print the table.
+
+    Args:
+        out: the folder.
+        log: where to print.
+        metrics: what :func:`results` made.
+        refs: the references, in the order of the records.
+        pd_records: PD alone on ``refs``.
+        et_records: the policy on ``refs``, or None.
+        max_plots: plot the first this many references (None: every one).
+        title: the table's title (``test``, ``evaluation``).
+    """
     write_json(out / "metrics.json", metrics)
     method = "EfficientTrack" if metrics["warning"] is None else "guard fallback (not EfficientTrack)"
     runs = {"PD": pd_records} if et_records is None else {"PD": pd_records, method: et_records}

@@ -98,7 +98,14 @@ class Ledger:
         return facts
 
     def once(self, name: str, compute: Callable[[], dict[str, Any]], k: int = 1, keys: tuple[str, ...] = ()) -> dict[str, Any]:
-        """The facts of stage ``name``: read back when finished, else ``compute()``'d and kept (a plan, a tally)."""
+        """The facts of stage ``name``: read back when finished, else ``compute()``'d and kept (a plan, a tally).
+
+        Args:
+            name: the stage.
+            compute: makes its facts.
+            k: its round.
+            keys: facts the caller reads from a finished stage's marker (:meth:`done`).
+        """
         facts = self.done(name, k, keys)
         return facts if facts is not None else self._finish(name, k, compute())
 
@@ -187,6 +194,9 @@ def _broken_marker(path: Path, name: str, problem: str) -> EfficientTrackError:
 
 def read_spent(path: Path) -> tuple[float, int, bool, dict[str, dict[str, Any]]]:
     """The run's time so far, as :data:`SPENT` keeps it; nothing spent when the file does not exist.
+
+    Args:
+        path: ``OUT/stages/time_spent.json``.
 
     Returns:
         The seconds spent, the invocations, whether the last one finished the run, and the stages begun and not finished.

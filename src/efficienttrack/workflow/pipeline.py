@@ -211,7 +211,13 @@ def demo(
     """The whole method on the built-in ``xe75`` simulator: :func:`run_pipeline` on generated references.
 
     Draws ``DEMO_REFERENCES`` loading cycles (fixed seed), trains on the first ``DEMO_TRAIN`` and tests on the rest;
-    the references are saved under ``OUT/refs/{train,test}``. ``cfg`` is ``config.DEMO`` when None.
+    the references are saved under ``OUT/refs/{train,test}``.
+
+    Args:
+        out: the run folder (resumable).
+        cfg: the run's settings; ``config.DEMO`` when None.
+        console: where to print (the same text goes to ``OUT/run.log``).
+        max_plots: draw the tracking plots of the first ``max_plots`` test references (None: every one).
     """
     refs = generate_references(DEMO_REFERENCES, seed=DEMO_SEED)
     train, test = refs[:DEMO_TRAIN], refs[DEMO_TRAIN:]

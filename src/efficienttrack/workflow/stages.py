@@ -145,6 +145,15 @@ def evaluate_stage(
 ) -> list[EpisodeRecord]:
     """Round k's stage ``evaluate_<name>``: track ``refs`` with ``pi`` (PD alone when None) into ``records/<name>``.
 
+    Args:
+        ledger: the run's ledger.
+        k: the round.
+        name: the records' folder.
+        system: the closed-loop system.
+        pi: the adjustment policy, or None.
+        refs: the references, one episode each.
+        device: where the policy runs.
+
     Returns:
         One record per reference, in the order of ``refs`` (read back when the stage finished earlier).
     """
