@@ -129,6 +129,21 @@ def test_imagined_deployments_go_on_from_the_model_and_restart_at_an_episode_sta
         assert (rows.t + 4 <= rows.end + 1).all()
 
 
+def test_an_imagined_deployment_that_leaves_the_records_tracking_errors_begins_again_at_a_recorded_window():
+    data = Sequences(lag_records(n=2, T=30), history=4, future=8)
+    generator = torch.Generator().manual_seed(1)
+    rows = ImaginedDeployments(data, data.starts(0), 3, 4, lambda n, k: torch.randint(n, (k,), generator=generator))
+    rows.t[:] = data.origin[0] + 2
+    rows.end[:] = data.origin[0] + 29
+    after = data.window(rows.t + 4, horizon=0)  # as if the model had predicted the records h steps on
+    far = after.obs_hist.clone()
+    far[0, -1, :4] += 1.0  # row 0 far beyond any tracking error of the records
+    rows.advance(far, after.qref_hist)
+    assert rows.t[1] == rows.t[2] == data.origin[0] + 6  # the others go on
+    recorded = data.window(rows.t[:1], horizon=0)
+    assert torch.equal(rows.obs_hist[:1], recorded.obs_hist) and torch.equal(rows.qref_hist[:1], recorded.qref_hist)
+
+
 def test_untrained_policy_is_the_position_controller_and_output_is_bounded():
     cfg = dataclasses.replace(POLICY_PRESETS["tiny"], max_adjust=(0.1, 0.2, 0.3, 0.4))
     policy = AdjustmentPolicy(cfg)
