@@ -257,3 +257,17 @@ def test_config_roundtrip_and_validation(tmp_path):
         with pytest.raises(EfficientTrackError, match=message):
             from_dict(data, "x.yaml")
     assert np.isclose(PRESETS["paper"].collect.sigma_max, 0.05) and PRESETS["paper"].collect.passes == 10
+
+
+def test_off_a_terminal_the_results_table_prints_whole(tmp_path, capsys):
+    from efficienttrack.data.metrics import compute_metrics, metrics_table
+    from efficienttrack.workflow.stages import LOG_WIDTH, RunLog
+
+    log = RunLog(tmp_path, None)  # pytest captures the output: not a terminal, as a script piped to a file
+    assert log.console.width == LOG_WIDTH
+    from test_dynamics import lag_records
+
+    records = lag_records(n=2, T=40)
+    log.print(metrics_table({"PD": compute_metrics(records), "EfficientTrack": compute_metrics(records)}, title="t"))
+    printed = capsys.readouterr().out
+    assert "…" not in printed and "ETD-FMAE" in printed

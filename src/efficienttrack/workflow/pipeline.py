@@ -187,13 +187,16 @@ def _report(
     )
     metrics["rounds"] = summaries
     metrics["time_budget"] = run.planner.summary()
-    curves = {
-        name: plots.TrainingCurves(read_scalars(folder / state.facts[name]["log"]), *labels)
-        for name, labels in (
-            ("model", (dynamics.LOSS_LABEL, dynamics.HELD_OUT_TAG, dynamics.HELD_OUT_LABEL)),
-            ("policy", (policy.LOSS_LABEL, policy.HELD_OUT_TAG, policy.HELD_OUT_LABEL)),
-        )
+    measured = {
+        "PD, measured test MAE": metrics["pd"]["mae_deg"],
+        "policy, measured test MAE": state.summary["efficienttrack"]["mae_deg"],
     }
+    curves = {
+        "model": plots.TrainingCurves(read_scalars(folder / state.facts["model"]["log"]), dynamics.LOSS_LABEL,
+                                      dynamics.HELD_OUT_TAG, dynamics.HELD_OUT_LABEL),
+        "policy": plots.TrainingCurves(read_scalars(folder / state.facts["policy"]["log"]), policy.LOSS_LABEL,
+                                       policy.HELD_OUT_TAG, policy.HELD_OUT_LABEL, measured),
+    }  # fmt: skip
     plots.plot_training_curves(curves, out / "plots" / "training_curves.png")
     publish(out, run.log, metrics, run.test_refs, list(run.held_out), state.test_records, max_plots, "test")
     record_verdict(folder / "policy.pt", metrics, run.log)

@@ -182,12 +182,15 @@ class TrainingCurves(NamedTuple):
         loss_label: what the loss (tag ``train/loss``) is, with its unit: the y-axis label.
         held_out_tag: the tag of the held-out figure drawn on the right axis (absent from ``scalars``: none drawn).
         held_out_label: what the held-out figure is, with its unit.
+        measured: figures measured on the system, in the held-out figure's unit, drawn as lines beside it (label →
+            value): what the policy's model-predicted figure stands for, e.g. PD's and the policy's test MAE.
     """
 
     scalars: dict[str, tuple[np.ndarray, np.ndarray]]
     loss_label: str
     held_out_tag: str
     held_out_label: str
+    measured: dict[str, float] = {}
 
 
 def _thinned(steps: np.ndarray, values: np.ndarray, points: int = CURVE_POINTS) -> tuple[np.ndarray, np.ndarray]:
@@ -220,9 +223,14 @@ def plot_training_curves(curves: dict[str, TrainingCurves], path: str | Path) ->
         ax.grid(alpha=0.3)
         if curve.held_out_tag in curve.scalars:
             right = ax.twinx()
-            right.plot(*curve.scalars[curve.held_out_tag], "o-", lw=1.2, ms=3, color="C1", label="held out")
+            right.plot(*curve.scalars[curve.held_out_tag], "o-", lw=1.2, ms=3, color="C1", label="held out (model-predicted)")
+            for (label, value), style in zip(curve.measured.items(), ("--", ":", "-."), strict=False):
+                right.axhline(value, color="k", ls=style, lw=1, label=f"{label} ({value:.2f})")
             right.set_ylabel(curve.held_out_label, color="C1")
             right.set_ylim(bottom=0)
+            right.margins(y=0.08)
+            if curve.measured:
+                right.legend(fontsize=7, loc="upper right")
     return _save(fig, path)
 
 

@@ -59,11 +59,14 @@ class RunLog:
 
     Args:
         out: the run folder.
-        console: where to print (a fresh rich console when None).
+        console: where to print (when None, a fresh rich console, :data:`LOG_WIDTH` wide when not on a terminal).
     """
 
     def __init__(self, out: Path, console: Console | None) -> None:
-        self.console = console or Console()
+        if console is None:  # off a terminal (a script's output, a pipe), as wide as the log: no column cut to "…"
+            console = Console()
+            console = console if console.is_terminal or console.is_jupyter else Console(width=LOG_WIDTH)
+        self.console = console
         self.path = out / "run.log"
 
     def header(self, command: str) -> None:
