@@ -266,3 +266,31 @@ def test_the_vector_env_takes_one_reference_per_sub_environment(short):
     np.testing.assert_allclose(obs[:, Q_NEXT], np.stack([short[2].q[1], short[0].q[1], short[1].q[1]]), atol=1e-6)
     with pytest.raises(EfficientTrackError, match="one entry per sub-environment"):
         vec.reset(options={"reference": [0, 1]})
+
+
+def test_a_loaded_policy_predicts_in_the_registered_environment_and_in_sb3s_evaluate_policy(short, tmp_path):
+    import dataclasses
+
+    import torch
+    from stable_baselines3.common.evaluation import evaluate_policy
+    from stable_baselines3.common.monitor import Monitor
+
+    from efficienttrack.learn.policy import POLICY_PRESETS, AdjustmentPolicy, load_policy, save_policy
+
+    cfg = dataclasses.replace(POLICY_PRESETS["tiny"], max_adjust=SystemSpec().open().limits.max_adjust)
+    made = AdjustmentPolicy(cfg)
+    torch.nn.init.normal_(made.pi_phi.body[-1].weight, std=0.5)  # not a = 0
+    policy = load_policy(save_policy(made, tmp_path / "policy.pt"))
+    env = gymnasium.make(CLOSED_LOOP_ID, system="xe75", refs=short)
+    obs, _ = env.reset(seed=0)
+    action, state = policy.predict(obs)
+    assert action.shape == (4,) and state is None and np.all(np.abs(action) <= 1) and np.any(action != 0)
+    h = 4  # the policy sees the last h of the environment's 21 observations and references, and the first 4 q*
+    o, r, q = obs[: H * 8].reshape(H, 8), obs[H * 8 : H * 12].reshape(H, 4), obs[H * 12 :].reshape(-1, 4)
+    with torch.no_grad():
+        a = policy(*(torch.as_tensor(x[None]) for x in (o[-h:], r[-h:], q[:4]))).numpy()[0]
+    np.testing.assert_allclose(action, a / np.asarray(cfg.max_adjust), rtol=1e-5)
+    mean, _ = evaluate_policy(policy, Monitor(env), n_eval_episodes=2)
+    assert np.isfinite(mean)
+    with pytest.raises(EfficientTrackError, match="is not h·8 \\+ h·4"):
+        policy.predict(obs[:-3])

@@ -27,5 +27,8 @@ MAX_ABS_VELOCITY = 20.0
 the XE75's logs stay below 3 rad/s."""
 PWM_SCALE = 1000.0
 """The valve commands' range, ±1000 PWM; the open loop's actions and the plant model's inputs are PWM / 1000."""
+ENV_FUTURE = 20
+"""F of the environments' observation by default, the paper's (:data:`efficienttrack.envs.core.FUTURE`); an agent that
+reads their flat observation (``AdjustmentPolicy.predict``) splits it with it."""
 MAX_HORIZON = 400
 """Longest horizon, history or future a config or an environment may ask for: 20 s at 20 Hz (the paper: 20 steps)."""

@@ -39,7 +39,7 @@ import numpy as np
 
 from efficienttrack.core.angles import wrap
 from efficienttrack.core.errors import EfficientTrackError
-from efficienttrack.core.joints import MAX_HORIZON, N_JOINTS, OBS_DIM, PWM_SCALE
+from efficienttrack.core.joints import ENV_FUTURE, MAX_HORIZON, N_JOINTS, OBS_DIM, PWM_SCALE
 from efficienttrack.data.cycles import generate_references
 from efficienttrack.data.references import Reference, load_references
 from efficienttrack.data.windows import History, initial_history, pad_time_major, push_observation, push_reference
@@ -53,7 +53,7 @@ HISTORY = 21
 """h of the baselines' observation, the past observations and references (or actions) the agent sees: 21, as in the
 research code's comparison (its 332-value observation). EfficientTrack's own networks see ``PolicyConfig.horizon`` (the
 paper's h = 20) and ``ModelConfig.history_length``."""
-FUTURE = 20
+FUTURE = ENV_FUTURE
 """F, the desired positions ahead the agent sees, as in the paper."""
 REWARD_WEIGHT = 5.0
 """Weight of each reward term."""

@@ -39,7 +39,7 @@ from torch import nn
 
 from efficienttrack.core.angles import wrap
 from efficienttrack.core.errors import EfficientTrackError
-from efficienttrack.core.joints import MAX_HORIZON
+from efficienttrack.core.joints import ENV_FUTURE, MAX_HORIZON
 from efficienttrack.core.settings import setting
 from efficienttrack.data.dataset import Sequences
 from efficienttrack.data.features import feature_width, relative_features
@@ -206,6 +206,52 @@ class AdjustmentPolicy(nn.Module):
             (B, 4) rad, the adjustment a_t, |a| < max_adjust per joint.
         """
         return self.pi_phi(self.features(self._features(obs_hist, qref_hist, qdes_future)))
+
+    @torch.no_grad()
+    def predict(
+        self,
+        observation: np.ndarray,
+        state: object = None,
+        episode_start: object = None,
+        deterministic: bool = True,
+        future: int | None = None,
+    ) -> tuple[np.ndarray, object]:
+        """The policy as an agent of the environments (``EfficientTrack/ClosedLoop-v0``, SB3's ``evaluate_policy``).
+
+        Args:
+            observation: (D,) or (N, D), the environments' flat observation (:func:`efficienttrack.envs.core.observe`:
+                h observations, h references, F desired positions), h ≥ the policy's history.
+            state: passed back (the policy has no recurrent state).
+            episode_start: not used (the observation holds the histories).
+            deterministic: not used (the policy is deterministic).
+            future: F of the observation (the environments' default, :data:`~efficienttrack.core.joints.ENV_FUTURE`, when
+                None), ≥ the policy's.
+
+        Returns:
+            (4,) or (N, 4), the action a / max_adjust ∈ [−1, 1] (the environments' scale: the adjustment for ±1 is the
+            system's ``max_adjust``, the policy's bound when the system's is the same), and ``state``.
+
+        Raises:
+            EfficientTrackError: an observation whose size fits no history h with that F.
+        """
+        obs = np.asarray(observation, dtype=np.float32)
+        batch = np.atleast_2d(obs)
+        n, size = batch.shape
+        F = ENV_FUTURE if future is None else future
+        h, rest = divmod(size - 4 * F, 12)
+        if rest or h < self.cfg.history_length or F < self.cfg.future_length:
+            raise EfficientTrackError(
+                f"predict: an observation of {size} values is not h·8 + h·4 + {F}·4 with h ≥ {self.cfg.history_length} "
+                f"and {F} ≥ the policy's F = {self.cfg.future_length} (give future= when the environment's F is not {F})"
+            )
+        device = next(self.parameters()).device
+        parts = np.split(batch, [8 * h, 12 * h], axis=1)
+        obs_hist, qref_hist, qdes_future = (
+            torch.as_tensor(part, device=device).reshape(n, -1, width) for part, width in zip(parts, (8, 4, 4), strict=True)
+        )
+        a = self(obs_hist, qref_hist, qdes_future).cpu().numpy()
+        actions = np.clip(a / self._bound(self.cfg).numpy(), -1.0, 1.0)
+        return (actions[0] if obs.ndim == 1 else actions), state
 
     def _features(self, obs_hist: torch.Tensor, qref_hist: torch.Tensor, qdes_future: torch.Tensor) -> torch.Tensor:
         h, F = seen_lengths(self.cfg)
