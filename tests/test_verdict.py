@@ -79,3 +79,18 @@ def test_a_policy_config_that_cannot_be_written_is_a_warning_after_the_evaluatio
     assert result.exit_code == 0, result.output
     assert "warning: the verdict is not kept with the policy" in result.output
     assert json.loads((tmp_path / "eval" / "metrics.json").read_text())["worse_than_pd"] is not None
+
+
+def test_an_unproven_policy_is_armed_only_after_a_passing_shadow_run_or_with_accept_worse(deploy_inputs, tmp_path):  # noqa: F811
+    refs, policy = deploy_inputs  # a policy as train-policy writes it: never evaluated
+    armed = ("deploy", "--refs", refs, "--policy", policy, "--fast", "--arm")
+    refused = invoke(*armed, "--out", tmp_path / "armed")
+    assert "unproven: no evaluation and no shadow deployment of it is recorded" in str(refused.exception)
+    assert not (tmp_path / "armed").exists()
+    accepted = invoke(*armed, "--out", tmp_path / "accepted", "--accept-worse")
+    assert accepted.exit_code == 0 and "unproven (never evaluated" in accepted.output
+    shadow = invoke(*armed, "--out", tmp_path / "shadow", "--shadow")
+    assert shadow.exit_code == 0, shadow.output
+    record = json.loads(policy.with_suffix(".json").read_text())["shadow"]
+    assert record["runs"] == 2 and record["deployment"] == str((tmp_path / "shadow").resolve())
+    assert invoke(*armed, "--out", tmp_path / "armed").exit_code == 0  # a passing shadow run proves it enough to arm

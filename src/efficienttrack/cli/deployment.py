@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Annotated
 
@@ -90,7 +91,11 @@ def deploy_command(
     ] = LOOP.stop_stale_ticks,
     accept_worse: Annotated[
         bool,
-        typer.Option("--accept-worse", help="Arm a policy whose recorded evaluation tracked worse than PD (refused without)."),
+        typer.Option(
+            "--accept-worse",
+            help="Arm a policy whose recorded evaluation tracked worse than PD, or that is unproven (never evaluated, no "
+            "shadow run): refused without.",
+        ),
     ] = False,
     device: Annotated[str, typer.Option("--device", help="cpu, cuda or auto.")] = "cpu",
     force: Annotated[
@@ -113,6 +118,8 @@ def deploy_command(
         deployed_tracking,
         machine_parts,
         policy_runtime,
+        proven,
+        record_shadow,
         recorded_verdict,
     )
 
@@ -135,6 +142,14 @@ def deploy_command(
         )
     if verdict is not None:
         typer.secho(f"warning: {policy}: {verdict}", fg=typer.colors.RED, err=True)
+    if policy is not None and not shadow and not proven(policy):
+        if not accept_worse:
+            raise EfficientTrackError(
+                f"{policy}: unproven: no evaluation and no shadow deployment of it is recorded, so it is not armed: run it "
+                "with --shadow first (a run of every reference is then recorded with it), or evaluate it "
+                "(efficienttrack evaluate --policy), or add --accept-worse to move the machine with it all the same"
+            )
+        typer.secho(f"warning: {policy}: unproven (never evaluated, never run in shadow mode)", fg=typer.colors.RED, err=True)
     _lock(ctx, out, resumable=False)  # the loop stops the machine and says what it wrote
     if force or not (out / DEPLOY_JSON).exists():  # an earlier deployment with the same settings resumes
         prepare_output_folder(out, DEPLOY_OUTPUTS, force)
@@ -158,6 +173,13 @@ def deploy_command(
     if results[-1].stopped:
         typer.secho(f"stopped: {results[-1].name}: {results[-1].reason}; logs in {out}", fg=typer.colors.RED, err=True)
         raise typer.Exit(1)
+    if shadow and policy is not None:  # every reference ran to its end: the policy has passed a shadow run
+        facts = {"deployment": str(out.resolve()), "runs": len(references), "machine": machine or spec.system_name,
+                 "when": datetime.now(UTC).isoformat(timespec="seconds")}  # fmt: skip
+        try:
+            record_shadow(policy, facts)
+        except EfficientTrackError as exc:
+            typer.secho(f"warning: the shadow run is not kept with the policy ({exc})", fg=typer.colors.RED, err=True)
     tracking = deployed_tracking(out)
     if tracking is not None:
         sent = "the raw reference (the controller alone)" if shadow else "the policy's references"

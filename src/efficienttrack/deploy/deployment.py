@@ -46,6 +46,8 @@ UNUSABLE_TICK_EVENTS = frozenset({"dropped", "nonfinite", "stale"})
 """Loop events of a tick whose reading is missing or old: no record row (:func:`records_from_log`)."""
 
 
+SHADOW_JSON = "shadow.json"
+"""Where an export folder keeps its passing shadow deployment (:func:`record_shadow`; a checkpoint keeps it in its JSON)."""
 BETWEEN_EPISODES = ("approach", "stop")
 """What happens when the machine is not at a reference's start: a slow approach through the loop, or a stop."""
 APPROACH_SPEED = 0.1
@@ -469,10 +471,47 @@ def recorded_verdict(policy: str | Path | None) -> str | None:
     if policy is None:
         return None
     path = Path(policy).resolve()
-    own = _own_evaluation(path)
-    if own is not None:
-        verdict = own.get("worse_than_pd")
-        return verdict if isinstance(verdict, str) else None
+    record = _own_record(path, "evaluation") or _testing_run(path)
+    verdict = None if record is None else record.get("worse_than_pd")
+    return verdict if isinstance(verdict, str) else None
+
+
+def proven(policy: str | Path) -> bool:
+    """Whether anything shows how ``policy`` behaves: an evaluation, or a shadow deployment run to its end.
+
+    The evaluation is the policy's own record or the run's that tested it (:func:`recorded_verdict`), the shadow
+    deployment one that ran every reference (:func:`record_shadow`). A policy without either is unproven.
+
+    Args:
+        policy: a ``policy.pt`` or an export folder.
+    """
+    path = Path(policy).resolve()
+    return any(
+        record is not None for record in (_own_record(path, "evaluation"), _own_record(path, "shadow"), _testing_run(path))
+    )
+
+
+def record_shadow(policy: str | Path, facts: dict[str, Any]) -> None:
+    """Keep a passing shadow deployment with the policy: in its JSON config (``"shadow"``), or ``shadow.json`` in an export.
+
+    Args:
+        policy: the policy deployed (a ``policy.pt`` or an export folder).
+        facts: what the shadow deployment was (its folder, runs, machine, when).
+
+    Raises:
+        EfficientTrackError: the record cannot be written (a read-only copy).
+    """
+    path = Path(policy)
+    target = path / SHADOW_JSON if path.is_dir() else path.with_suffix(".json")
+    try:
+        meta = {} if path.is_dir() else json.loads(target.read_text())
+        write_json(target, {**meta, "shadow": facts})
+    except (OSError, ValueError) as exc:
+        raise EfficientTrackError(f"{target}: cannot record the shadow deployment with the policy ({exc})") from exc
+
+
+def _testing_run(path: Path) -> dict[str, Any] | None:
+    """The ``metrics.json`` of the run that evaluated the policy at ``path`` (its folder or two levels up), or None."""
     for folder in list(path.parents)[:3]:
         try:
             metrics = json.loads((folder / "metrics.json").read_text())
@@ -481,27 +520,26 @@ def recorded_verdict(policy: str | Path | None) -> str | None:
         tested = metrics.get("policy") if isinstance(metrics, dict) else None
         inside = (folder.name, *path.relative_to(folder).parts)  # the run wrote the path as given: compare from OUT on
         if isinstance(tested, str) and Path(tested).parts[-len(inside) :] == inside:
-            verdict = metrics.get("worse_than_pd")
-            return verdict if isinstance(verdict, str) else None
+            return metrics
     return None
 
 
-def _own_evaluation(path: Path) -> dict[str, Any] | None:
-    """The evaluation a policy checkpoint (``policy.pt`` → ``policy.json``) or an export (its contract) carries, or None."""
+def _own_record(path: Path, key: str) -> dict[str, Any] | None:
+    """What a checkpoint's JSON (or an export's contract ``source``, or its ``shadow.json``) records under ``key``."""
     if path.is_dir():  # an export, run by ONNX Runtime: its module's import is needed to deploy it anyway
         from efficienttrack.deploy.onnx_runtime import CONTRACT_FILE
 
-        meta = path / CONTRACT_FILE
+        meta = path / (SHADOW_JSON if key == "shadow" else CONTRACT_FILE)
     else:
         meta = path.with_suffix(".json")
     try:
         data = json.loads(meta.read_text())
     except (OSError, ValueError):
         return None
-    if path.is_dir():
+    if path.is_dir() and key != "shadow":
         data = data.get("source") if isinstance(data, dict) else None
-    evaluation = data.get("evaluation") if isinstance(data, dict) else None
-    return evaluation if isinstance(evaluation, dict) else None
+    record = data.get(key) if isinstance(data, dict) else None
+    return record if isinstance(record, dict) else None
 
 
 def machine_parts(
