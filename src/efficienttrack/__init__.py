@@ -19,7 +19,7 @@ __version__ = "0.1.0"
 
 API: dict[str, tuple[str, str]] = {
     "run": ("efficienttrack.workflow.pipeline", "run_pipeline"),
-    "evaluate": ("efficienttrack.workflow.pipeline", "evaluate"),
+    "evaluate": ("efficienttrack.workflow.evaluation", "evaluate"),
     "demo": ("efficienttrack.workflow.pipeline", "demo"),
     "collect": ("efficienttrack.workflow.collect", "collect"),
     "train_model": ("efficienttrack.learn.dynamics", "train_model"),
