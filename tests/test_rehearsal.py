@@ -100,3 +100,23 @@ def test_adapter_options_parse_numbers_and_booleans_but_keep_nan_and_inf_as_word
 
     parsed = parse_options(["fault=nan", "level=inf", "fault_at=30", "scale=0.5", "armed=true"], "--machine-opt")
     assert parsed == {"fault": "nan", "level": "inf", "fault_at": 30, "scale": 0.5, "armed": True}
+
+
+def test_homed_references_start_and_end_at_home_led_in_and_out_slowly(tmp_path):
+    from efficienttrack.data.cycles import HOME_SPEED, generate_references, homed
+    from efficienttrack.data.references import load_references
+
+    home = np.array([0.1, -0.5, 1.0, 3.1])
+    cycles = generate_references(2, seed=4)
+    for ref, cycle in zip(homed(cycles, home), cycles, strict=True):
+        assert np.allclose(ref.q[0], home) and np.allclose(ref.q[-1], home)
+        lead_in = len(ref.q) - len(cycle.q)
+        inside = next(i for i in range(lead_in) if np.allclose(ref.q[i : i + len(cycle.q)], cycle.q))
+        step = np.abs(np.diff(ref.q[: inside + 1], axis=0))
+        step[:, 3] = np.minimum(step[:, 3], 2 * np.pi - step[:, 3])  # the swing goes the short way through ±π
+        assert step.max() <= HOME_SPEED * 0.05 + 1e-9
+    assert invoke("refs", "generate", "--n", "3", "--home", "0.1,-0.5,1.0,0.0", "--out", tmp_path / "refs").exit_code == 0
+    assert all(np.allclose(r.q[[0, -1]], [0.1, -0.5, 1.0, 0.0]) for r in load_references(tmp_path / "refs"))
+    assert "--home '1,2': expected four finite numbers" in str(
+        invoke("refs", "generate", "--home", "1,2", "--out", tmp_path / "x").exception
+    )

@@ -25,6 +25,7 @@ from efficienttrack.cli.common import (
     app,
     between,
     parse_options,
+    parse_pose,
     wide_console,
 )
 from efficienttrack.core.errors import EfficientTrackError
@@ -49,6 +50,14 @@ def refs_generate_command(
     n: Annotated[int, typer.Option("--n", help="Number of references.")] = 40,
     seed: Annotated[int, typer.Option("--seed", help="Random seed.")] = 0,
     preset_name: Annotated[str, typer.Option("--preset", help="Cycle generator preset (xe75).")] = "xe75",
+    home: Annotated[
+        str | None,
+        typer.Option(
+            "--home",
+            help="'q_boom,q_arm,q_bucket,q_swing' rad: every reference starts and ends at this pose (a slow move in and "
+            "out), so a machine stands at each next start.",
+        ),
+    ] = None,
     force: Annotated[
         bool,
         typer.Option(
@@ -59,11 +68,13 @@ def refs_generate_command(
     ] = False,
 ) -> None:
     """Draw operator-like loading cycles (15–25 s at 20 Hz) and write them as ref_XX.npy."""
-    from efficienttrack.data.cycles import generate_references
+    from efficienttrack.data.cycles import generate_references, homed
     from efficienttrack.data.references import SUFFIXES, save_references
 
     check_output_folder(out)
     refs = generate_references(n, seed, preset_name)
+    if home is not None:
+        refs = homed(refs, parse_pose(home, "--home"))
     prepare_output_folder(out, (*(f"*{suffix}" for suffix in SUFFIXES), REFERENCES_PLOT), force)
     save_references(refs, out)
     durations = [ref.duration for ref in refs]
