@@ -43,7 +43,7 @@ def test_the_library_defaults_are_the_cpu_preset():
 @pytest.mark.parametrize(
     ("make", "message"),
     [
-        (lambda: RunConfig(device="gpu"), "RunConfig.device must be one of auto, cpu, cuda, got 'gpu'"),
+        (lambda: RunConfig(device="gpu"), "RunConfig.device must be one of auto, cpu, cuda, cuda:N, got 'gpu'"),
         (lambda: RunConfig(rounds=0), "RunConfig.rounds must be an integer in [1, 100], got 0"),
         (lambda: ModelConfig(lr=1e300), "ModelConfig.lr must be a finite number in (0, 10], got 1e+300"),
         (lambda: PolicyConfig(horizon=1), "PolicyConfig.horizon must be an integer in [2, 400], got 1"),
@@ -65,7 +65,7 @@ def test_a_value_given_in_python_is_converted_as_from_a_file():
 
 def test_the_device_a_file_gives_is_refused_as_in_python(tmp_path):
     (tmp_path / "c.yaml").write_text("device: gpu\n")
-    with pytest.raises(EfficientTrackError, match=r"c.yaml: device must be one of auto, cpu, cuda, got 'gpu'"):
+    with pytest.raises(EfficientTrackError, match=r"c.yaml: device must be one of auto, cpu, cuda, cuda:N, got 'gpu'"):
         load_config(tmp_path / "c.yaml")
 
 
@@ -130,7 +130,7 @@ def test_the_tree_lists_every_leaf_with_its_bounds():
     assert rows["model.lr"] == (1e-3, "in (0, 10]")
     assert rows["model.history"] == (5, "in [1, 400] or null")
     assert rows["policy.max_adjust"][1] == "4 numbers, each > 0"
-    assert rows["device"] == ("auto", "one of auto, cpu, cuda")
+    assert rows["device"] == ("auto", "one of auto, cpu, cuda, cuda:N")
     assert (
         len(rows)
         == len(dataclasses.fields(CollectConfig))
@@ -236,3 +236,14 @@ def test_the_earlier_preset_names_are_read_with_a_warning(tmp_path):
     refs = sine_refs([40, 40])
     with pytest.warns(FutureWarning):
         assert make_study(SystemSpec(), refs[:1], refs[1:], preset="quick").preset == "tiny"
+
+
+def test_one_device_definition_admits_what_resolve_device_accepts():
+    from efficienttrack.learn.nets import resolve_device
+
+    assert RunConfig(device="cuda:1").device == "cuda:1"  # a second GPU is a device like the first
+    for name in ("gpu", "cuda:", "cuda:x", "meta", "CPU"):
+        with pytest.raises(EfficientTrackError, match="one of auto, cpu, cuda, cuda:N"):
+            RunConfig(device=name)
+        with pytest.raises(EfficientTrackError, match=f"--device '{name}': expected one of auto, cpu, cuda, cuda:N"):
+            resolve_device(name)

@@ -10,6 +10,7 @@ of settings with each field's bounds (``efficienttrack config show``).
 
 from __future__ import annotations
 
+import re
 import reprlib
 import types
 import warnings
@@ -24,6 +25,10 @@ from efficienttrack.core.errors import EfficientTrackError
 
 SettingsT = TypeVar("SettingsT")
 
+DEVICE = (r"auto|cpu|cuda(:\d+)?", "one of auto, cpu, cuda, cuda:N")
+"""The one definition of a device name: where torch runs (``auto``: CUDA when there is one); a :func:`setting`'s
+``pattern``, and what :func:`~efficienttrack.learn.nets.resolve_device` accepts."""
+
 
 @dataclass(frozen=True)
 class Bounds:
@@ -35,6 +40,7 @@ class Bounds:
         le: largest value allowed (inclusive), or None.
         choices: the only values allowed (strings), or None.
         length: a tuple's number of elements, or None for any.
+        pattern: a regular expression a string must match whole, and how a reader names what it admits; or None.
     """
 
     ge: float | None = None
@@ -42,11 +48,14 @@ class Bounds:
     le: float | None = None
     choices: tuple[str, ...] | None = None
     length: int | None = None
+    pattern: tuple[str, str] | None = None
 
     def admits(self, value: Any) -> bool:
         """Whether one (scalar) value lies within the bounds."""
         if self.choices is not None:
             return value in self.choices
+        if self.pattern is not None:
+            return isinstance(value, str) and re.fullmatch(self.pattern[0], value) is not None
         return (
             (self.ge is None or value >= self.ge)
             and (self.gt is None or value > self.gt)
@@ -57,6 +66,8 @@ class Bounds:
         """The bounds as a reader would write them: ``in (0, 10]``, ``≥ 1``, ``one of auto, cpu, cuda``; ``""`` if none."""
         if self.choices is not None:
             return f"one of {', '.join(self.choices)}"
+        if self.pattern is not None:
+            return self.pattern[1]
         low = f"[{_number(self.ge)}" if self.ge is not None else f"({_number(self.gt)}" if self.gt is not None else None
         if low is not None and self.le is not None:
             return f"in {low}, {_number(self.le)}]"
@@ -90,6 +101,7 @@ def setting(
     le: float | None = None,
     choices: Sequence[str] | None = None,
     length: int | None = None,
+    pattern: tuple[str, str] | None = None,
     added_later: bool = False,
 ) -> Any:
     """A dataclass field with its bounds, checked by :func:`check_fields` (arguments as :class:`Bounds`).
@@ -102,13 +114,14 @@ def setting(
         le: largest value allowed.
         choices: the only values allowed.
         length: a tuple's number of elements.
+        pattern: (regular expression a string must match whole, what it admits in words), e.g. :data:`DEVICE`.
         added_later: the field came after folders were first written with its class: :func:`plain_form` leaves it out
             at its default, so that those folders still match their settings and resume.
 
     Returns:
         The field, to assign in the class body: ``lr: float = setting(1e-3, gt=0, le=MAX_LR)``.
     """
-    bounds = Bounds(ge, gt, le, tuple(choices) if choices is not None else None, length)
+    bounds = Bounds(ge, gt, le, tuple(choices) if choices is not None else None, length, pattern)
     metadata = {"bounds": bounds, "added_later": added_later}
     return field(default=default, default_factory=default_factory, metadata=metadata)
 
@@ -256,7 +269,8 @@ def _scalar(hint: Any, value: Any, where: str, bounds: Bounds | None) -> Any:
         raise EfficientTrackError(f"{where}: unsupported settings type {hint}")
     if not ok or (bounds is not None and not bounds.admits(value)):
         described = bounds.describe() if bounds is not None else ""
-        expected = described if bounds is not None and bounds.choices is not None else f"{kind} {described}".rstrip()
+        named = bounds is not None and (bounds.choices is not None or bounds.pattern is not None)
+        expected = described if named else f"{kind} {described}".rstrip()
         raise EfficientTrackError(f"{where} must be {expected}, got {shown(value)}")
     return float(value) if hint is float and type(value) is not float else value
 

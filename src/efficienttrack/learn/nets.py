@@ -10,6 +10,7 @@ import torch
 from torch import nn
 
 from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.settings import DEVICE, Bounds
 from efficienttrack.data.features import STD_FLOOR
 
 ConfigT = TypeVar("ConfigT")
@@ -94,14 +95,11 @@ def resolve_device(device: str | torch.device = "auto") -> torch.device:
     """
     if isinstance(device, torch.device):
         return device
+    if not Bounds(pattern=DEVICE).admits(device):
+        raise EfficientTrackError(f"--device '{device}': expected {DEVICE[1]}")
     if device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        resolved = torch.device(device)
-    except RuntimeError as exc:
-        raise EfficientTrackError(f"--device '{device}': expected auto, cpu, cuda or cuda:N ({exc})") from exc
-    if resolved.type not in ("cpu", "cuda"):
-        raise EfficientTrackError(f"--device '{device}': expected auto, cpu, cuda or cuda:N")
+    resolved = torch.device(device)
     if resolved.type == "cuda" and not torch.cuda.is_available():
         raise EfficientTrackError(f"--device '{device}': CUDA is not available on this machine (use auto or cpu)")
     return resolved

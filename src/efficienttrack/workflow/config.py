@@ -22,7 +22,7 @@ import yaml
 from efficienttrack.core.configfile import MAX_SEED, read_mapping_file
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import atomic_write, write_json
-from efficienttrack.core.settings import check_fields, merge, parse_override, plain_form, setting, settings_from_dict
+from efficienttrack.core.settings import DEVICE, check_fields, merge, parse_override, plain_form, setting, settings_from_dict
 from efficienttrack.learn.dynamics import MODEL_PRESETS, ModelConfig
 from efficienttrack.learn.policy import POLICY_PRESETS, PolicyConfig
 from efficienttrack.workflow.collect import CollectConfig
@@ -31,7 +31,6 @@ MAX_ROUNDS = 100
 """Most continual-learning rounds a run may ask for (the paper: 3)."""
 ROUND_DATA = ("all", "new")
 """What a later round may train on: every episode so far, or only its own deployment pass."""
-DEVICES = ("auto", "cpu", "cuda")
 """Torch devices a run may name: ``auto`` takes CUDA when present."""
 
 
@@ -47,7 +46,7 @@ class RunConfig:
     """Adjustment policy π_φ and its training."""
     seed: int = setting(0, ge=0, le=MAX_SEED)
     """The run's one seed: of the collection noise (``collect.seed`` follows it), of model and policy training."""
-    device: str = setting("auto", choices=DEVICES)
+    device: str = setting("auto", pattern=DEVICE)
     """Torch device: ``auto`` (CUDA when available), ``cpu`` or ``cuda``."""
     rounds: int = setting(1, ge=1, le=MAX_ROUNDS)
     """Continual-learning rounds: round 1 is Algorithm 1; each later round deploys the previous policy on the
