@@ -39,7 +39,7 @@ def test_the_simulated_machine_stays_where_its_last_episode_left_it():
         assert np.allclose(again.read().obs[:4], moved)
     with simulated(name="another", clock=clock) as other:
         assert not np.allclose(other.read().obs[:4], moved)
-    for bad, match in (({"fault": "smoke"}, "fault 'smoke' is none of"), ({"start": "1,2"}, "not four finite numbers"),
+    for bad, match in (({"fault": "smoke"}, "fault 'smoke' is none of"), ({"start": "1,2"}, "expected four finite numbers"),
                        ({"system": "learned"}, "no built-in physical system")):  # fmt: skip
         with pytest.raises(EfficientTrackError, match=match):
             simulated(name="bad", **bad)
@@ -51,6 +51,8 @@ def test_an_approach_goes_the_short_way_round_at_its_speed_then_holds():
     steps[:, 3] = np.minimum(steps[:, 3], 2 * np.pi - steps[:, 3])
     assert steps.max() <= APPROACH_SPEED * 0.05 + 1e-9  # 2π − 6 rad of swing through ±π, not 6 rad
     assert np.allclose(path[-40:], [0.1, 0.1, 0.2, -3.0])
+    bucket = approach_path(np.array([0.0, 0.0, -1.0, 0.0]), np.array([0.0, 0.0, 3.0, 0.0]))[:, 2]
+    assert np.all(np.diff(bucket) >= 0) and bucket[-1] == pytest.approx(3.0)  # only the swing wraps: 4 rad up, not 2.3 down
 
 
 @pytest.mark.slow

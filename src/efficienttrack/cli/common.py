@@ -8,7 +8,6 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated
 
-import numpy as np
 import typer
 from rich.console import Console
 
@@ -100,22 +99,6 @@ ThreadsOpt = Annotated[
     int,
     typer.Option("--threads", help="torch CPU threads (1: fastest for cpu-preset networks on 2 shared cores; 0: default)."),
 ]
-
-
-def parse_pose(text: str, flag: str) -> np.ndarray:
-    """``"q_boom,q_arm,q_bucket,q_swing"`` (rad) as a (4,) array, else a clear error naming ``flag``.
-
-    Args:
-        text: as given on the command line.
-        flag: the option, for the error.
-    """
-    try:
-        pose = np.array([float(value) for value in text.split(",")])
-    except ValueError as exc:
-        raise EfficientTrackError(f"{flag} '{text}': expected four numbers in rad, boom,arm,bucket,swing ({exc})") from exc
-    if pose.shape != (4,) or not np.all(np.isfinite(pose)):
-        raise EfficientTrackError(f"{flag} '{text}': expected four finite numbers in rad, boom,arm,bucket,swing")
-    return pose
 
 
 def between(value: str) -> str:

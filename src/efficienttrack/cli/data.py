@@ -25,7 +25,6 @@ from efficienttrack.cli.common import (
     app,
     between,
     parse_options,
-    parse_pose,
     wide_console,
 )
 from efficienttrack.core.errors import EfficientTrackError
@@ -68,6 +67,7 @@ def refs_generate_command(
     ] = False,
 ) -> None:
     """Draw operator-like loading cycles (15–25 s at 20 Hz) and write them as ref_XX.npy."""
+    from efficienttrack.core.angles import parse_pose
     from efficienttrack.data.cycles import generate_references, homed
     from efficienttrack.data.references import SUFFIXES, save_references
 

@@ -28,7 +28,7 @@ import numpy as np
 from efficienttrack.core.angles import wrap
 from efficienttrack.core.configfile import check_seed
 from efficienttrack.core.errors import EfficientTrackError
-from efficienttrack.core.joints import DT
+from efficienttrack.core.joints import DT, SWING
 from efficienttrack.data.references import Reference
 
 Range = tuple[float, float]
@@ -273,14 +273,37 @@ HOME_SPEED = 0.3
 """rad/s, the peak speed of the joint that moves farthest on a move between home and a cycle (:func:`homed`)."""
 
 
+def joint_move(q_from: np.ndarray, q_to: np.ndarray, peak_speed: float, dt: float = DT) -> np.ndarray:
+    """A move from rest to rest in joint space, a half-cosine speed profile; the swing goes the short way round.
+
+    ``peak_speed`` is reached on the joint that moves farthest; the others move slower, all arriving together.
+
+    Args:
+        q_from: (4,) rad, where the move starts (not in the result).
+        q_to: (4,) rad, where it ends (the last row).
+        peak_speed: rad/s, > 0.
+        dt: s, the step.
+
+    Returns:
+        (K, 4) rad, K ≥ 1.
+    """
+    q_from = np.asarray(q_from, dtype=np.float64)
+    delta = np.asarray(q_to, dtype=np.float64) - q_from
+    delta[SWING] = wrap(delta[SWING])
+    steps = max(int(np.ceil(np.abs(delta).max() * np.pi / 2 / (peak_speed * dt))), 1)
+    shape = (1 - np.cos(np.pi * np.arange(1, steps + 1) / steps)) / 2
+    path = q_from + shape[:, None] * delta
+    path[:, SWING] = wrap(path[:, SWING])
+    return path
+
+
 def homed(refs: list[Reference], home: np.ndarray) -> list[Reference]:
     """The references, each led in from ``home`` and back to it, so that every one starts and ends at that pose.
 
     A machine that ends one episode at home stands near the next one's start, so the approach between episodes is
     short (the xe75 simulator's position controller still stops its swing up to 0.23 rad short of home, beyond the
-    loop's 0.1 rad start tolerance, so there it is still needed).
-    Each move is a half-cosine speed profile (at rest at both ends), :data:`HOME_SPEED` at its peak on the joint that
-    moves farthest; the swing goes the short way round.
+    loop's 0.1 rad start tolerance, so there it is still needed). Each move is a :func:`joint_move` at
+    :data:`HOME_SPEED`.
 
     Args:
         refs: the references, q (T, 4) rad.
@@ -290,17 +313,11 @@ def homed(refs: list[Reference], home: np.ndarray) -> list[Reference]:
         The references, named as before, q (M + T + N, 4) rad.
     """
     home = np.asarray(home, dtype=np.float64)
-
-    def move(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # (K, 4) from a (excluded) to b (included)
-        delta = wrap(b - a)
-        steps = max(int(np.ceil(np.abs(delta).max() * np.pi / 2 / (HOME_SPEED * DT))), 1)
-        shape = (1 - np.cos(np.pi * np.arange(1, steps + 1) / steps)) / 2
-        path = a + shape[:, None] * delta
-        path[:, 3] = wrap(path[:, 3])
-        return path
-
-    return [Reference(ref.name, np.concatenate([home[None], move(home, ref.q[0])[:-1], ref.q, move(ref.q[-1], home)]))
-            for ref in refs]  # fmt: skip
+    return [
+        Reference(ref.name, np.concatenate([home[None], joint_move(home, ref.q[0], HOME_SPEED)[:-1], ref.q,
+                                            joint_move(ref.q[-1], home, HOME_SPEED)]))
+        for ref in refs
+    ]  # fmt: skip
 
 
 @dataclass(frozen=True)

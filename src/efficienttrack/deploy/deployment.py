@@ -27,6 +27,7 @@ from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import write_json
 from efficienttrack.core.joints import DT, SWING
 from efficienttrack.core.provenance import differences
+from efficienttrack.data.cycles import joint_move
 from efficienttrack.data.metrics import MIN_STEPS, compute_metrics
 from efficienttrack.data.records import EpisodeRecord, load_records
 from efficienttrack.data.references import Reference
@@ -51,7 +52,7 @@ SHADOW_JSON = "shadow.json"
 BETWEEN_EPISODES = ("approach", "stop")
 """What happens when the machine is not at a reference's start: a slow approach through the loop, or a stop."""
 APPROACH_SPEED = 0.1
-"""rad/s of the joint that moves farthest on an approach (the others slower, all arriving together)."""
+"""rad/s, the peak speed of the joint that moves farthest on an approach (the others slower, all arriving together)."""
 APPROACH_HOLD = 2.0
 """s an approach holds the reference's start, for the position controller to settle there."""
 APPROACH_PUSH = 1.0
@@ -62,21 +63,19 @@ APPROACH_TRIES = 3
 
 
 def approach_path(q_from: np.ndarray, q_to: np.ndarray, dt: float = DT) -> np.ndarray:
-    """The references of an approach: a straight line in joint space at :data:`APPROACH_SPEED`, then a hold.
+    """The references of an approach: a :func:`~efficienttrack.data.cycles.joint_move`, then a hold.
+
+    The move peaks at :data:`APPROACH_SPEED`; the hold lasts :data:`APPROACH_HOLD`.
 
     Args:
         q_from: (4,) rad, where the machine stands.
-        q_to: (4,) rad, where it should be (a reference's start); the swing goes the short way round.
+        q_to: (4,) rad, where it should be (a reference's start).
         dt: s, the control period.
 
     Returns:
         (L, 4) rad: ``q_from`` … ``q_to``, then :data:`APPROACH_HOLD` s of ``q_to``.
     """
-    delta = np.asarray(q_to, dtype=np.float64) - q_from
-    delta[SWING] = wrap(delta[SWING])
-    steps = max(int(np.ceil(np.abs(delta).max() / (APPROACH_SPEED * dt))), 1)
-    path = q_from + np.linspace(0.0, 1.0, steps + 1)[:, None] * delta
-    path[:, SWING] = wrap(path[:, SWING])
+    path = np.concatenate([np.asarray(q_from, dtype=np.float64)[None], joint_move(q_from, q_to, APPROACH_SPEED, dt)])
     return np.concatenate([path, np.repeat(path[-1:], int(round(APPROACH_HOLD / dt)), axis=0)])
 
 

@@ -13,6 +13,7 @@ from typing import NamedTuple, Protocol
 
 import numpy as np
 
+from efficienttrack.core.angles import parse_pose
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.systems.spec import BUILTIN_SYSTEMS, SystemSpec
@@ -172,49 +173,39 @@ that takes three control periods, a read that raises, a send that raises."""
 class RehearsalMachine(SimulatedMachine):
     """A simulated machine that behaves as a real one: opened many times, it goes on from where it stood.
 
-    Built by :func:`simulated`; opening it does not reset the simulator (only its first opening does, at ``q0``), and
-    on request it injects one kind of fault (:data:`FAULTS`) from read ``fault_at`` on of its ``fault_episode``-th opening.
+    Built by :func:`simulated`, which also sets its fault: opening it does not reset the simulator (only its first
+    opening does, at ``q0``), and on request it injects one kind of fault (:data:`FAULTS`) from read ``fault_at`` on of
+    its ``fault_episode``-th opening (every opening when None).
 
     Args:
         system: the simulator (one machine).
         q0: (4,) rad, where it stands at first.
-        clock: the loop's clock (for the stamps).
-        fault: one of :data:`FAULTS`, or None.
-        fault_at: the read of an opening from which on the fault is injected.
-        fault_episode: the opening (from 1) that gets it; None: every one.
+        kind: the built-in system it simulates (:func:`simulated`'s ``system``).
     """
 
-    def __init__(
-        self, system: BatchedSystem, q0: np.ndarray, clock: Clock, fault: str | None, fault_at: int, fault_episode: int | None
-    ) -> None:
-        super().__init__(system, q0, clock)
-        self.fault, self.fault_at, self.fault_episode = fault, fault_at, fault_episode
+    def __init__(self, system: BatchedSystem, q0: np.ndarray, kind: str) -> None:
+        super().__init__(system, q0)
+        self.kind = kind
+        self.fault: str | None = None
+        self.fault_at = 0
+        self.fault_episode: int | None = None
         self.openings, self.reads = 0, 0
-        self.kind = ""
-        """The built-in system it simulates (:func:`simulated`'s ``system``)."""
         self._frozen: Reading | None = None
-        self._state: np.ndarray | None = None
 
     def __enter__(self) -> RehearsalMachine:
-        """Open: reset the simulator at ``q0`` the first time; later, go on from the last state."""
-        if self._state is None:
+        """Open: reset the simulator at ``q0`` the first time; later, go on from where it stands."""
+        if self.openings == 0:
             super().__enter__()
-        else:
-            self._obs = self._state
         self.openings, self.reads, self._frozen = self.openings + 1, 0, None
         return self
 
     def __exit__(self, *exc: object) -> None:
         """Close; the machine stays where it is."""
-        self._state = self._obs
-        super().__exit__(*exc)
 
     def read(self) -> Reading | None:
         """The simulator's state, stamped now, or the fault asked for."""
         k, self.reads = self.reads, self.reads + 1
-        faulty = self.fault is not None and k >= self.fault_at
-        faulty = faulty and (self.fault_episode is None or self.openings == self.fault_episode)
-        if not faulty:
+        if not self._faulty(k):
             return self.state()
         if self.fault == "read_error":
             raise OSError("simulated fault: the sensor bus does not answer")
@@ -232,10 +223,14 @@ class RehearsalMachine(SimulatedMachine):
 
     def send(self, q_ref: np.ndarray) -> np.ndarray:
         """One simulator step towards ``q_ref`` (4,) rad, or the send fault asked for."""
-        if self.fault == "send_error" and self.reads > self.fault_at:
-            if self.fault_episode is None or self.openings == self.fault_episode:
-                raise OSError("simulated fault: the valve driver refused the command")
+        if self.fault == "send_error" and self._faulty(self.reads - 1):
+            raise OSError("simulated fault: the valve driver refused the command")
         return super().send(q_ref)
+
+    def _faulty(self, k: int) -> bool:
+        """Whether the fault applies at read ``k`` of this opening."""
+        opening = self.fault_episode is None or self.openings == self.fault_episode
+        return self.fault is not None and k >= self.fault_at and opening
 
 
 _MACHINES: dict[str, RehearsalMachine] = {}
@@ -279,19 +274,7 @@ def simulated(
     if machine is None or machine.kind != system:
         physics = SystemSpec(system=system).open()
         lo, hi = np.asarray(physics.limits.q_min), np.asarray(physics.limits.q_max)
-        q0 = np.clip((lo + hi) / 2, -1.0, 1.0) if start is None else _start(start)
-        machine = RehearsalMachine(physics, q0, clock, fault, int(fault_at), fault_episode)
-        machine.kind = system
-        _MACHINES[name] = machine
+        q0 = np.clip((lo + hi) / 2, -1.0, 1.0) if start is None else parse_pose(start, "simulated machine: start")
+        machine = _MACHINES[name] = RehearsalMachine(physics, q0, system)
     machine.clock, machine.fault, machine.fault_at, machine.fault_episode = clock, fault, int(fault_at), fault_episode
     return machine
-
-
-def _start(text: str) -> np.ndarray:
-    try:
-        q0 = np.array([float(value) for value in str(text).split(",")])
-    except ValueError as exc:
-        raise EfficientTrackError(f"simulated machine: start '{text}' is not four numbers in rad ({exc})") from exc
-    if q0.shape != (4,) or not np.all(np.isfinite(q0)):
-        raise EfficientTrackError(f"simulated machine: start '{text}' is not four finite numbers in rad")
-    return q0
