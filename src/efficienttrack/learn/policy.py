@@ -404,8 +404,7 @@ class ImaginedDeployments:
         self.bound = wrap(data.obs[:, :4] - data.q_des).abs().amax(0)
         """(4,) rad, the largest tracking error of the records per joint."""
         self.t = starts[sample(len(starts), rows).to(starts.device)]
-        episode = torch.searchsorted(data.origin.to(self.t.device), self.t, right=True) - 1
-        self.end = (data.origin + data.lengths - 1).to(self.t.device)[episode]
+        self.end = self._last_step(self.t)
         window = data.window(self.t, horizon=0)
         self.obs_hist, self.qref_hist = window.obs_hist, window.qref_hist
 
@@ -432,11 +431,15 @@ class ImaginedDeployments:
         if len(over):  # at the episode's end: begin a deployment at a random episode's start
             self._begin(over, self.data.origin.to(device)[self.sample(len(self.data.origin), len(over)).to(device)])
 
+    def _last_step(self, t: torch.Tensor) -> torch.Tensor:
+        """(R,) flat index of the last step of the episode that holds each flat index of ``t`` (R,)."""
+        origin = self.data.origin.to(t.device)
+        episode = torch.searchsorted(origin, t, right=True) - 1
+        return origin[episode] + self.data.lengths.to(t.device)[episode] - 1
+
     def _begin(self, rows: torch.Tensor, t: torch.Tensor) -> None:
         """Restart ``rows`` at flat indices ``t``, from the recorded histories there."""
-        episode = torch.searchsorted(self.data.origin.to(t.device), t, right=True) - 1
-        self.t[rows] = t
-        self.end[rows] = (self.data.origin + self.data.lengths - 1).to(t.device)[episode]
+        self.t[rows], self.end[rows] = t, self._last_step(t)
         window = self.data.window(t, horizon=0)
         self.obs_hist[rows], self.qref_hist[rows] = window.obs_hist, window.qref_hist
 
