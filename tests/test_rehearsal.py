@@ -60,6 +60,7 @@ def test_collect_on_the_simulated_machine_approaches_every_start_and_runs_every_
     result = invoke("collect", "--refs", refs, "--out", tmp_path / "c", *machine_args(tmp_path, "collect"), "--passes", "2")
     assert result.exit_code == 0, result.output
     assert "collected 16 episodes" in result.output
+    assert "the machine stands" in result.output and "approaching it through the loop (try 1 of 3" in result.output
     for k in (0, 1):
         logs = tmp_path / "c" / "logs" / f"pass_{k:03d}"
         assert sorted(p.name for p in logs.glob("*.jsonl")) == [f"ref_{i:02d}.jsonl" for i in range(1, 9)]

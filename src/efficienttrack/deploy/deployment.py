@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import inspect
 import json
+import sys
 import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -142,6 +143,11 @@ def run_episode(
         except NotAtStart as away:
             if between != "approach" or tries == APPROACH_TRIES:
                 raise
+            gap = np.abs(away.position - ref.q[0])
+            gap[SWING] = abs(wrap(gap[SWING]))
+            log = logs / "approach" / f"{ref.name}.jsonl"  # the machine moves unasked for by a reference: say so
+            print(f"{ref.name}: the machine stands {gap.max():.3f} rad from the start; approaching it through the loop "
+                  f"(try {tries + 1} of {APPROACH_TRIES}; log {log})", file=sys.stderr)  # fmt: skip
             approached = approach(ref, away, make_machine, limits, cfg, clock, logs)
             if approached.stopped:
                 return approached
