@@ -40,7 +40,8 @@ def test_the_simulated_machine_stays_where_its_last_episode_left_it():
     with simulated(name="another", clock=clock) as other:
         assert not np.allclose(other.read().obs[:4], moved)
     for bad, match in (({"fault": "smoke"}, "fault 'smoke' is none of"), ({"start": "1,2"}, "expected four finite numbers"),
-                       ({"system": "learned"}, "no built-in physical system")):  # fmt: skip
+                       ({"system": "learned"}, "no built-in physical system"),
+                       ({"fault_episode": "two"}, "fault_episode must be a whole number")):  # fmt: skip
         with pytest.raises(EfficientTrackError, match=match):
             simulated(name="bad", **bad)
 

@@ -264,10 +264,14 @@ def simulated(
         clock: the loop's clock (the runner passes it: a simulated one under ``--fast``).
 
     Raises:
-        EfficientTrackError: an unknown system or fault, or a start that is not four numbers.
+        EfficientTrackError: an unknown system or fault, a fault tick or opening that is no whole number ≥ 0, or a start
+            that is not four numbers.
     """
     if fault is not None and fault not in FAULTS:
         raise EfficientTrackError(f"simulated machine: fault '{fault}' is none of {', '.join(FAULTS)}")
+    for option, value in (("fault_at", fault_at), ("fault_episode", fault_episode)):
+        if value is not None and (not isinstance(value, int) or isinstance(value, bool) or value < 0):
+            raise EfficientTrackError(f"simulated machine: {option} must be a whole number ≥ 0, got {value!r}")
     if system not in BUILTIN_SYSTEMS or system == "learned":
         raise EfficientTrackError(f"simulated machine: system '{system}' is no built-in physical system (xe75, paper)")
     machine = _MACHINES.get(name)
@@ -276,5 +280,5 @@ def simulated(
         lo, hi = np.asarray(physics.limits.q_min), np.asarray(physics.limits.q_max)
         q0 = np.clip((lo + hi) / 2, -1.0, 1.0) if start is None else parse_pose(start, "simulated machine: start")
         machine = _MACHINES[name] = RehearsalMachine(physics, q0, system)
-    machine.clock, machine.fault, machine.fault_at, machine.fault_episode = clock, fault, int(fault_at), fault_episode
+    machine.clock, machine.fault, machine.fault_at, machine.fault_episode = clock, fault, fault_at, fault_episode
     return machine
