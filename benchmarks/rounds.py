@@ -9,6 +9,7 @@ checked against them: the issue's target is three fastset rounds within 15 minut
 
     .venv/bin/python benchmarks/rounds.py --presets cpu fastset --seeds 0 1 2 --out runs/bench_rounds
     .venv/bin/python benchmarks/rounds.py --presets fastset --time-budget 15 --threads 2 --out runs/bench_budget
+    .venv/bin/python benchmarks/rounds.py --presets fastset --set policy.imagined_share=0.5 --out runs/bench_im
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from rich.console import Console
 from rich.table import Table
 
 from efficienttrack.core.fileio import write_json
+from efficienttrack.core.settings import merge, parse_override
 from efficienttrack.data.cycles import generate_references
 from efficienttrack.systems.spec import SystemSpec
 from efficienttrack.workflow.config import PRESETS, RunConfig, amend
@@ -75,7 +77,17 @@ def main() -> None:
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     parser.add_argument("--time-budget", type=float, default=None, help="minutes per run (default: no budget)")
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SECTION.FIELD=VALUE",
+        help="change one setting of every run, as the command line's --set (repeatable)",
+    )
     args = parser.parse_args()
+    changes: dict[str, Any] = {}
+    for text in args.set:
+        changes = merge(changes, parse_override(text))
     if args.threads:
         torch.set_num_threads(args.threads)
     refs = generate_references(DEMO_REFERENCES, seed=DEMO_SEED)
@@ -87,7 +99,8 @@ def main() -> None:
         runs, walls = [], []
         for seed in args.seeds:
             options = {"seed": seed, "device": args.device, "rounds": args.rounds, "time_budget": args.time_budget}
-            cfg = amend(base, {name: value for name, value in options.items() if value is not None}, "benchmarks/rounds.py")
+            given = {name: value for name, value in options.items() if value is not None}
+            cfg = amend(base, merge(changes, given), "benchmarks/rounds.py")
             start = time.perf_counter()
             runs.append(run_pipeline(SystemSpec(), train, test, args.out / name / f"seed_{seed}", cfg, console).metrics)
             walls.append(time.perf_counter() - start)

@@ -5,7 +5,7 @@ import dataclasses
 import pytest
 
 from efficienttrack.core.errors import EfficientTrackError
-from efficienttrack.core.settings import parse_override, settings_table
+from efficienttrack.core.settings import check_fields, parse_override, plain_form, setting, settings_from_dict, settings_table
 from efficienttrack.learn import dynamics, policy
 from efficienttrack.learn.dynamics import MODEL_PRESETS, ClosedLoopModel, ModelConfig, save_model
 from efficienttrack.learn.policy import POLICY_PRESETS, AdjustmentPolicy, PolicyConfig, save_policy
@@ -247,3 +247,23 @@ def test_one_device_definition_admits_what_resolve_device_accepts():
             RunConfig(device=name)
         with pytest.raises(EfficientTrackError, match=f"--device '{name}': expected one of auto, cpu, cuda, cuda:N"):
             resolve_device(name)
+
+
+@dataclasses.dataclass(frozen=True)
+class Grown:
+    """A settings class whose field ``share`` came later with a default (0.5) other than what the code did before (0)."""
+
+    lr: float = setting(1e-3, gt=0)
+    share: float = setting(0.5, ge=0, le=1, before=0.0)
+
+    def __post_init__(self) -> None:
+        check_fields(self)
+
+
+def test_a_field_added_later_with_a_new_default_reads_old_stored_forms_as_they_were_made():
+    assert plain_form(Grown()) == {"lr": 1e-3, "share": 0.5}  # the default differs from the past: kept, so compared
+    assert plain_form(Grown(share=0.0)) == {"lr": 1e-3}  # the past's value: left out, as old folders stored it
+    old = {"lr": 1e-3}  # written before the field existed
+    assert settings_from_dict(Grown, old, "policy.json", stored=True).share == 0.0
+    assert settings_from_dict(Grown, old, "a user's config").share == 0.5  # what a user leaves out takes the default
+    assert settings_from_dict(Grown, {"lr": 1e-3, "share": 0.5}, "policy.json", stored=True).share == 0.5

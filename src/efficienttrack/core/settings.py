@@ -102,7 +102,7 @@ def setting(
     choices: Sequence[str] | None = None,
     length: int | None = None,
     pattern: tuple[str, str] | None = None,
-    added_later: bool = False,
+    before: Any = MISSING,
 ) -> Any:
     """A dataclass field with its bounds, checked by :func:`check_fields` (arguments as :class:`Bounds`).
 
@@ -115,22 +115,24 @@ def setting(
         choices: the only values allowed.
         length: a tuple's number of elements.
         pattern: (regular expression a string must match whole, what it admits in words), e.g. :data:`DEVICE`.
-        added_later: the field came after folders were first written with its class: :func:`plain_form` leaves it out
-            at its default, so that those folders still match their settings and resume.
+        before: for a field added after folders were first written with its class, the value the code had in effect
+            before it (what those folders were made with, default or not): :func:`plain_form` leaves the field out at
+            that value, so that those folders still match their settings and resume, and a stored form read with
+            ``settings_from_dict(..., stored=True)`` takes it where the field is absent.
 
     Returns:
         The field, to assign in the class body: ``lr: float = setting(1e-3, gt=0, le=MAX_LR)``.
     """
     bounds = Bounds(ge, gt, le, tuple(choices) if choices is not None else None, length, pattern)
-    metadata = {"bounds": bounds, "added_later": added_later}
+    metadata = {"bounds": bounds, "before": before}
     return field(default=default, default_factory=default_factory, metadata=metadata)
 
 
 def plain_form(settings: Any) -> dict[str, Any]:
-    """A settings tree as plain JSON/YAML data (tuples become lists), each ``added_later`` field left out at its default.
+    """A settings tree as plain JSON/YAML data (tuples become lists), a field added later left out at its ``before`` value.
 
-    This is the form a folder's identity is compared in: a field added later does not change the identity of
-    settings that leave it at its default.
+    This is the form a folder's identity is compared in and checkpoints store: a field added later does not change the
+    identity of settings that keep what the code did before it.
 
     Args:
         settings: a settings dataclass (nested sections are converted the same way).
@@ -141,7 +143,7 @@ def plain_form(settings: Any) -> dict[str, Any]:
     data: dict[str, Any] = {}
     for spec in fields(settings):
         value = getattr(settings, spec.name)
-        if spec.metadata.get("added_later") and value == spec.default:
+        if spec.metadata.get("before", MISSING) is not MISSING and value == spec.metadata["before"]:
             continue
         if is_dataclass(value):
             data[spec.name] = plain_form(value)
@@ -275,7 +277,7 @@ def _scalar(hint: Any, value: Any, where: str, bounds: Bounds | None) -> Any:
     return float(value) if hint is float and type(value) is not float else value
 
 
-def settings_from_dict(cls: type[SettingsT], data: Any, source: str, path: str = "") -> SettingsT:
+def settings_from_dict(cls: type[SettingsT], data: Any, source: str, path: str = "", stored: bool = False) -> SettingsT:
     """Build settings class ``cls`` from a JSON/YAML mapping: unknown names refused, nested sections built the same way.
 
     Args:
@@ -283,6 +285,8 @@ def settings_from_dict(cls: type[SettingsT], data: Any, source: str, path: str =
         data: field name → value; fields not given keep their defaults.
         source: the file or option the data came from, named in messages.
         path: where ``cls`` sits in the tree (``"model."``), prefixed to field names in messages.
+        stored: ``data`` is a :func:`plain_form` the package wrote (a checkpoint's config): a field added later that it
+            lacks takes its ``before`` value, what the code did when it was written, not today's default.
 
     Returns:
         The settings.
@@ -301,11 +305,14 @@ def settings_from_dict(cls: type[SettingsT], data: Any, source: str, path: str =
             f"{source}: unknown {cls.__name__} field(s) {', '.join(path + name for name in unknown)}; known: "
             f"{', '.join(sorted(names))}"
         )
+    if stored:
+        data = {name: spec.metadata["before"] for name, spec in names.items()
+                if spec.metadata.get("before", MISSING) is not MISSING} | data  # fmt: skip
     values: dict[str, Any] = {}
     for name, value in data.items():
         hint = _hints(cls)[name]
         if is_dataclass(hint) and isinstance(hint, type):
-            values[name] = settings_from_dict(hint, value, source, f"{path}{name}.")
+            values[name] = settings_from_dict(hint, value, source, f"{path}{name}.", stored)
         else:
             values[name] = coerce(hint, value, f"{source}: {path}{name}", names[name].metadata.get("bounds"))
     try:

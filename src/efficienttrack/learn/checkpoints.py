@@ -173,7 +173,7 @@ def load_checkpoint(
     Args:
         path: the checkpoint file; its JSON config must lie next to it.
         kind: the expected kind.
-        config: reads the JSON config, field by field, naming its source in errors (a config class's ``from_dict``).
+        config: reads the JSON config, field by field, naming its source in errors (a config class's ``from_stored``).
         network: builds the network from its config (the module class).
         device: where to put the network (``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or a torch device).
 

@@ -396,4 +396,4 @@ def load_model(
         device: where to put the model (``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or a torch device).
         network: the class saved: :class:`ClosedLoopModel` or :class:`PlantModel` (a file of the other is refused).
     """
-    return load_checkpoint(path, network.kind, ModelConfig.from_dict, network, device)
+    return load_checkpoint(path, network.kind, ModelConfig.from_stored, network, device)

@@ -85,14 +85,14 @@ class PolicyConfig(TrainingSchedule):
     """k_smooth: weight of the action-smoothness regularizer (paper 1.0)."""
     max_adjust: tuple[float, ...] = setting(XE75_MAX_ADJUST, gt=0, length=4)
     """(4,) rad, bound of |a| per joint (boom, arm, bucket, swing)."""
-    burn_in: int = setting(0, ge=0, le=MAX_HORIZON, added_later=True)
+    burn_in: int = setting(0, ge=0, le=MAX_HORIZON, before=0)
     """B: steps the policy drives the frozen model from each training start, without gradient, before the loss's h
     steps, so that the histories the loss sees hold the policy's own adjustments, as when deployed (0: the paper's,
     the histories are the recorded ones)."""
-    burn_in_share: float = setting(1.0, gt=0, le=1, added_later=True)
+    burn_in_share: float = setting(1.0, gt=0, le=1, before=1.0)
     """With ``burn_in``: the share of each batch's windows that get the burn-in; the others start from the recorded
     histories, at any step of an episode, its first B included (1: all windows are burned in)."""
-    imagined_share: float = setting(0.0, ge=0, le=1, added_later=True)
+    imagined_share: float = setting(0.0, ge=0, le=1, before=0.0)
     """Share of each batch whose rows go on through an imagined deployment, h steps per optimizer step: each row
     continues from where the frozen model, driven by the policy, left it at the previous step (gradients truncated
     there), and restarts at a random episode's start after its end. The loss then sees the policy's own closed loop as
@@ -647,4 +647,4 @@ def load_policy(
         device: where to put the policy (``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or a torch device).
         network: the class saved: :class:`AdjustmentPolicy` or :class:`PWMPolicy` (a file of the other is refused).
     """
-    return load_checkpoint(path, network.kind, PolicyConfig.from_dict, network, device)
+    return load_checkpoint(path, network.kind, PolicyConfig.from_stored, network, device)

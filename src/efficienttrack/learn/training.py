@@ -122,6 +122,19 @@ class TrainingSchedule:
         """
         return settings_from_dict(cls, data, source or cls.__name__)
 
+    @classmethod
+    def from_stored(cls, data: dict, source: str | None = None) -> Self:
+        """Read back the config a checkpoint stored: a field added later that it lacks takes its ``before`` value.
+
+        Unlike :meth:`from_dict`, which fills a missing field with today's default, this gives what the code did when
+        the checkpoint was written.
+
+        Args:
+            data: the checkpoint's config (:func:`~efficienttrack.core.settings.plain_form`).
+            source: where ``data`` came from, named in error messages (the class name when None).
+        """
+        return settings_from_dict(cls, data, source or cls.__name__, stored=True)
+
 
 def fingerprint(records: Sequence[EpisodeRecord], seed: int, *networks: nn.Module | None) -> str:
     """SHA-256 identity of a training run's inputs: the records' arrays, the seed and the networks it starts from.

@@ -68,7 +68,7 @@ class CollectConfig:
     """Upper bound σ_max of the per-episode noise level σ ~ U(0, σ_max), rad."""
     noise_ratio: tuple[float, float] = setting((9.0, 2.0), ge=0, length=2)
     """Noisy episodes : clean episodes, as relative weights (the paper's best mix is 9:2)."""
-    noise_rho: float = setting(0.0, ge=0, le=MAX_NOISE_RHO, added_later=True)
+    noise_rho: float = setting(0.0, ge=0, le=MAX_NOISE_RHO, before=0.0)
     """ρ: correlation of consecutive steps of n_t, AR(1) with stationary std σ (0: the paper's white noise). A
     hydraulic joint follows slow noise and averages white noise out, so correlated noise moves it further off the
     reference at the same σ."""

@@ -57,7 +57,7 @@ class RunConfig:
     warm_budget: float = setting(0.5, gt=0)
     """Optimizer steps (or epochs) of a later round's trainings, as a share of round 1's: they start from the
     previous round's networks and need fewer."""
-    time_budget: float | None = setting(None, gt=0, added_later=True)
+    time_budget: float | None = setting(None, gt=0, before=None)
     """Minutes of wall time for the whole run, all rounds (``--time-budget``): every training's optimizer steps are
     scaled down by one factor, from step times measured on this machine when training starts
     (:mod:`efficienttrack.workflow.time_budget`); None: the configured steps."""
