@@ -55,7 +55,7 @@ def run_main(argv: list[str], monkeypatch, capsys) -> tuple[int | str | None, st
 
 def test_joint_range_is_the_range_seen_widened_by_the_margin():
     q = ramp(-0.2, 0.3)
-    q[10, 1] = -0.4  # q_ref and q_des count too: the arm is sent lower than it ever was
+    q[8:13, 1] = [-0.2, -0.3, -0.4, -0.3, -0.2]  # q_ref and q_des count too: the arm is sent lower than it ever was
     rec = record(ramp(-0.2, 0.3))
     rec.q_ref = q
     limits, reasons = propose_limits([rec], margin=0.05)
@@ -91,9 +91,28 @@ def test_an_isolated_spike_does_not_reach_the_limits_and_is_reported():
     assert not log_stats([steep]).spikes
 
 
+def test_a_jump_no_machine_makes_refuses_the_proposal_and_says_where():
+    long_glitch = record(ramp(-0.2, 0.3))
+    long_glitch.q[20:22, 0] = 6.0  # two samples: no spike, but a jump there and back
+    with pytest.raises(EfficientTrackError, match=r"2 jump\(s\) .*ep at 1\.00 s: q boom moved at 120\.200 rad/s, 601×"):
+        propose_limits([long_glitch])
+    offset = record(ramp(-0.2, 0.3), name="offset")
+    offset.q_ref[30:, 3] += 0.5  # a reference that steps by 0.5 rad and stays there
+    with pytest.raises(EfficientTrackError, match=r"1 jump\(s\).*offset at 1\.50 s: q_ref swing moved at 10\.\d+ rad/s"):
+        propose_limits([offset])
+    fast = record(ramp(-0.2, 0.3), qd=np.full((51, 4), 0.1))
+    fast.qd[10:13, 1] = 5.0  # three samples of 5 rad/s, 50× what the arm's sensor ever reads
+    with pytest.raises(EfficientTrackError, match="qd arm moved at 5.000 rad/s"):
+        propose_limits([fast])
+    slow = record(ramp(-0.2, 0.3))
+    slow.q[20:22, 0] += 0.04  # 0.8 rad/s: below the floor, however still the rest is
+    assert not log_stats([slow]).jumps
+
+
 @pytest.mark.skipif(not PD_LOGS.is_dir(), reason="the real XE75 logs are not here (../shared/data/xe75)")
-def test_no_sample_of_the_real_logs_is_taken_for_a_spike():
-    assert log_stats(load_records(PD_LOGS)).spikes == ()
+def test_no_sample_of_the_real_logs_is_taken_for_a_spike_or_a_jump():
+    stats = log_stats(load_records(PD_LOGS))
+    assert stats.spikes == () and stats.jumps == ()
 
 
 def test_the_range_stays_within_two_pi():
@@ -214,6 +233,15 @@ def test_from_logs_prints_why_and_writes_a_file_that_loads_as_proposed(tmp_path,
     code, _, err = run_main(["limits", "--from-logs", tmp_path / "logs", "--out", tmp_path / "xe.json"], monkeypatch, capsys)
     assert code == 0, err
     assert json.loads((tmp_path / "xe.json").read_text())["q_min"][0] == pytest.approx(-0.25)
+
+
+def test_from_logs_with_a_jump_writes_nothing_and_says_where(tmp_path, monkeypatch, capsys):
+    glitchy = record(ramp(-0.2, 0.3), name="ep_07")
+    glitchy.q[20:22, 0] = 6.0
+    save_records([glitchy], tmp_path / "logs")
+    code, _, err = run_main(["limits", "--from-logs", tmp_path / "logs", "--out", tmp_path / "xe.yaml"], monkeypatch, capsys)
+    assert code != 0 and "ep_07 at 1.00 s: q boom moved at 120.200 rad/s" in err and "Traceback" not in err
+    assert not (tmp_path / "xe.yaml").exists()
 
 
 def test_check_prints_a_good_file_per_joint_in_degrees_and_radians(tmp_path, monkeypatch, capsys):

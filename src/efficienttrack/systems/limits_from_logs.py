@@ -27,6 +27,14 @@ leaves both its neighbours and comes back, sticking out beyond their span by mor
 and time. On the real XE75's 640 episodes the highest such excursion is 0.08 rad (the noisy references' ``q_ref``),
 0.02 rad for ``q`` and 0.37 rad/s for ``qd``: none is dropped.
 
+**Jumps no machine makes refuse the proposal**: a glitch longer than one sample, or a sensor offset, is no spike but
+moves a joint faster than its logged motion ever does. Where one move between two samples (of ``q``, ``q_ref`` or
+``q_des``) or one ``|qd|`` is more than :data:`JUMP_FACTOR` times the 90th percentile of that channel's logged values
+(a percentile a glitch of up to a tenth of the samples does not move) and above :data:`JUMP_FLOOR`, no limits are
+proposed: the error names the episode, time, channel and joint, so that the log can be cut or mended. On the real
+XE75's 640 episodes the largest such ratio is 6.8 (the arm's ``q_ref``), 8.6 on the episodes of
+``policy_round1_train`` alone.
+
 Proposed values are rounded outward to :data:`DECIMALS` decimals (never tighter than the rule, but for float round-off
 within :data:`ROUNDING_SLACK`, and none with a zero margin). The proposal returns one line per field saying what was
 seen and which margin or factor made the value.
@@ -71,6 +79,10 @@ SPIKE_HEIGHT = {"q": 0.5, "q_ref": 0.5, "q_des": 0.5, "qd": 3.0}
 """rad (rad/s for ``qd``): how far one sample may stick out beyond both neighbours' span before it is a glitch."""
 SHOWN_SPIKES = 5
 """Dropped spikes named one by one in the report; the rest are counted."""
+JUMP_FACTOR = 20.0
+"""A move (or ``|qd|``) more than this many times its channel's 90th percentile is a jump no machine makes."""
+JUMP_FLOOR = 1.0
+"""rad/s: below this speed a move is never taken for a jump (a joint that hardly moved has a tiny percentile)."""
 
 
 @dataclass(frozen=True)
@@ -89,6 +101,8 @@ class LogStats:
         top_adjust_step: (4,) rad, largest ``|Δ(q_ref − q_des)|`` from one step to the next within an episode.
         longest_repeat: longest run of steps whose observation (``q``, ``qd``) equals the previous one bit for bit.
         spikes: the isolated spikes left out of every rule, each ``"<episode> at <t> s: <field> <joint> <value>"``.
+        jumps: the moves no machine makes (module docstring), each ``"<episode> at <t> s: <field> <joint> moved at
+            <speed> rad/s, <ratio>× its 90th percentile"``.
     """
 
     episodes: int
@@ -102,6 +116,30 @@ class LogStats:
     top_adjust_step: np.ndarray
     longest_repeat: int
     spikes: tuple[str, ...] = ()
+    jumps: tuple[str, ...] = ()
+
+
+def jumps(speeds: np.ndarray, names: np.ndarray, times: np.ndarray, field: str) -> list[str]:
+    """The speeds of one channel that are jumps no machine makes (module docstring), described.
+
+    Args:
+        speeds: (M, 4) rad/s, the channel's moves ``|Δq| / DT`` (or ``|qd|``), spikes and episode seams left out.
+        names: (M,) the episode of each.
+        times: (M,) s, the time of each (the later sample of a move).
+        field: the channel's name, for the description.
+
+    Returns:
+        One description per jump, in sample order.
+    """
+    if not len(speeds):
+        return []
+    usual = np.quantile(speeds, 0.9, axis=0, method="lower")  # (4,)
+    out = (speeds > JUMP_FACTOR * usual) & (speeds > JUMP_FLOOR)
+    return [
+        f"{names[i]} at {times[i]:.2f} s: {field} {JOINT_NAMES[j]} moved at {speeds[i, j]:.3f} rad/s, "
+        f"{speeds[i, j] / usual[j] if usual[j] > 0 else math.inf:.0f}× its 90th percentile {usual[j]:.3f} rad/s"
+        for i, j in np.argwhere(out)
+    ]
 
 
 def isolated_spikes(records: Sequence[EpisodeRecord]) -> tuple[np.ndarray, list[str]]:
@@ -161,6 +199,13 @@ def log_stats(records: Sequence[EpisodeRecord]) -> LogStats:
     adjust[:, SWING] = wrap(adjust[:, SWING])
     adjust_step = np.abs(np.diff(adjust, axis=0))
     adjust_step[:, SWING] = np.abs(wrap(np.diff(adjust[:, SWING])))
+    names = np.concatenate([np.full(len(r), str(r.meta.get("name", "?"))) for r in records])
+    times = np.concatenate([r.t for r in records])
+    speeds = np.abs(step) / DT
+    speeds[..., SWING] = np.abs(wrap(step[..., SWING])) / DT
+    jumped = [line for k, name in enumerate(POSITION_FIELDS)
+              for line in jumps(speeds[k][within], names[1:][within], times[1:][within], name)]  # fmt: skip
+    jumped += jumps(np.abs(qd[kept]), names[kept], times[kept], "qd")
     obs = np.concatenate([np.concatenate([r.q for r in records]), qd], axis=1)
     repeats = np.all(obs[1:] == obs[:-1], axis=1) & within
     edges = np.diff(np.concatenate([[0], repeats.astype(np.int8), [0]]))  # +1 where a run starts, −1 after it ends
@@ -177,6 +222,7 @@ def log_stats(records: Sequence[EpisodeRecord]) -> LogStats:
         top_adjust_step=np.max(adjust_step[within], axis=0, initial=0.0),
         longest_repeat=int(runs.max(initial=0)),
         spikes=tuple(spikes),
+        jumps=tuple(jumped),
     )
 
 
@@ -237,10 +283,19 @@ def propose_limits(
         factor applied, values in rad.
 
     Raises:
-        EfficientTrackError: no episodes, a bad margin or factor, or a joint that never moved (no range or speed).
+        EfficientTrackError: no episodes, a bad margin or factor, a jump no machine makes (module docstring), or a
+            joint that never moved (no range or speed).
     """
     check_proposal_options(margin, speed_factor)
     stats = log_stats(records)
+    if stats.jumps:
+        shown = "; ".join(stats.jumps[:SHOWN_SPIKES]) + (f"; and {len(stats.jumps) - SHOWN_SPIKES} more"
+                                                         if len(stats.jumps) > SHOWN_SPIKES else "")  # fmt: skip
+        raise EfficientTrackError(
+            f"limits: the logs hold {len(stats.jumps)} jump(s) no machine makes, a glitch longer than one sample or a "
+            f"sensor offset: {shown}; cut those episodes or mend the samples, then propose again (a jump would set the "
+            "range and speed the guard allows)"
+        )
     q_min = np.maximum(_down(stats.lowest - margin, exact=margin == 0), -MAX_ABS_ANGLE)
     q_max = np.minimum(_up(stats.highest + margin, exact=margin == 0), MAX_ABS_ANGLE)
     clipped = [
