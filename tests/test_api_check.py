@@ -1,5 +1,8 @@
 """The top-level Python API refuses a wrong argument with one EfficientTrackError naming it (core/api_check.py)."""
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -35,3 +38,24 @@ def test_right_arguments_pass_numpy_integers_and_paths_included(tmp_path):
     assert [r.name for r in refs] == ["ref_01", "ref_02"]
     assert et.preset("tiny").model.steps == et.preset(name="tiny").model.steps
     assert et.load_system("paper").dt == 0.05
+
+
+def test_on_the_core_install_the_api_names_the_extra_to_install():
+    torch_free = (
+        "import sys; sys.modules['torch'] = None\n"  # an import of torch fails as on an install without it
+        "import efficienttrack as et\n"
+        "from efficienttrack.core.errors import MissingExtraError\n"
+        "for name in ('train_model', 'load_policy', 'run'):\n"
+        "    try:\n"
+        "        getattr(et, name)\n"
+        "    except MissingExtraError as exc:\n"
+        "        print(exc)\n"
+        "print(et.load_references.__name__)\n"  # what needs no torch still works
+    )
+    done = subprocess.run([sys.executable, "-c", torch_free], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines() == [
+        *(f"efficienttrack.{name} needs torch, which is not installed: pip install 'efficienttrack[train]'"
+          for name in ("train_model", "load_policy", "run")),
+        "load_references",
+    ]  # fmt: skip

@@ -12,8 +12,8 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from efficienttrack.cli import EXTRAS, app
-from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.cli import app
+from efficienttrack.core.errors import EXTRAS, EfficientTrackError
 from efficienttrack.core.joints import DT, JOINT_NAMES
 from efficienttrack.data.dataset import Sequences
 from efficienttrack.data.records import save_records

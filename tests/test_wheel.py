@@ -16,7 +16,8 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from efficienttrack.cli import EXTRAS, app
+from efficienttrack.cli import app
+from efficienttrack.core.errors import EXTRAS
 from efficienttrack.data.references import Reference, load_references, save_references
 from efficienttrack.learn.policy import POLICY_PRESETS, AdjustmentPolicy, save_policy
 from test_export import EXTRA_LIBRARIES

@@ -15,6 +15,8 @@ import inspect
 from importlib import import_module
 from typing import Any
 
+from efficienttrack.core.errors import missing_extra
+
 __version__ = "0.1.0"
 
 API: dict[str, tuple[str, str]] = {
@@ -50,7 +52,13 @@ def __getattr__(name: str) -> Any:
     if name not in API:
         raise AttributeError(f"module 'efficienttrack' has no attribute '{name}'")
     module, attribute = API[name]
-    value = getattr(import_module(module), attribute)
+    try:
+        value = getattr(import_module(module), attribute)
+    except ModuleNotFoundError as exc:  # on the core install: name the extra that installs the library
+        missing = missing_extra(exc, f"efficienttrack.{name}")
+        if missing is None:
+            raise
+        raise missing from exc
     if inspect.isfunction(value):  # a wrong argument is one EfficientTrackError naming it (core/api_check.py)
         from efficienttrack.core.api_check import checked
 

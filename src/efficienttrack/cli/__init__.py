@@ -21,7 +21,7 @@ from typing import Annotated
 import typer
 
 import efficienttrack
-from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.errors import EfficientTrackError, MissingExtraError, missing_extra
 from efficienttrack.core.fileio import os_error_text
 
 # isort: split
@@ -62,34 +62,16 @@ def _one_line_warning(
     return f"warning: {message}\n"
 
 
-EXTRAS = {
-    "torch": "train",
-    "tensorboard": "train",
-    "onnx": "train",
-    "matplotlib": "train",
-    "scipy": "train",
-    "gymnasium": "study",
-    "stable_baselines3": "study",
-    "ray": "study",
-    "rosbags": "ros",
-}
-"""The extra (pyproject.toml) that installs each library the core install leaves out and a command imports."""
-
-
 def main() -> None:
     """Entry point: run the app; user-facing errors, a file the system refuses and a missing extra: one line, exit code 2."""
     warnings.formatwarning = _one_line_warning
     try:
         app()
     except ModuleNotFoundError as exc:
-        library = (exc.name or "").split(".")[0]
-        if library not in EXTRAS:  # a module of the core install or of the package itself: a broken install or a bug
+        missing = exc if isinstance(exc, MissingExtraError) else missing_extra(exc, "this command")
+        if missing is None:  # a module of the core install or of the package itself: a broken install or a bug
             raise
-        typer.secho(
-            f"error: this command needs {library}, which is not installed: pip install 'efficienttrack[{EXTRAS[library]}]'",
-            fg=typer.colors.RED,
-            err=True,
-        )
+        typer.secho(f"error: {missing}", fg=typer.colors.RED, err=True)
         sys.exit(2)
     except (EfficientTrackError, OSError) as exc:
         if isinstance(exc, OSError) and exc.errno is None:  # not the system refusing a file: a bug, keep its traceback

@@ -20,7 +20,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar, Union, get_args, get_origin
 
-from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.errors import EfficientTrackError, MissingExtraError, missing_extra
 from efficienttrack.core.settings import shown
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -57,7 +57,15 @@ def checked(name: str, function: F) -> F:
                     f"efficienttrack.{name}: argument '{parameter}' must be {describe(hint)}, got "
                     f"{type(value).__name__} {shown(value)}"
                 )
-        return function(*args, **kwargs)
+        try:
+            return function(*args, **kwargs)
+        except MissingExtraError:
+            raise
+        except ModuleNotFoundError as exc:  # a library the function imports when it runs: name the extra
+            missing = missing_extra(exc, f"efficienttrack.{name}")
+            if missing is None:
+                raise
+            raise missing from exc
 
     return typing.cast(F, call)
 
