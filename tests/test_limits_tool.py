@@ -5,19 +5,21 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import sys
 import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from efficienttrack import cli
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.joints import DT, MAX_ABS_ANGLE, SWING
 from efficienttrack.data.records import EpisodeRecord, load_records, save_records
 from efficienttrack.systems.limits import GuardLimits, limits_preset_path
-from efficienttrack.systems.limits_from_logs import log_stats, propose_limits
+from efficienttrack.systems.limits_from_logs import log_stats, propose_limits, write_limits
 from efficienttrack.systems.spec import SystemSpec, load_system
 from test_records import make_record
 
@@ -318,3 +320,79 @@ def test_on_the_real_xe75_pd_logs_the_documented_numbers():
         for lim in (limits, shipped):
             assert not lim.outside(np.concatenate([rec.q, rec.q_ref, rec.q_des])).any()
             assert np.all(np.abs(np.diff(rec.q, axis=0)) <= np.asarray(lim.max_speed) * DT)
+
+
+# ---------------------------------------------------------------------------------------- ros2_control's joint_limits.yaml
+
+ROS2_FILE = """\
+# a MoveIt / ros2_control joint_limits.yaml
+default_velocity_scaling_factor: 0.1
+joint_limits:
+  boom_joint:
+    has_position_limits: true
+    min_position: -0.55
+    max_position: 0.65
+    has_velocity_limits: true
+    max_velocity: 0.8
+    has_acceleration_limits: false
+    max_acceleration: 0
+  arm_joint: {has_position_limits: true, min_position: -1.1, max_position: 0.5, has_velocity_limits: true, max_velocity: 1.2}
+  bucket_joint: {has_position_limits: true, min_position: -0.5, max_position: 2.3, has_velocity_limits: true,
+                 max_velocity: 3.5}
+  swing_joint: {has_position_limits: false, angle_wraparound: true, has_velocity_limits: true, max_velocity: 1.0}
+  blade_joint: {has_position_limits: true, min_position: 0, max_position: 0.3}
+stale_steps: 4
+"""
+
+
+def test_a_ros2_control_joint_limits_file_reads_as_limits_and_round_trips(tmp_path):
+    path = tmp_path / "joint_limits.yaml"
+    path.write_text(ROS2_FILE)
+    limits = GuardLimits.load(path)
+    assert limits.q_min == (-0.55, -1.1, -0.5, -math.pi) and limits.q_max == (0.65, 0.5, 2.3, math.pi)
+    assert limits.max_speed == (0.8, 1.2, 3.5, 1.0) and limits.stale_steps == 4  # the guard's own field beside
+    names = ["boom_joint", "arm_joint", "bucket_joint", "swing_joint"]
+    write_limits(limits, tmp_path / "again.yaml", ros2_names=names)
+    assert GuardLimits.load(tmp_path / "again.yaml") == limits
+    written = yaml.safe_load((tmp_path / "again.yaml").read_text())
+    assert list(written["joint_limits"]) == names and written["joint_limits"]["swing_joint"]["angle_wraparound"] is True
+    assert written["joint_limits"]["boom_joint"] == {
+        "has_position_limits": True, "min_position": -0.55, "max_position": 0.65,
+        "has_velocity_limits": True, "max_velocity": 0.8, "has_acceleration_limits": False,
+    }  # fmt: skip
+    write_limits(limits, tmp_path / "again.json", ros2_names=names)
+    assert GuardLimits.load(tmp_path / "again.json") == limits
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda t: t.replace("swing_joint", "slew_joint"), "no joint of joint_limits names the swing"),
+        (lambda t: t.replace("blade_joint", "boom_extra"), "joints 'boom_joint' and 'boom_extra' both name the boom"),
+        (lambda t: t.replace("blade_joint", "boom_swing"), "joint 'boom_swing' names boom and swing"),
+        (lambda t: t.replace("max_acceleration: 0", "max_accel: 0"), "joint_limits.boom_joint: unknown key"),
+        (lambda t: t.replace("max_velocity: 0.8", "max_velocity: fast"), "boom_joint: max_velocity must be a finite"),
+        (lambda t: t.replace("stale_steps: 4", "stale_step: 4"), "unknown top-level key(s) stale_step"),
+        (lambda t: t.replace("min_position: -0.55", "min_position: 0.9"), "boom needs −2π ≤ q_min < q_max"),
+        (lambda t: t.replace("max_velocity: 1.0}", "}").replace("has_velocity_limits: true, }", "}"), "velocity limits"),
+    ],
+)
+def test_a_ros2_file_that_does_not_fit_is_refused_naming_the_joint(tmp_path, change, message):
+    path = tmp_path / "joint_limits.yaml"
+    path.write_text(change(ROS2_FILE))
+    with pytest.raises(EfficientTrackError, match=re.escape(message)) as info:
+        GuardLimits.load(path)
+    assert str(path) in str(info.value)
+
+
+def test_the_command_converts_limits_to_ros2_and_checks_a_ros2_file(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "joint_limits.yaml"
+    names = "boom_joint,arm_joint,bucket_joint,swing_joint"
+    code, stdout, err = run_main(["limits", "--check", "xe75", "--out", out, "--ros2", "--joint-names", names],
+                                 monkeypatch, capsys)  # fmt: skip
+    assert code == 0, err
+    assert "(ros2_control joint_limits.yaml)" in stdout and GuardLimits.load(out) == GuardLimits.load("xe75")
+    code, stdout, err = run_main(["limits", "--check", out], monkeypatch, capsys)
+    assert code == 0 and f"{out}: valid limits" in stdout and "left out" not in stdout, err
+    code, _, err = run_main(["limits", "--check", "xe75", "--out", out, "--ros2", "--joint-names", "a,b"], monkeypatch, capsys)
+    assert code == 2 and "give four, naming boom, arm, bucket and swing" in err

@@ -15,7 +15,13 @@ from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import check_output_file
 from efficienttrack.core.joints import JOINT_NAMES, SWING
 from efficienttrack.systems.limits import DEFAULT_LIMITS, LIMITS_PRESETS, GuardLimits, resolve_limits_path
-from efficienttrack.systems.limits_from_logs import DEFAULT_MARGIN, DEFAULT_SPEED_FACTOR, check_proposal_options
+from efficienttrack.systems.limits_from_logs import (
+    DEFAULT_MARGIN,
+    DEFAULT_SPEED_FACTOR,
+    check_proposal_options,
+    write_limits,
+)
+from efficienttrack.systems.ros2_limits import from_ros2, is_ros2, to_ros2
 
 COLUMNS = (
     ("q_min", "q_min", "°", "rad"),
@@ -56,13 +62,15 @@ def limits_report(limits: GuardLimits) -> list[str]:
     return lines
 
 
-def _check(spec: str) -> None:
-    """``limits --check``: validate a limits file (or preset) and print what it resolves to."""
+def _check(spec: str) -> GuardLimits:
+    """``limits --check``: validate a limits file (or preset), print what it resolves to, and return it."""
     from efficienttrack.core.configfile import read_mapping_file
 
     path = resolve_limits_path(spec)
     limits = GuardLimits.load(spec)
     given = read_mapping_file(path)  # a valid mapping: load read it already
+    if is_ros2(given):
+        given = from_ros2(given, str(path))
     left_out = [name for name in DEFAULT_LIMITS.to_dict() if name not in given]
     name = f"{spec} ({path})" if spec in LIMITS_PRESETS else str(path)
     typer.echo(f"{name}: valid limits (joint order boom, arm, bucket, swing)")
@@ -72,6 +80,7 @@ def _check(spec: str) -> None:
         typer.echo(
             f"  left out: {', '.join(left_out)} (shown with the defaults; used with a system, they keep the system's own)"
         )
+    return limits
 
 
 def _command(paths: list[Path], out: Path, margin: float, speed_factor: float, recursive: bool) -> str:
@@ -114,16 +123,34 @@ def limits_command(
         ),
     ] = None,
     recursive: RecursiveOpt = False,
+    ros2: Annotated[
+        bool,
+        typer.Option("--ros2", help="Write --out as a ros2_control (MoveIt) joint_limits.yaml instead of the guard's schema."),
+    ] = False,
+    joint_names: Annotated[
+        str,
+        typer.Option("--joint-names", help="With --ros2: the machine's joint names, boom, arm, bucket, swing order."),
+    ] = ",".join(JOINT_NAMES),
 ) -> None:
     """Propose a machine's guard limits from its own logs (--from-logs), or check a limits file (--check).
 
     The proposal prints one line per field with what the logs show and the margin or factor applied, and writes the
-    file atomically; docs/reference.md ("Limits files") gives the schema and the rules.
+    file atomically; docs/reference.md ("Limits files") gives the schema and the rules. A ros2_control
+    joint_limits.yaml is read wherever a limits file is; --check FILE --out OUT converts one file into the other format.
     """
+    names = [name.strip() for name in joint_names.split(",")] if ros2 else None
+    if names is not None:
+        to_ros2(DEFAULT_LIMITS.to_dict(), names)  # refuses names that would not read back, before any work
     if check is not None:
-        if from_logs or paths or out is not None:
-            raise EfficientTrackError("limits: give --check FILE alone, or --from-logs PATHS... --out FILE")
-        _check(check)
+        if from_logs or paths:
+            raise EfficientTrackError("limits: give --check FILE [--out FILE], or --from-logs PATHS... --out FILE")
+        limits = _check(check)
+        if out is not None:
+            check_output_file(out)
+            _lock(ctx, out, folder=False, resumable=False)
+            write_limits(limits, out, [f"Guard limits of {check}, checked by efficienttrack {efficienttrack.__version__}"],
+                         ros2_names=names)  # fmt: skip
+            typer.echo(f"wrote {out}" + (" (ros2_control joint_limits.yaml)" if ros2 else ""))
         return
     if not from_logs:
         what = f"{paths[0]}: episode logs need --from-logs" if paths else "nothing to do"
@@ -136,7 +163,7 @@ def limits_command(
     check_output_file(out)
     _lock(ctx, out, folder=False, resumable=False)  # two proposals at once would replace each other's file
     from efficienttrack.data.records import load_records
-    from efficienttrack.systems.limits_from_logs import propose_limits, write_limits
+    from efficienttrack.systems.limits_from_logs import propose_limits
 
     records = load_records(paths, recursive=recursive)
     limits, reasons = propose_limits(records, margin=margin, speed_factor=speed_factor)
@@ -151,7 +178,7 @@ def limits_command(
     ]
     for reason in reasons:
         typer.echo(reason)
-    write_limits(limits, out, header)
+    write_limits(limits, out, header, ros2_names=names)
     typer.echo(f"wrote {out}: limits from {len(records)} episode(s), {steps:,} steps; per joint:")
     for line in limits_report(limits):
         typer.echo(f"  {line}")

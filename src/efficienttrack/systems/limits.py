@@ -29,6 +29,7 @@ from efficienttrack.core.configfile import read_mapping_file
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.joints import JOINT_NAMES, MAX_ABS_ANGLE, MAX_ABS_VELOCITY, N_JOINTS, SWING
 from efficienttrack.core.settings import settings_from_dict
+from efficienttrack.systems.ros2_limits import from_ros2, is_ros2
 
 XE75_MAX_ADJUST = (0.15, 0.30, 0.40, 0.40)
 """Per-joint adjustment bound of the real XE75 deployment (boom, arm, bucket, swing), rad."""
@@ -121,7 +122,9 @@ class GuardLimits:
 
     @classmethod
     def load(cls, path: str | Path, base: GuardLimits | None = None) -> GuardLimits:
-        """Read a limits file (YAML or JSON mapping of this class's fields); fields it leaves out keep ``base``'s.
+        """Read a limits file (a YAML or JSON mapping of this class's fields); fields it leaves out keep ``base``'s.
+
+        A ros2_control ``joint_limits.yaml`` is read too (:mod:`~efficienttrack.systems.ros2_limits`).
 
         Args:
             path: the file, or a shipped preset's name (``xe75``, :data:`LIMITS_PRESETS`).
@@ -134,6 +137,8 @@ class GuardLimits:
         data = read_mapping_file(path)
         if not isinstance(data, dict):
             raise EfficientTrackError(f"{path}: expected a mapping of limits fields, got {type(data).__name__}")
+        if is_ros2(data):  # a ros2_control joint_limits.yaml
+            data = from_ros2(data, str(path))
         accepted = data.pop(ACCEPT_IMPLAUSIBLE, False)
         if not isinstance(accepted, bool):
             raise EfficientTrackError(f"{path}: {ACCEPT_IMPLAUSIBLE} must be true or false, got {accepted!r}")

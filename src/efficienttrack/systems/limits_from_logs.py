@@ -58,6 +58,7 @@ from efficienttrack.core.fileio import atomic_write
 from efficienttrack.core.joints import DT, JOINT_NAMES, MAX_ABS_ANGLE, MAX_ABS_VELOCITY, N_JOINTS, SWING
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.systems.limits import XE75_MAX_ADJUST, GuardLimits
+from efficienttrack.systems.ros2_limits import to_ros2
 
 DEFAULT_MARGIN = 0.05
 """Widening of the observed joint range on each side, rad (about 2.9°)."""
@@ -375,19 +376,23 @@ def propose_limits(
     return limits, reasons
 
 
-def write_limits(limits: GuardLimits, path: str | Path, header: Sequence[str] = ()) -> Path:
+def write_limits(
+    limits: GuardLimits, path: str | Path, header: Sequence[str] = (), ros2_names: Sequence[str] | None = None
+) -> Path:
     """Write a limits file atomically: YAML with ``header`` as comment lines, or JSON (no comments) for ``.json``.
 
     Args:
         limits: the limits; every field is written.
         path: the file; ``.json`` gives JSON, anything else YAML.
         header: comment lines for the YAML file (without ``#``).
+        ros2_names: write a ros2_control ``joint_limits.yaml`` with these joint names (boom, arm, bucket, swing order;
+            :func:`~efficienttrack.systems.ros2_limits.to_ros2`) instead of the guard's own schema.
 
     Returns:
         The path.
     """
     path = Path(path)
-    data = limits.to_dict()
+    data = limits.to_dict() if ros2_names is None else to_ros2(limits.to_dict(), ros2_names)
     if path.suffix == ".json":
         text = "{\n" + ",\n".join(f"  {json.dumps(k)}: {json.dumps(v)}" for k, v in data.items()) + "\n}\n"
     else:
