@@ -24,7 +24,8 @@ from efficienttrack.deploy.deployment import deploy
 from efficienttrack.deploy.loop import MONOTONIC
 from efficienttrack.deploy.machine import SimulatedMachine
 from efficienttrack.deploy.runtime import Runtime
-from efficienttrack.learn.policy import POLICY_PRESETS, AdjustmentPolicy, load_policy
+from efficienttrack.learn.policy import AdjustmentPolicy, load_policy
+from efficienttrack.learn.settings import POLICY_PRESETS
 from efficienttrack.systems.spec import load_system
 
 

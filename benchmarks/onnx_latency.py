@@ -23,7 +23,8 @@ import torch
 
 from efficienttrack.deploy.export import export_policy
 from efficienttrack.deploy.onnx_runtime import OnnxRuntime, load_onnx_policy
-from efficienttrack.learn.policy import POLICY_PRESETS, AdjustmentPolicy
+from efficienttrack.learn.policy import AdjustmentPolicy
+from efficienttrack.learn.settings import POLICY_PRESETS
 
 
 def timed(call: Callable[[], object], calls: int, warmup: int = 200) -> tuple[np.ndarray, np.ndarray]:

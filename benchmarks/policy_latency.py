@@ -16,7 +16,8 @@ import time
 import numpy as np
 import torch
 
-from efficienttrack.learn.policy import POLICY_PRESETS, AdjustmentPolicy
+from efficienttrack.learn.policy import AdjustmentPolicy
+from efficienttrack.learn.settings import POLICY_PRESETS
 
 
 def latencies(policy: AdjustmentPolicy, calls: int, warmup: int = 200) -> tuple[np.ndarray, np.ndarray]:

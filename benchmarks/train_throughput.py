@@ -19,8 +19,8 @@ import numpy as np
 import torch
 
 from efficienttrack.data.records import EpisodeRecord
-from efficienttrack.learn.dynamics import MODEL_PRESETS, train_model
-from efficienttrack.learn.training import MAX_STEPS
+from efficienttrack.learn.dynamics import train_model
+from efficienttrack.learn.settings import MAX_STEPS, MODEL_PRESETS
 
 
 def synthetic_records(episodes: int = 20, steps: int = 500, seed: int = 0) -> list[EpisodeRecord]:

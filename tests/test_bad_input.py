@@ -38,8 +38,9 @@ from efficienttrack.data.records import save_records
 from efficienttrack.data.references import Reference, save_references
 from efficienttrack.learn import checkpoints
 from efficienttrack.learn.checkpoints import load_tensors
-from efficienttrack.learn.dynamics import MODEL_PRESETS, save_model, train_model
-from efficienttrack.learn.policy import POLICY_PRESETS, save_policy, train_policy
+from efficienttrack.learn.dynamics import save_model, train_model
+from efficienttrack.learn.policy import save_policy, train_policy
+from efficienttrack.learn.settings import MODEL_PRESETS, POLICY_PRESETS
 from efficienttrack.systems.hydraulic import preset_path
 from efficienttrack.systems.limits import GuardLimits
 from efficienttrack.systems.pd import PD_PRESETS

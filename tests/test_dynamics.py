@@ -10,15 +10,8 @@ from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.data.windows import push
 from efficienttrack.learn import dynamics
-from efficienttrack.learn.dynamics import (
-    MODEL_PRESETS,
-    ClosedLoopModel,
-    ModelConfig,
-    load_model,
-    model_error,
-    rollout,
-    save_model,
-)
+from efficienttrack.learn.dynamics import ClosedLoopModel, load_model, model_error, rollout, save_model
+from efficienttrack.learn.settings import MODEL_PRESETS, ModelConfig
 from efficienttrack.learn.training import read_scalars
 
 LAG_GAIN = np.array([0.3, 0.5, 0.4, 0.6])

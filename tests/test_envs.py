@@ -275,7 +275,8 @@ def test_a_loaded_policy_predicts_in_the_registered_environment_and_in_sb3s_eval
     from stable_baselines3.common.evaluation import evaluate_policy
     from stable_baselines3.common.monitor import Monitor
 
-    from efficienttrack.learn.policy import POLICY_PRESETS, AdjustmentPolicy, load_policy, save_policy
+    from efficienttrack.learn.policy import AdjustmentPolicy, load_policy, save_policy
+    from efficienttrack.learn.settings import POLICY_PRESETS
 
     cfg = dataclasses.replace(POLICY_PRESETS["tiny"], max_adjust=SystemSpec().open().limits.max_adjust)
     made = AdjustmentPolicy(cfg)

@@ -22,7 +22,8 @@ from efficienttrack.deploy.episodes import Guard
 from efficienttrack.deploy.export import export_policy
 from efficienttrack.deploy.onnx_runtime import CONTRACT_FILE, ONNX_FILE, OnnxRuntime, load_onnx_policy
 from efficienttrack.deploy.runtime import Runtime, track
-from efficienttrack.learn.policy import AdjustmentPolicy, PolicyConfig, save_policy
+from efficienttrack.learn.policy import AdjustmentPolicy, save_policy
+from efficienttrack.learn.settings import PolicyConfig
 from efficienttrack.systems.limits import GuardLimits
 from efficienttrack.systems.protocol import BatchedSystem
 from toy_system import make, sine_refs

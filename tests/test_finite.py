@@ -12,7 +12,8 @@ from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import finite_json, write_json
 from efficienttrack.data.records import EpisodeRecord, load_record
 from efficienttrack.learn import checkpoints, training
-from efficienttrack.learn.dynamics import MODEL_PRESETS, ClosedLoopModel, load_model, save_model, train_model
+from efficienttrack.learn.dynamics import ClosedLoopModel, load_model, save_model, train_model
+from efficienttrack.learn.settings import MODEL_PRESETS, TrainingSchedule
 from efficienttrack.systems.spec import SystemSpec
 from efficienttrack.workflow import evaluation
 from efficienttrack.workflow.stages import RunLog
@@ -48,7 +49,7 @@ class Net(torch.nn.Module):
 
 
 def test_a_nan_loss_keeps_the_last_good_training_state(tmp_path):
-    cfg = training.TrainingSchedule(steps=10, save_every=5)
+    cfg = TrainingSchedule(steps=10, save_every=5)
     net = Net()
     checkpoint = tmp_path / "state.pt"
     loop = training.TrainLoop("model", cfg, 10, net, torch.optim.SGD(net.parameters()), 0, checkpoint, False)

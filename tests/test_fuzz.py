@@ -40,8 +40,9 @@ import torch
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.data.records import UPSTREAM_KEYS, load_record, load_records, save_csv, save_records
 from efficienttrack.data.references import Reference, load_references, save_references
-from efficienttrack.learn.dynamics import MODEL_PRESETS, ClosedLoopModel, load_model, save_model
-from efficienttrack.learn.policy import POLICY_PRESETS, AdjustmentPolicy, load_policy, save_policy
+from efficienttrack.learn.dynamics import ClosedLoopModel, load_model, save_model
+from efficienttrack.learn.policy import AdjustmentPolicy, load_policy, save_policy
+from efficienttrack.learn.settings import MODEL_PRESETS, POLICY_PRESETS
 from efficienttrack.systems.limits import GuardLimits
 from test_records import make_record
 

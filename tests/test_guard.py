@@ -12,7 +12,7 @@ from efficienttrack.data.records import load_records, save_records
 from efficienttrack.data.references import Reference, save_references
 from efficienttrack.deploy.episodes import FALLBACK, Guard, rollout
 from efficienttrack.deploy.runtime import Runtime, track
-from efficienttrack.learn.policy import PolicyConfig
+from efficienttrack.learn.settings import PolicyConfig
 from efficienttrack.systems.hydraulic import xe75_closed_loop, xe75_params, xe75_plant
 from efficienttrack.systems.limits import DEFAULT_LIMITS, XE75_MAX_ADJUST, GuardLimits
 from efficienttrack.systems.protocol import BatchedSystem

@@ -9,8 +9,9 @@ from typer.testing import CliRunner
 from efficienttrack.cli import app
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.data.records import save_records
-from efficienttrack.learn.dynamics import MODEL_PRESETS, ClosedLoopModel, rollout, save_model
+from efficienttrack.learn.dynamics import ClosedLoopModel, rollout, save_model
 from efficienttrack.learn.learned_system import LearnedSystem
+from efficienttrack.learn.settings import MODEL_PRESETS
 from efficienttrack.systems import check_system, load_system
 from efficienttrack.systems.fit import fidelity
 from test_dynamics import lag_records

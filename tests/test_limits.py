@@ -11,10 +11,19 @@ from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.joints import MAX_HORIZON
 from efficienttrack.data.cycles import generate_references
 from efficienttrack.learn import nets
-from efficienttrack.learn.dynamics import MODEL_PRESETS, ClosedLoopModel, ModelConfig, model_error, train_model
-from efficienttrack.learn.nets import MAX_HIDDEN, MAX_LAYERS, check_training_memory, training_bytes
-from efficienttrack.learn.policy import POLICY_PRESETS, PolicyConfig
-from efficienttrack.learn.training import MAX_BATCH_SIZE, MAX_EPOCHS, MAX_STEPS
+from efficienttrack.learn.dynamics import ClosedLoopModel, model_error, train_model
+from efficienttrack.learn.nets import check_training_memory, training_bytes
+from efficienttrack.learn.settings import (
+    MAX_BATCH_SIZE,
+    MAX_EPOCHS,
+    MAX_HIDDEN,
+    MAX_LAYERS,
+    MAX_STEPS,
+    MODEL_PRESETS,
+    POLICY_PRESETS,
+    ModelConfig,
+    PolicyConfig,
+)
 from efficienttrack.systems.limits import GuardLimits
 from efficienttrack.workflow.collect import MAX_PASSES, CollectConfig
 from efficienttrack.workflow.config import MAX_ROUNDS, PRESETS, RunConfig, load_config

@@ -21,7 +21,8 @@ from efficienttrack.deploy.deployment import deploy, load_machine, records_from_
 from efficienttrack.deploy.loop import Loop, LoopConfig, Reading, TickLog
 from efficienttrack.deploy.machine import SimulatedClock, SimulatedMachine
 from efficienttrack.deploy.runtime import Runtime, track
-from efficienttrack.learn.policy import POLICY_PRESETS, AdjustmentPolicy, save_policy
+from efficienttrack.learn.policy import AdjustmentPolicy, save_policy
+from efficienttrack.learn.settings import POLICY_PRESETS
 from efficienttrack.systems.limits import DEFAULT_LIMITS
 from efficienttrack.systems.protocol import BatchedSystem
 from test_runtime import LinearPolicy

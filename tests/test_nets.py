@@ -5,8 +5,9 @@ import torch
 
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.data.features import feature_width, relative_features
-from efficienttrack.learn.dynamics import ClosedLoopModel, ModelConfig
-from efficienttrack.learn.policy import AdjustmentPolicy, PolicyConfig, desired_length, policy_rollout, seen_lengths
+from efficienttrack.learn.dynamics import ClosedLoopModel
+from efficienttrack.learn.policy import AdjustmentPolicy, desired_length, policy_rollout, seen_lengths
+from efficienttrack.learn.settings import ModelConfig, PolicyConfig
 
 
 @pytest.mark.parametrize(("h", "K"), [(1, 1), (2, 1), (3, 5), (5, 1), (20, 20)])

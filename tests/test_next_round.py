@@ -12,8 +12,9 @@ from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.data.metrics import compute_metrics
 from efficienttrack.data.records import save_records
 from efficienttrack.deploy.runtime import track
-from efficienttrack.learn.dynamics import MODEL_PRESETS, load_model, model_error, save_model, train_model
-from efficienttrack.learn.policy import POLICY_PRESETS, load_policy, save_policy, train_policy
+from efficienttrack.learn.dynamics import load_model, model_error, save_model, train_model
+from efficienttrack.learn.policy import load_policy, save_policy, train_policy
+from efficienttrack.learn.settings import MODEL_PRESETS, POLICY_PRESETS
 from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.workflow.collect import CollectConfig, collect
 from efficienttrack.workflow.next_round import ROUND_JSON, continued_config, next_round

@@ -19,8 +19,9 @@ from efficienttrack.data.metrics import compute_metrics
 from efficienttrack.data.references import Reference
 from efficienttrack.envs import evaluate
 from efficienttrack.learn.checkpoints import load_tensors
-from efficienttrack.learn.dynamics import MODEL_PRESETS, PlantModel, model_error, train_model
-from efficienttrack.learn.policy import POLICY_PRESETS, PWMPolicy, train_policy
+from efficienttrack.learn.dynamics import PlantModel, model_error, train_model
+from efficienttrack.learn.policy import PWMPolicy, train_policy
+from efficienttrack.learn.settings import MODEL_PRESETS, POLICY_PRESETS
 from efficienttrack.systems.pd import PDGains
 from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.systems.spec import SystemSpec, close_loop

@@ -11,10 +11,8 @@ from efficienttrack.core.settings import plain_form
 from efficienttrack.data.dataset import Sequences
 from efficienttrack.data.windows import initial_history, push_observation, push_reference
 from efficienttrack.learn.policy import (
-    POLICY_PRESETS,
     AdjustmentPolicy,
     ImaginedDeployments,
-    PolicyConfig,
     load_policy,
     policy_rollout,
     predicted_tracking_error,
@@ -22,6 +20,7 @@ from efficienttrack.learn.policy import (
     seen_lengths,
     train_policy,
 )
+from efficienttrack.learn.settings import POLICY_PRESETS, PolicyConfig
 from test_dynamics import LAG_GAIN, lag_records
 
 

@@ -6,6 +6,7 @@ import torch
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.provenance import claim_folder
 from efficienttrack.learn import checkpoints, training
+from efficienttrack.learn.settings import TrainingSchedule
 from efficienttrack.workflow.ledger import Ledger
 
 IDENTITY = {"config": {"passes": 2}, "references": ["a", "b"]}
@@ -54,7 +55,7 @@ class Net(torch.nn.Module):
         self.w = torch.nn.Parameter(torch.ones(3))
 
 
-CFG = training.TrainingSchedule(steps=10, save_every=5)
+CFG = TrainingSchedule(steps=10, save_every=5)
 
 
 def loop(checkpoint):

@@ -11,7 +11,7 @@ from efficienttrack.data.dataset import Sequences
 from efficienttrack.deploy.episodes import Guard
 from efficienttrack.deploy.guard import MAX_GAP, GuardedRuntime
 from efficienttrack.deploy.runtime import Runtime, track
-from efficienttrack.learn.policy import PolicyConfig
+from efficienttrack.learn.settings import PolicyConfig
 from efficienttrack.systems.limits import DEFAULT_LIMITS, GuardLimits
 from efficienttrack.systems.protocol import BatchedSystem
 from toy_system import make, sine_refs

@@ -1,14 +1,17 @@
 """The settings tree: one validator however it is made, ``--set`` on every command that trains, ``config show``."""
 
 import dataclasses
+import subprocess
+import sys
 
 import pytest
 
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.settings import check_fields, parse_override, plain_form, setting, settings_from_dict, settings_table
 from efficienttrack.learn import dynamics, policy
-from efficienttrack.learn.dynamics import MODEL_PRESETS, ClosedLoopModel, ModelConfig, save_model
-from efficienttrack.learn.policy import POLICY_PRESETS, AdjustmentPolicy, PolicyConfig, save_policy
+from efficienttrack.learn.dynamics import ClosedLoopModel, save_model
+from efficienttrack.learn.policy import AdjustmentPolicy, save_policy
+from efficienttrack.learn.settings import MODEL_PRESETS, POLICY_PRESETS, ModelConfig, PolicyConfig
 from efficienttrack.workflow import next_round, pipeline
 from efficienttrack.workflow.collect import CollectConfig
 from efficienttrack.workflow.config import PRESETS, RunConfig, apply_overrides, from_dict, load_config
@@ -267,3 +270,15 @@ def test_a_field_added_later_with_a_new_default_reads_old_stored_forms_as_they_w
     assert settings_from_dict(Grown, old, "policy.json", stored=True).share == 0.0
     assert settings_from_dict(Grown, old, "a user's config").share == 0.5  # what a user leaves out takes the default
     assert settings_from_dict(Grown, {"lr": 1e-3, "share": 0.5}, "policy.json", stored=True).share == 0.5
+
+
+def test_config_show_runs_without_torch():
+    torch_free = (
+        "import sys; sys.modules['torch'] = None\n"  # an import of torch fails as on the core install
+        "sys.argv = ['efficienttrack', 'config', 'show', 'tiny', '--set', 'policy.lr=0.01']\n"
+        "from efficienttrack import cli\n"
+        "cli.main()\n"
+    )
+    done = subprocess.run([sys.executable, "-c", torch_free], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert "# efficienttrack settings: preset tiny, --set policy.lr=0.01" in done.stdout and "  lr: 0.01 " in done.stdout

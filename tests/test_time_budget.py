@@ -13,8 +13,7 @@ from typer.testing import CliRunner
 from efficienttrack.cli import app
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.learn import dynamics, policy
-from efficienttrack.learn.dynamics import ModelConfig
-from efficienttrack.learn.policy import PolicyConfig
+from efficienttrack.learn.settings import ModelConfig, PolicyConfig
 from efficienttrack.learn.training import read_scalars
 from efficienttrack.workflow import ledger as ledger_module
 from efficienttrack.workflow import pipeline, stages, time_budget

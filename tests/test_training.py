@@ -7,10 +7,11 @@ import pytest
 
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.learn import dynamics, policy, training
+from efficienttrack.learn.settings import MODEL_PRESETS, POLICY_PRESETS, ModelConfig, PolicyConfig
 from efficienttrack.learn.training import LOSS_TAG, LR_TAG, SCALARS_CSV, held_out_subset, read_scalars
 from test_dynamics import lag_records
 
-CFG = dataclasses.replace(dynamics.MODEL_PRESETS["tiny"], steps=30, save_every=10, eval_every=10)
+CFG = dataclasses.replace(MODEL_PRESETS["tiny"], steps=30, save_every=10, eval_every=10)
 
 
 @pytest.fixture(scope="module")
@@ -87,7 +88,7 @@ def test_resumed_run_writes_the_same_csv_as_an_uninterrupted_one(data, tmp_path,
 
 def test_policy_logs_its_held_out_tracking_error(data, tmp_path):
     model = train(dataclasses.replace(CFG, steps=10), data, None).model
-    cfg = dataclasses.replace(policy.POLICY_PRESETS["tiny"], steps=20, eval_every=10)
+    cfg = dataclasses.replace(POLICY_PRESETS["tiny"], steps=20, eval_every=10)
     result = policy.train_policy(cfg, model, data[0], device="cpu", progress=False, log_dir=tmp_path, held_out=data[1])
     scalars = read_scalars(tmp_path)
     np.testing.assert_array_equal(scalars[LOSS_TAG][0], np.arange(1, 21))
@@ -119,17 +120,17 @@ def test_read_scalars_refuses_other_files(tmp_path):
 
 def test_config_checks_eval_every_and_old_configs_load():
     with pytest.raises(EfficientTrackError, match=r"eval_every must be an integer in \[1, 10000000\]"):
-        dynamics.ModelConfig(eval_every=0)
+        ModelConfig(eval_every=0)
     with pytest.raises(EfficientTrackError, match=r"eval_every must be an integer in \[1, 10000000\]"):
-        policy.PolicyConfig(eval_every=0)
-    old = {k: v for k, v in dataclasses.asdict(dynamics.MODEL_PRESETS["tiny"]).items() if k != "eval_every"}
-    assert dynamics.ModelConfig.from_dict(old).eval_every is None
+        PolicyConfig(eval_every=0)
+    old = {k: v for k, v in dataclasses.asdict(MODEL_PRESETS["tiny"]).items() if k != "eval_every"}
+    assert ModelConfig.from_dict(old).eval_every is None
 
 
 def test_a_schedule_scales_its_steps_or_epochs_and_keeps_the_rest():
-    cfg = dynamics.ModelConfig(steps=1000, lr=3e-4)
+    cfg = ModelConfig(steps=1000, lr=3e-4)
     assert cfg.scaled(0.5) == dataclasses.replace(cfg, steps=500)
-    assert dynamics.ModelConfig(steps=None, epochs=3).scaled(0.1).epochs == 1  # at least one
+    assert ModelConfig(steps=None, epochs=3).scaled(0.1).epochs == 1  # at least one
     with pytest.raises(EfficientTrackError, match="scaled by a share > 0"):
         cfg.scaled(0)
 

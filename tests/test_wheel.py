@@ -19,7 +19,8 @@ from typer.testing import CliRunner
 from efficienttrack.cli import app
 from efficienttrack.core.errors import EXTRAS
 from efficienttrack.data.references import Reference, load_references, save_references
-from efficienttrack.learn.policy import POLICY_PRESETS, AdjustmentPolicy, save_policy
+from efficienttrack.learn.policy import AdjustmentPolicy, save_policy
+from efficienttrack.learn.settings import POLICY_PRESETS
 from test_export import EXTRA_LIBRARIES
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -40,10 +40,10 @@ from efficienttrack.core.settings import canonical_preset
 from efficienttrack.data.dataset import Sequences
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.envs.core import open_system
-from efficienttrack.learn.dynamics import NORM_SAMPLES, ModelConfig, PlantModel, train_model
+from efficienttrack.learn.dynamics import NORM_SAMPLES, PlantModel, train_model
 from efficienttrack.learn.nets import check_size, resolve_device
-from efficienttrack.learn.policy import PolicyConfig, PWMPolicy, train_policy
-from efficienttrack.learn.training import MAX_STEPS
+from efficienttrack.learn.policy import PWMPolicy, train_policy
+from efficienttrack.learn.settings import MAX_STEPS, ModelConfig, PolicyConfig
 from efficienttrack.workflow.collect import MAX_PASSES, CollectConfig, pass_counts, run_pass
 
 

@@ -48,7 +48,8 @@ from efficienttrack.data.references import Reference
 from efficienttrack.deploy.episodes import STEP_TIMEOUT, batches, rollout
 from efficienttrack.deploy.guard import MAX_GAP, GuardedRuntime
 from efficienttrack.learn.nets import resolve_device
-from efficienttrack.learn.policy import PolicyConfig, seen_lengths
+from efficienttrack.learn.policy import seen_lengths
+from efficienttrack.learn.settings import PolicyConfig
 from efficienttrack.systems.limits import GuardLimits
 from efficienttrack.systems.protocol import BatchedSystem
 

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
@@ -38,23 +37,21 @@ from torch import nn
 from efficienttrack.core.angles import wrap
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.joints import MAX_HORIZON
-from efficienttrack.core.settings import inherit, setting
 from efficienttrack.data.dataset import Sequences
-from efficienttrack.data.features import feature_width, relative_features
+from efficienttrack.data.features import relative_features
 from efficienttrack.data.metrics import MPE_STEPS, position_error
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.data.windows import push
 from efficienttrack.learn.checkpoints import load_checkpoint, save_checkpoint, warm_start
 from efficienttrack.learn.nets import (
-    MAX_HIDDEN,
-    MAX_LAYERS,
     MLP,
     Standardizer,
     check_size,
     check_training_memory,
     resolve_device,
 )
-from efficienttrack.learn.training import TrainingSchedule, TrainLoop, fingerprint, held_out_subset
+from efficienttrack.learn.settings import ModelConfig
+from efficienttrack.learn.training import TrainLoop, fingerprint, held_out_subset
 
 NORM_SAMPLES = 65536
 """Windows used to fit the feature and output scaling."""
@@ -66,52 +63,6 @@ HELD_OUT_LABEL = "held-out 20-step MPE (°)"
 """What :data:`HELD_OUT_TAG` is, for plot axes."""
 LOSS_LABEL = "multi-step loss (1/h) Σᵢ ‖(ô − o)/σ_Δ‖²"
 """What the model's training loss is, for plot axes (dimensionless: each channel in units of its σ_Δ)."""
-
-
-@dataclass(frozen=True)
-class ModelConfig(TrainingSchedule):
-    """Size and training settings of the closed-loop dynamics model (the schedule's fields: :class:`TrainingSchedule`)."""
-
-    hidden: int = setting(128, ge=1, le=MAX_HIDDEN)
-    """Units per hidden layer (paper 512)."""
-    layers: int = setting(3, ge=1, le=MAX_LAYERS)
-    """Hidden Linear → LayerNorm → ELU blocks (paper 6)."""
-    horizon: int = setting(20, ge=1, le=MAX_HORIZON)
-    """h: multi-step training horizon (:attr:`rollout_length`), and the history length unless ``history`` is set
-    (paper 20)."""
-    history: int | None = setting(5, ge=1, le=MAX_HORIZON)
-    """Length of the histories o_H, q^r_H the model sees (:attr:`history_length`); None: h (the paper). Shorter
-    generalizes better on the XE75."""
-    weight_decay: float = inherit(TrainingSchedule, "weight_decay", 0.003)
-    """w: decoupled weight decay (paper 0.003)."""
-    steps: int | None = inherit(TrainingSchedule, "steps", 4000)
-    """Optimizer steps; None to use ``epochs``."""
-
-    @property
-    def history_length(self) -> int:
-        """Length of the histories o_H, q^r_H the model sees: ``history``, or ``horizon`` when unset."""
-        return self.horizon if self.history is None else self.history
-
-    @property
-    def rollout_length(self) -> int:
-        """Steps the model is rolled on its own predictions per training window (``horizon``)."""
-        return self.horizon
-
-    @property
-    def in_dim(self) -> int:
-        """Network input features: :func:`~efficienttrack.data.features.feature_width` of the history and one q^r_{t+1}."""
-        return feature_width(self.history_length, 1)
-
-
-MODEL_PRESETS: dict[str, ModelConfig] = {
-    "paper": ModelConfig(
-        hidden=512, layers=6, horizon=20, history=None, batch_size=2048, lr=1e-5, weight_decay=0.003,
-        steps=None, epochs=2000, cosine_decay=False, grad_clip=None, save_every=1000,
-    ),
-    "cpu": ModelConfig(),
-    "tiny": ModelConfig(hidden=32, layers=2, horizon=4, history=None, batch_size=64, lr=3e-3, steps=300, save_every=100),
-}  # fmt: skip
-"""Named model configs: the paper's (a GPU job), ``cpu`` (minutes on 2 cores), ``tiny`` (tests, seconds)."""
 
 
 class ClosedLoopModel(nn.Module):

@@ -15,11 +15,6 @@ from efficienttrack.data.features import STD_FLOOR
 
 ConfigT = TypeVar("ConfigT")
 
-MAX_HIDDEN = 8192
-"""Most units per hidden layer a config may ask for (the paper: 512)."""
-MAX_LAYERS = 64
-"""Most hidden blocks a config may ask for (the paper: 6)."""
-
 
 class MLP(nn.Module):
     """The paper's MLP: ``layers`` hidden blocks Linear → LayerNorm → ELU, then Linear → tanh × ``out_scale``.

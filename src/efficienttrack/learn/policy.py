@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
@@ -39,24 +38,21 @@ from torch import nn
 
 from efficienttrack.core.angles import wrap
 from efficienttrack.core.errors import EfficientTrackError
-from efficienttrack.core.joints import ENV_FUTURE, MAX_HORIZON
-from efficienttrack.core.settings import setting
+from efficienttrack.core.joints import ENV_FUTURE
 from efficienttrack.data.dataset import Sequences
-from efficienttrack.data.features import feature_width, relative_features
+from efficienttrack.data.features import relative_features
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.data.windows import push
 from efficienttrack.learn.checkpoints import load_checkpoint, save_checkpoint, warm_start
 from efficienttrack.learn.dynamics import NORM_SAMPLES, ClosedLoopModel
 from efficienttrack.learn.nets import (
-    MAX_HIDDEN,
-    MAX_LAYERS,
     MLP,
     Standardizer,
     check_training_memory,
     resolve_device,
 )
-from efficienttrack.learn.training import TrainingSchedule, TrainLoop, fingerprint, held_out_subset
-from efficienttrack.systems.limits import XE75_MAX_ADJUST
+from efficienttrack.learn.settings import PolicyConfig
+from efficienttrack.learn.training import TrainLoop, fingerprint, held_out_subset
 
 EVAL_CHUNK = 8192
 """Windows per batch in :func:`predicted_tracking_error`."""
@@ -66,68 +62,6 @@ HELD_OUT_LABEL = "held-out model-predicted tracking error (°)"
 """What :data:`HELD_OUT_TAG` is, for plot axes."""
 LOSS_LABEL = "L_track + k_smooth·L_reg (rad²)"
 """What the policy's training loss is, for plot axes."""
-
-
-@dataclass(frozen=True)
-class PolicyConfig(TrainingSchedule):
-    """Size, loss and training settings of the adjustment policy (the schedule's fields: :class:`TrainingSchedule`)."""
-
-    hidden: int = setting(128, ge=1, le=MAX_HIDDEN)
-    """Units per hidden layer (paper 512)."""
-    layers: int = setting(3, ge=1, le=MAX_LAYERS)
-    """Hidden Linear → LayerNorm → ELU blocks (paper 6)."""
-    horizon: int = setting(20, ge=2, le=MAX_HORIZON)
-    """h: the paper's one length of the policy, read as :attr:`history_length`, :attr:`future_length` and
-    :attr:`rollout_length` (paper 20); at least 2, for the smoothness term needs two actions."""
-    gamma: float = setting(0.98, gt=0, le=1)
-    """γ: discount of the tracking loss over the rollout (paper 0.98)."""
-    k_smooth: float = setting(1.0, ge=0)
-    """k_smooth: weight of the action-smoothness regularizer (paper 1.0)."""
-    max_adjust: tuple[float, ...] = setting(XE75_MAX_ADJUST, gt=0, length=4)
-    """(4,) rad, bound of |a| per joint (boom, arm, bucket, swing)."""
-    burn_in: int = setting(0, ge=0, le=MAX_HORIZON, before=0)
-    """B: steps the policy drives the frozen model from each training start, without gradient, before the loss's h
-    steps, so that the histories the loss sees hold the policy's own adjustments, as when deployed (0: the paper's,
-    the histories are the recorded ones)."""
-    burn_in_share: float = setting(1.0, gt=0, le=1, before=1.0)
-    """With ``burn_in``: the share of each batch's windows that get the burn-in; the others start from the recorded
-    histories, at any step of an episode, its first B included (1: all windows are burned in)."""
-    imagined_share: float = setting(0.0, ge=0, le=1, before=0.0)
-    """Share of each batch whose rows go on through an imagined deployment, h steps per optimizer step: each row
-    continues from where the frozen model, driven by the policy, left it at the previous step (gradients truncated
-    there), and restarts at a random episode's start after its end. The loss then sees the policy's own closed loop as
-    deployed, over whole episodes (0: every window starts from recorded histories)."""
-
-    @property
-    def history_length(self) -> int:
-        """Length of the histories o_H, q^r_H the policy sees (``horizon``)."""
-        return self.horizon
-
-    @property
-    def future_length(self) -> int:
-        """F: future desired positions q*_F the policy sees (``horizon``)."""
-        return self.horizon
-
-    @property
-    def rollout_length(self) -> int:
-        """Steps the model is rolled under the policy per training window (``horizon``)."""
-        return self.horizon
-
-    @property
-    def in_dim(self) -> int:
-        """Network input features: :func:`~efficienttrack.data.features.feature_width` of the history and the F targets."""
-        return feature_width(self.history_length, self.future_length)
-
-
-POLICY_PRESETS: dict[str, PolicyConfig] = {
-    "paper": PolicyConfig(
-        hidden=512, layers=6, horizon=20, batch_size=2048, lr=1e-5,
-        steps=None, epochs=2000, cosine_decay=False, grad_clip=None, save_every=1000,
-    ),
-    "cpu": PolicyConfig(),
-    "tiny": PolicyConfig(hidden=32, layers=2, horizon=4, batch_size=64, lr=3e-3, steps=200, save_every=100),
-}  # fmt: skip
-"""Named policy configs: the paper's (a GPU job), ``cpu`` (minutes on 2 cores), ``tiny`` (tests, seconds)."""
 
 
 class SeenLengths(NamedTuple):

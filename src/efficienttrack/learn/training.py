@@ -9,14 +9,12 @@ that ``dynamics.train_model`` and ``policy.train_policy`` show only the algorith
 from __future__ import annotations
 
 import csv
-import dataclasses
 import hashlib
 import json
 import math
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Self
+from typing import Any
 
 import numpy as np
 import torch
@@ -27,113 +25,9 @@ from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import atomic_write
 from efficienttrack.core.progress import ProgressDisplay
 from efficienttrack.core.provenance import MAX_SHOWN, differences
-from efficienttrack.core.settings import check_fields, plain_form, setting, settings_from_dict
+from efficienttrack.core.settings import plain_form
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.learn.checkpoints import check_finite, load_tensors
-
-MAX_BATCH_SIZE = 65_536
-"""Most windows per optimizer step a config may ask for (the paper: 2048)."""
-MAX_STEPS = 10_000_000
-"""Most optimizer steps of a training run (the paper: 2000 epochs of its data, about 170,000 steps)."""
-MAX_EPOCHS = 100_000
-"""Most passes over the training windows a config may ask for (the paper: 2000)."""
-
-
-MAX_LR = 10.0
-"""Largest learning rate a config may ask for: far above any useful one (the paper: 1e-3), low enough that a typo
-(``lr: 1e300``) is refused before collection instead of overflowing the optimizer's float32 step after it."""
-MAX_WEIGHT_DECAY = 100.0
-"""Largest decoupled weight decay a config may ask for (the paper: 0.003)."""
-
-
-@dataclass(frozen=True)
-class TrainingSchedule:
-    """The optimizer and schedule settings that the model's and the policy's configs share (their base class).
-
-    A config class derives from this one and adds its network and loss fields; it may give a field here another
-    default by declaring it again.
-    """
-
-    batch_size: int = setting(256, ge=1, le=MAX_BATCH_SIZE)
-    """Windows per optimizer step (paper 2048)."""
-    lr: float = setting(1e-3, gt=0, le=MAX_LR)
-    """Adam learning rate (paper 1e-5)."""
-    weight_decay: float = setting(0.0, ge=0, le=MAX_WEIGHT_DECAY)
-    """Decoupled weight decay w (AdamW: θ ← θ − lr·w·θ each step; the paper: 0.003 for g_θ, none for π_φ)."""
-    steps: int | None = setting(1500, ge=1, le=MAX_STEPS)
-    """Optimizer steps; None to use ``epochs``."""
-    epochs: int | None = setting(None, ge=1, le=MAX_EPOCHS)
-    """Passes over the windows (paper 2000), used when ``steps`` is None."""
-    cosine_decay: bool = setting(True)
-    """Decay the learning rate to 0 along a cosine over the run (paper: constant)."""
-    grad_clip: float | None = setting(1.0, gt=0)
-    """Clip the gradient norm to this (None: no clipping)."""
-    save_every: int = setting(200, ge=1, le=MAX_STEPS)
-    """Save the training state every this many steps when a checkpoint path is given."""
-    eval_every: int | None = setting(None, ge=1, le=MAX_STEPS)
-    """Optimizer steps between held-out evaluations when training logs (None: a tenth of the run)."""
-
-    def __post_init__(self) -> None:
-        """Check the fields (:func:`~efficienttrack.core.settings.check_fields`), then that one of steps, epochs is set."""
-        check_fields(self)
-        if (self.steps is None) == (self.epochs is None):
-            raise EfficientTrackError(f"{type(self).__name__}: set exactly one of steps and epochs")
-
-    def total_steps(self, windows: int) -> int:
-        """Optimizer steps of a run on ``windows`` training windows (``steps``, or ``epochs`` passes over them).
-
-        Args:
-            windows: training windows available.
-
-        Raises:
-            EfficientTrackError: ``epochs`` passes over ``windows`` make more than :data:`MAX_STEPS` steps.
-        """
-        if self.steps is not None:
-            return self.steps
-        assert self.epochs is not None  # exactly one of steps and epochs is set (__post_init__)
-        total = self.epochs * math.ceil(windows / self.batch_size)
-        if total > MAX_STEPS:
-            raise EfficientTrackError(
-                f"{type(self).__name__}.epochs: {self.epochs} passes over {windows} windows make {total} optimizer steps, "
-                f"more than the {MAX_STEPS} allowed; lower epochs or raise batch_size"
-            )
-        return total
-
-    def scaled(self, share: float) -> Self:
-        """This schedule with ``share`` × its optimizer steps (or epochs), at least one; everything else kept.
-
-        Args:
-            share: > 0, e.g. 0.5 for a warm-started round that trains half as long as the first.
-        """
-        if not (math.isfinite(share) and share > 0):
-            raise EfficientTrackError(f"{type(self).__name__}: a schedule is scaled by a share > 0, got {share}")
-        if self.steps is not None:
-            return dataclasses.replace(self, steps=max(1, round(self.steps * share)))
-        assert self.epochs is not None  # exactly one of steps and epochs is set (__post_init__)
-        return dataclasses.replace(self, epochs=max(1, round(self.epochs * share)))
-
-    @classmethod
-    def from_dict(cls, data: dict, source: str | None = None) -> Self:
-        """Build the config from a JSON/YAML mapping, validated field by field.
-
-        Args:
-            data: field name → value, as read from a JSON/YAML config; missing fields keep their defaults.
-            source: where ``data`` came from, named in error messages (the class name when None).
-        """
-        return settings_from_dict(cls, data, source or cls.__name__)
-
-    @classmethod
-    def from_stored(cls, data: dict, source: str | None = None) -> Self:
-        """Read back the config a checkpoint stored: a field added later that it lacks takes its ``before`` value.
-
-        Unlike :meth:`from_dict`, which fills a missing field with today's default, this gives what the code did when
-        the checkpoint was written.
-
-        Args:
-            data: the checkpoint's config (:func:`~efficienttrack.core.settings.plain_form`).
-            source: where ``data`` came from, named in error messages (the class name when None).
-        """
-        return settings_from_dict(cls, data, source or cls.__name__, stored=True)
 
 
 def fingerprint(records: Sequence[EpisodeRecord], seed: int, *networks: nn.Module | None) -> str:

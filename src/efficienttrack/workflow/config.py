@@ -23,8 +23,7 @@ from efficienttrack.core.configfile import MAX_SEED, read_mapping_file
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import atomic_write, write_json
 from efficienttrack.core.settings import DEVICE, check_fields, merge, parse_override, plain_form, setting, settings_from_dict
-from efficienttrack.learn.dynamics import MODEL_PRESETS, ModelConfig
-from efficienttrack.learn.policy import POLICY_PRESETS, PolicyConfig
+from efficienttrack.learn.settings import MODEL_PRESETS, POLICY_PRESETS, ModelConfig, PolicyConfig
 from efficienttrack.workflow.collect import CollectConfig
 
 MAX_ROUNDS = 100

@@ -12,7 +12,7 @@ the new and the earlier ones together. :func:`next_round` does that and reports 
   of the position controller alone, of π_{k−1} and of π_k.
 
 A warm-started network keeps its sizes: the config of round k is the previous network's, with the training
-schedule (optimizer steps, learning rate, batch, decay; the :class:`~efficienttrack.learn.training.TrainingSchedule`
+schedule (optimizer steps, learning rate, batch, decay; the :class:`~efficienttrack.learn.settings.TrainingSchedule`
 fields) taken from the config given for the round (:func:`continued_config`).
 """
 
@@ -31,10 +31,10 @@ from efficienttrack.core.fileio import write_json
 from efficienttrack.core.provenance import provenance
 from efficienttrack.data.metrics import compute_metrics
 from efficienttrack.data.records import EpisodeRecord
-from efficienttrack.learn.dynamics import MPE_STEPS, ClosedLoopModel, ModelConfig, model_error, save_model, train_model
+from efficienttrack.learn.dynamics import MPE_STEPS, ClosedLoopModel, model_error, save_model, train_model
 from efficienttrack.learn.nets import resolve_device
-from efficienttrack.learn.policy import AdjustmentPolicy, PolicyConfig, predicted_tracking_error, save_policy, train_policy
-from efficienttrack.learn.training import TrainingSchedule
+from efficienttrack.learn.policy import AdjustmentPolicy, predicted_tracking_error, save_policy, train_policy
+from efficienttrack.learn.settings import ModelConfig, PolicyConfig, TrainingSchedule
 
 ConfigT = TypeVar("ConfigT", bound=TrainingSchedule)
 
@@ -58,7 +58,7 @@ def continued_config(schedule: ConfigT, network: ConfigT) -> ConfigT:
     """The config of a warm-started run: ``network``'s sizes and loss, ``schedule``'s training schedule.
 
     Args:
-        schedule: a config (e.g. a preset) whose :class:`~efficienttrack.learn.training.TrainingSchedule` fields
+        schedule: a config (e.g. a preset) whose :class:`~efficienttrack.learn.settings.TrainingSchedule` fields
             (steps, epochs, lr, batch_size, weight_decay, cosine_decay, grad_clip, save_every, eval_every) are used.
         network: the config of the network the run starts from; every other field (hidden, layers, horizon,
             history, and for a policy gamma, k_smooth, max_adjust) is kept, so its weights fit.

@@ -25,13 +25,14 @@ import torch
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.learn import dynamics, policy
-from efficienttrack.learn.training import EVALUATIONS, TrainingSchedule
+from efficienttrack.learn.settings import TrainingSchedule
+from efficienttrack.learn.training import EVALUATIONS
 from efficienttrack.workflow.config import RunConfig
 from efficienttrack.workflow.ledger import Ledger
 from efficienttrack.workflow.stages import COLLECT, PARTS, PROBE, RunLog, evaluation, plan
 
 ScheduleT = TypeVar("ScheduleT", bound=TrainingSchedule)
-"""A training's config: a :class:`~efficienttrack.learn.training.TrainingSchedule` (the model's or the policy's)."""
+"""A training's config: a :class:`~efficienttrack.learn.settings.TrainingSchedule` (the model's or the policy's)."""
 
 PROBE_STEPS = (1, 4, 24)
 """Optimizer steps of the short trainings of each network: a warm-up (the process's first steps are slow), then two

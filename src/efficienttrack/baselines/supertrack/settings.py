@@ -7,10 +7,8 @@ from dataclasses import dataclass, field
 
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.settings import canonical_preset
-from efficienttrack.learn.dynamics import ModelConfig
 from efficienttrack.learn.nets import check_size, resolve_device
-from efficienttrack.learn.policy import PolicyConfig
-from efficienttrack.learn.training import MAX_STEPS
+from efficienttrack.learn.settings import MAX_STEPS, ModelConfig, PolicyConfig
 
 
 @dataclass(frozen=True)
