@@ -128,6 +128,9 @@ def test_the_core_install_deploys_an_export_without_torch(tmp_path):
     done = run(python, "-c", f"LEFT_OUT = {EXTRA_LIBRARIES!r}\n{IN_PROCESS}", *args)
     assert "collected 2 episodes" in done.stdout and done.stdout.splitlines()[-1] == "imported: ", done.stdout
 
+    # the settings are read without torch
+    assert "imagined_share" in run(efficienttrack, "config", "show", "tiny").stdout
+
     # a command that needs the train extra says so in one line
     done = run(efficienttrack, "export", "--policy", tmp_path / "policy.pt", "--out", tmp_path / "again", code=2)
     assert done.stderr.count("\n") == 1, done.stderr
