@@ -1,13 +1,16 @@
 """Rehearsing a real machine: the built-in simulated machine for ``--machine``, and the approach between episodes."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.data.records import load_records
-from efficienttrack.deploy.deployment import APPROACH_SPEED, approach_path
+from efficienttrack.data.references import Reference
+from efficienttrack.deploy.deployment import APPROACH_SPEED, approach_path, run_episode
+from efficienttrack.deploy.loop import NotAtStart
 from efficienttrack.deploy.machine import SimulatedClock, simulated
 from test_loop import invoke
 
@@ -81,7 +84,7 @@ def test_without_an_approach_an_episode_away_from_its_start_stops_and_leaves_no_
     )
     logs = tmp_path / "c" / "logs" / "pass_000"
     assert sorted(p.name for p in logs.iterdir()) == []  # the first episode starts away from where the machine stands
-    assert "expected one of approach, stop" in str(invoke(*args, "--between-episodes", "pray").exception)
+    assert "expected one of approach, prompt, stop" in str(invoke(*args, "--between-episodes", "pray").exception)
 
 
 @pytest.mark.parametrize(
@@ -124,3 +127,41 @@ def test_homed_references_start_and_end_at_home_led_in_and_out_slowly(tmp_path):
     assert "--home '1,2': expected four finite numbers" in str(
         invoke("refs", "generate", "--home", "1,2", "--out", tmp_path / "x").exception
     )
+
+
+def test_the_prompt_asks_the_operator_with_the_start_and_retries_or_stops():
+    ref = Reference("ref_01", np.tile([0.1, 0.2, 0.3, 3.1], (40, 1)))
+    away = NotAtStart("too far", np.array([0.0, 0.2, 0.3, -3.1]))
+    attempts, asked = [], []
+
+    def run():
+        attempts.append(1)
+        if len(attempts) == 1:
+            raise away
+        return "ran"
+
+    def operator(answer):
+        def ask(question):
+            asked.append(question)
+            if answer is EOFError:
+                raise EOFError
+            return answer
+
+        return ask
+
+    args = (None, None, None, None, Path("logs"))
+    assert run_episode(ref, run, "prompt", *args, ask=operator("")) == "ran" and len(attempts) == 2
+    assert asked[0].startswith("ref_01: bring the machine to the start (boom 5.7°, arm 11.5°, bucket 17.2°, swing 177.6°")
+    assert "to go: boom +5.7°, arm +0.0°, bucket +0.0°, swing -4.8°" in asked[0]  # the swing the short way round
+    for answer in ("q", EOFError):  # the operator stops, or there is none
+        attempts.clear()
+        with pytest.raises(NotAtStart):
+            run_episode(ref, run, "prompt", *args, ask=operator(answer))
+        assert len(attempts) == 1
+
+
+def test_the_prompt_needs_a_terminal(tmp_path, refs):
+    args = ("collect", "--refs", refs, "--out", tmp_path / "c", *machine_args(tmp_path, "prompt"), "--passes", "1")
+    result = invoke(*args, "--between-episodes", "prompt")
+    assert "--between-episodes prompt: asks an operator at a terminal" in str(result.exception)
+    assert not (tmp_path / "c").exists()

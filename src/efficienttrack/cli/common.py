@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -58,7 +59,7 @@ BetweenOpt = Annotated[
     typer.Option(
         "--between-episodes",
         help="When the machine is not at a reference's start: approach it slowly through the loop (logged in "
-        "approach/, never scored or trained on), or stop.",
+        "approach/, never scored or trained on), prompt the operator to bring it there and press Enter, or stop.",
     ),
 ]
 ArmOpt = Annotated[bool, typer.Option("--arm", help="Allow the machine to move (nothing is sent without it).")]
@@ -111,6 +112,8 @@ def between(value: str) -> str:
 
     if value not in BETWEEN_EPISODES:
         raise EfficientTrackError(f"--between-episodes {value}: expected one of {', '.join(BETWEEN_EPISODES)}")
+    if value == "prompt" and not sys.stdin.isatty():
+        raise EfficientTrackError("--between-episodes prompt: asks an operator at a terminal, and the input is none")
     return value
 
 

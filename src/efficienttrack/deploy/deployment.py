@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import inspect
 import json
+import math
 import sys
 import warnings
 from collections.abc import Callable, Sequence
@@ -26,7 +27,7 @@ import numpy as np
 from efficienttrack.core.angles import wrap
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import write_json
-from efficienttrack.core.joints import DT, SWING
+from efficienttrack.core.joints import DT, JOINT_NAMES, SWING
 from efficienttrack.core.provenance import differences
 from efficienttrack.data.cycles import joint_move
 from efficienttrack.data.metrics import MIN_STEPS, compute_metrics
@@ -50,8 +51,9 @@ UNUSABLE_TICK_EVENTS = frozenset({"dropped", "nonfinite", "stale"})
 
 SHADOW_JSON = "shadow.json"
 """Where an export folder keeps its passing shadow deployment (:func:`record_shadow`; a checkpoint keeps it in its JSON)."""
-BETWEEN_EPISODES = ("approach", "stop")
-"""What happens when the machine is not at a reference's start: a slow approach through the loop, or a stop."""
+BETWEEN_EPISODES = ("approach", "prompt", "stop")
+"""What happens when the machine is not at a reference's start: a slow approach through the loop, the operator asked to
+bring it there (:func:`ask_operator`), or a stop."""
 APPROACH_SPEED = 0.1
 """rad/s, the peak speed of the joint that moves farthest on an approach (the others slower, all arriving together)."""
 APPROACH_HOLD = 2.0
@@ -112,6 +114,28 @@ def approach(
         return Loop(runtime, make_machine(ref), limits, cfg, clock, log).run(path, f"{ref.name} (approach)")
 
 
+def ask_operator(ref: Reference, away: NotAtStart, ask: Callable[[str], str] = input) -> bool:
+    """Ask the operator to bring the machine to ``ref``'s start by hand (``--between-episodes prompt``).
+
+    Args:
+        ref: the reference whose start the machine missed.
+        away: the loop's refusal, with where the machine stands.
+        ask: shows the question and returns the answer (``input``; a test gives its own).
+
+    Returns:
+        True to try the episode again (Enter), False to stop (``q``, or no operator: end of input).
+    """
+    go = ref.q[0] - away.position
+    go[SWING] = wrap(go[SWING])
+    degrees = ", ".join(f"{joint} {math.degrees(v):.1f}°" for joint, v in zip(JOINT_NAMES, ref.q[0], strict=True))
+    to_go = ", ".join(f"{joint} {math.degrees(v):+.1f}°" for joint, v in zip(JOINT_NAMES, go, strict=True))
+    try:
+        answer = ask(f"{ref.name}: bring the machine to the start ({degrees}; to go: {to_go}), then press Enter (q to stop): ")
+    except EOFError:
+        return False
+    return answer.strip().lower() not in ("q", "quit", "stop")
+
+
 def run_episode(
     ref: Reference,
     run: Callable[[], LoopResult],
@@ -121,18 +145,21 @@ def run_episode(
     cfg: LoopConfig,
     clock: Clock,
     logs: Path,
+    ask: Callable[[str], str] = input,
 ) -> LoopResult:
-    """``run()`` (the loop along ``ref``); when the machine is not at its start, approach it first (``between``).
+    """``run()`` (the loop along ``ref``); when the machine is not at its start, bring it there first (``between``).
 
     Args:
         ref: the reference.
         run: runs the episode's loop (opens its log and adapter).
-        between: ``"approach"`` (:func:`approach`, then the episode) or ``"stop"`` (the refusal is the error).
+        between: ``"approach"`` (:func:`approach`, then the episode), ``"prompt"`` (:func:`ask_operator`, then the
+            episode) or ``"stop"`` (the refusal is the error); after :data:`APPROACH_TRIES` the refusal is the error.
         make_machine: reference → a new adapter.
         limits: the machine's limits.
         cfg: the loop's timing and watchdogs.
         clock: the loop's clock.
         logs: the folder of the episodes' logs (the approach's go to ``logs/approach``).
+        ask: with ``"prompt"``: how the operator is asked (``input``).
 
     Returns:
         The episode's result, or the approach's when a watchdog stopped it (the episode did not run).
@@ -141,8 +168,12 @@ def run_episode(
         try:
             return run()
         except NotAtStart as away:
-            if between != "approach" or tries == APPROACH_TRIES:
+            if between == "stop" or tries == APPROACH_TRIES:
                 raise
+            if between == "prompt":
+                if not ask_operator(ref, away, ask):
+                    raise
+                continue
             gap = np.abs(away.position - ref.q[0])
             gap[SWING] = abs(wrap(gap[SWING]))
             log = logs / "approach" / f"{ref.name}.jsonl"  # the machine moves unasked for by a reference: say so
