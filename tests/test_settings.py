@@ -1,10 +1,12 @@
 """The settings tree: one validator however it is made, ``--set`` on every command that trains, ``config show``."""
 
 import dataclasses
+import json
 import subprocess
 import sys
 
 import pytest
+import yaml
 
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.settings import check_fields, parse_override, plain_form, setting, settings_from_dict, settings_table
@@ -12,6 +14,7 @@ from efficienttrack.learn import dynamics, policy
 from efficienttrack.learn.dynamics import ClosedLoopModel, save_model
 from efficienttrack.learn.policy import AdjustmentPolicy, save_policy
 from efficienttrack.learn.settings import MODEL_PRESETS, POLICY_PRESETS, ModelConfig, PolicyConfig
+from efficienttrack.study.methods import changed_settings, preset_settings, settable
 from efficienttrack.workflow import next_round, pipeline
 from efficienttrack.workflow.collect import CollectConfig
 from efficienttrack.workflow.config import PRESETS, RunConfig, apply_overrides, from_dict, load_config
@@ -157,6 +160,24 @@ def test_config_show_prints_a_file_that_config_reads_back(name, tmp_path):
 
 def test_config_show_refuses_an_unknown_preset():
     refused(invoke("config", "show", "huge"), "--preset 'huge': unknown")
+
+
+@pytest.mark.parametrize("method", settable())
+def test_config_show_lists_every_study_methods_settings_as_method_set_reads_them(method):
+    result = invoke("config", "show", "tiny", "--method", method)
+    assert result.exit_code == 0, result.output
+    lines = result.output.splitlines()
+    assert lines[0] == f"# {method} settings of the study's preset tiny (study --method-set {method}.FIELD=VALUE)"
+    shown = yaml.safe_load(result.output)
+    assert changed_settings(method, "tiny", [f"{method}.{key}={json.dumps(value)}" for key, value in shown.items()]) == (
+        preset_settings(method, "tiny")
+    )  # every field shown is one --method-set takes, at the preset's value
+
+
+def test_config_show_of_a_method_without_settings_or_with_run_options_is_refused():
+    refused(invoke("config", "show", "--method", "pd"), "--method pd: has no settings; methods with settings: efficienttrack")
+    refused(invoke("config", "show", "--method", "dqn"), "--method dqn: unknown")
+    refused(invoke("config", "show", "--method", "sac", "--set", "seed=1"), "takes no --config or --set")
 
 
 @pytest.fixture

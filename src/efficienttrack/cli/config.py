@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import json
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
 from efficienttrack.cli.common import ConfigOpt, SetOpt, _settings
+from efficienttrack.core.errors import EfficientTrackError
 
 config_app = typer.Typer(help="The settings tree: what run, train-model, train-policy, round, study and ablate take.")
 
@@ -19,6 +20,14 @@ def show_command(
     ] = "cpu",
     config: ConfigOpt = None,
     overrides: SetOpt = None,
+    method: Annotated[
+        str | None,
+        typer.Option(
+            "--method",
+            help="A study method's settings instead (sac, ppo, tdmpc, supertrack, ilc, or efficienttrack's open loop), "
+            "of PRESET as the baselines name it; study --method-set METHOD.FIELD=VALUE changes them.",
+        ),
+    ] = None,
 ) -> None:
     """Print every setting of PRESET, amended by --config and --set, with its bounds; the output is a valid --config file.
 
@@ -26,15 +35,31 @@ def show_command(
     """
     from efficienttrack.core.settings import settings_table
 
+    if method is not None:
+        from efficienttrack.study.methods import METHODS, preset_settings, settable
+
+        if config is not None or overrides:
+            raise EfficientTrackError("config show --method: takes no --config or --set (study --method-set changes it)")
+        if method not in settable():
+            known = ", ".join(settable())
+            raise EfficientTrackError(f"--method {method}: " + ("has no settings" if method in METHODS else "unknown") +
+                                      f"; methods with settings: {known}")  # fmt: skip
+        typer.echo(f"# {method} settings of the study's preset {preset_name} (study --method-set {method}.FIELD=VALUE)")
+        _print(list(settings_table(preset_settings(method, preset_name))))
+        return
     cfg = _settings(preset_name, config, overrides)
-    rows = list(settings_table(cfg))
-    width = max(len(path.rsplit(".", 1)[-1]) + 2 * path.count(".") + len(json.dumps(value)) for path, value, _ in rows)
-    section = None
     typer.echo(
         f"# efficienttrack settings: preset {preset_name}"
         + (f", {config}" if config else "")
         + "".join(f", --set {text}" for text in overrides or ())
     )
+    _print(list(settings_table(cfg)))
+
+
+def _print(rows: list[tuple[str, Any, str]]) -> None:
+    """Settings rows (``settings_table``) as YAML, each line with its bounds as a comment."""
+    width = max(len(path.rsplit(".", 1)[-1]) + 2 * path.count(".") + len(json.dumps(value)) for path, value, _ in rows)
+    section = None
     for path, value, bounds in rows:
         *parents, name = path.split(".")
         if parents and parents[0] != section:

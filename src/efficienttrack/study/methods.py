@@ -63,6 +63,8 @@ class Method:
         requires: modules that must be importable for it to be available.
         check: ``check(study)`` raises an EfficientTrackError (naming the option) when the method cannot run in the
             study, before any job runs; None: it can always run.
+        settings: ``settings(preset)``, the settings object of the baselines' preset ``cpu``, ``tiny`` … that
+            ``--method-set`` changes, its module imported only when called; None: no settings (``pd``).
     """
 
     name: str
@@ -72,6 +74,7 @@ class Method:
     seeded: bool = True
     requires: tuple[str, ...] = ()
     check: Callable[[Study], None] | None = None
+    settings: Callable[[str], Any] | None = None
 
     def available(self) -> bool:
         """Whether every module in ``requires`` can be imported here (checked without importing them)."""
@@ -208,46 +211,26 @@ def _baseline(job: Job, folder: Path, train: Callable[..., list[Point]], validat
     return require_validation(curve, job.method) if validation else curve
 
 
-SETTABLE = ("efficienttrack", "sac", "ppo", "tdmpc", "supertrack", "ilc")
-"""The methods whose settings ``--method-set`` changes (EfficientTrack's in the open loop; its closed loop: ``--set``)."""
-
-
 def preset_settings(method: str, preset: str) -> Any:
-    """The settings object of a method's preset, its module imported only now (a job imports only what it runs).
+    """The settings object of a method's preset (:attr:`Method.settings`).
 
     Args:
-        method: a name of :data:`SETTABLE`.
+        method: a method with settings (:func:`settable`).
         preset: the baselines' preset name (``cpu``, ``tiny``).
 
     Returns:
         The method's settings dataclass (``OpenLoopSettings`` for ``efficienttrack``, ``SACSettings`` …).
     """
-    if method == "efficienttrack":
-        from efficienttrack.baselines.openloop import open_settings
-
-        return open_settings(preset)
-    if method in ("sac", "ppo"):
-        from efficienttrack.baselines.settings import method_settings
-
-        return method_settings(method, preset)
-    if method == "tdmpc":
-        from efficienttrack.baselines.tdmpc import tdmpc_settings
-
-        return tdmpc_settings(preset)
-    if method == "supertrack":
-        from efficienttrack.baselines.supertrack import supertrack_settings
-
-        return supertrack_settings(preset)
-    from efficienttrack.baselines.ilc import ilc_settings
-
-    return ilc_settings(preset)
+    make = METHODS[method].settings
+    assert make is not None, f"{method} has no settings"
+    return make(preset)
 
 
 def changed_settings(method: str, preset: str, changes: Sequence[str]) -> Any:
     """A method's preset with ``--method-set`` changes laid over it, each checked as a settings file's field is.
 
     Args:
-        method: a name of :data:`SETTABLE`.
+        method: a method with settings (:func:`settable`).
         preset: the baselines' preset name.
         changes: ``method.field=value`` texts (a dotted field reaches into a section: ``supertrack.policy.lr=1e-5``).
 
@@ -291,8 +274,8 @@ def check_method_settings(study: Study, jobs: Sequence[Job]) -> None:
     for method in dict.fromkeys(name for name, _ in study.method_settings):
         changes = study.settings_changes(method)
         if method not in METHODS:
-            raise EfficientTrackError(f"--method-set {changes[0]}: unknown method, choose from {', '.join(SETTABLE)}")
-        if method not in SETTABLE:
+            raise EfficientTrackError(f"--method-set {changes[0]}: unknown method, choose from {', '.join(settable())}")
+        if method not in settable():
             raise EfficientTrackError(f"--method-set {changes[0]}: {method} has no settings to change")
         if method == "efficienttrack" and not any(job.settings_changes for job in jobs if job.method == method):
             raise EfficientTrackError(
@@ -411,16 +394,38 @@ def run_ilc(job: Job, folder: Path) -> list[Point]:
 
 SB3_MODULES = ("stable_baselines3", "efficienttrack.baselines.sb3")
 """What the SB3 baselines need."""
+
+
+def _settings_of(module: str, function: str, *args: str) -> Callable[[str], Any]:
+    """``preset → module.function(*args, preset)``, the module imported only when called (a job imports what it runs)."""
+
+    def settings(preset: str) -> Any:
+        return getattr(importlib.import_module(module), function)(*args, preset)
+
+    return settings
+
+
 METHODS: dict[str, Method] = {
     "pd": Method("pd", "PD", run_pd, ("closed",), seeded=False),
-    "efficienttrack": Method("efficienttrack", "EfficientTrack", run_efficienttrack, LOOPS, check=check_passes),
-    "sac": Method("sac", "SAC", run_sb3, LOOPS, requires=SB3_MODULES),
-    "ppo": Method("ppo", "PPO", run_sb3, LOOPS, requires=SB3_MODULES),
-    "tdmpc": Method("tdmpc", "TD-MPC (reduced)", run_tdmpc, LOOPS),
-    "supertrack": Method("supertrack", "SuperTrack", run_supertrack, LOOPS),
-    "ilc": Method("ilc", "ILC (oracle: sees the test references)", run_ilc, ("closed",), seeded=False, check=check_trial),
-}
-"""The methods by name, in the order the reports list them."""
+    "efficienttrack": Method("efficienttrack", "EfficientTrack", run_efficienttrack, LOOPS, check=check_passes,
+                             settings=_settings_of("efficienttrack.baselines.openloop", "open_settings")),
+    "sac": Method("sac", "SAC", run_sb3, LOOPS, requires=SB3_MODULES,
+                  settings=_settings_of("efficienttrack.baselines.settings", "method_settings", "sac")),
+    "ppo": Method("ppo", "PPO", run_sb3, LOOPS, requires=SB3_MODULES,
+                  settings=_settings_of("efficienttrack.baselines.settings", "method_settings", "ppo")),
+    "tdmpc": Method("tdmpc", "TD-MPC (reduced)", run_tdmpc, LOOPS,
+                    settings=_settings_of("efficienttrack.baselines.tdmpc", "tdmpc_settings")),
+    "supertrack": Method("supertrack", "SuperTrack", run_supertrack, LOOPS,
+                         settings=_settings_of("efficienttrack.baselines.supertrack", "supertrack_settings")),
+    "ilc": Method("ilc", "ILC (oracle: sees the test references)", run_ilc, ("closed",), seeded=False, check=check_trial,
+                  settings=_settings_of("efficienttrack.baselines.ilc", "ilc_settings")),
+}  # fmt: skip
+"""The methods by name, in the order the reports list them; the one place a method is described."""
+
+
+def settable() -> list[str]:
+    """The methods whose settings ``--method-set`` changes (EfficientTrack's in the open loop; its closed loop: ``--set``)."""
+    return [name for name, method in METHODS.items() if method.settings is not None]
 
 
 def available_methods() -> list[str]:
