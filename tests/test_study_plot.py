@@ -1,6 +1,7 @@
 """Several study folders in one table and figure (``study-plot``), and the mean curve over seeds."""
 
 import json
+import shutil
 
 import pytest
 from typer.testing import CliRunner
@@ -13,6 +14,7 @@ from efficienttrack.study.report import (
     equal_interaction_table,
     markdown_table,
     mean_curve,
+    report,
     summarize,
 )
 
@@ -199,3 +201,24 @@ def test_the_papers_rows_are_under_the_second_table_on_its_simulator_and_no_seco
     assert second.rstrip().endswith("its test metrics; the paper's rows are each method's best point.")
     plain = markdown_table(summarize([result("efficienttrack", "closed", 0, (10, 0.4), (20, 0.3))]), {}, paper=True)
     assert split_tables(plain)[1] == "" and "validation references chose" not in plain
+
+
+def test_a_studys_results_file_redraws_its_table_and_figure_without_the_folder(tmp_path):
+    folder = study_folder(
+        tmp_path / "study", PAPER, ("supertrack", "closed", 0, [0.6, 0.4]), ("efficienttrack", "closed", 0, [0.5, 0.3])
+    )
+    (folder / "jobs" / "sac-closed-s0").mkdir()
+    (folder / "jobs" / "sac-closed-s0" / "error.json").write_text(json.dumps({"error": "ran out of time"}))
+    written = report(folder)
+    committed = tmp_path / "docs" / "table.json"
+    committed.parent.mkdir()
+    shutil.copy(folder / "results.json", committed)
+    shutil.rmtree(folder)
+    redrawn = combine([committed], tmp_path / "redrawn.png")
+    assert redrawn.markdown.replace(f"{committed}/", "") == written.markdown  # a failed job named with its source
+    assert "sac-closed-s0`: ran out of time" in written.markdown
+    assert redrawn.entries == json.loads(json.dumps(written.entries))  # the numbers, as study.json holds them
+    assert (tmp_path / "redrawn.png").stat().st_size > 0
+    committed.write_text(json.dumps({"format": "something else", "jobs": []}))
+    with pytest.raises(EfficientTrackError, match="not a study's results.json"):
+        combine([committed], tmp_path / "x.png")

@@ -188,7 +188,10 @@ def study_command(
 
 @app.command("study-plot")
 def study_plot_command(
-    folders: Annotated[list[Path], typer.Argument(help="Study folders (each a study's --out) of one system.")],
+    folders: Annotated[
+        list[Path],
+        typer.Argument(help="Study folders (each a study's --out) of one system, or their results.json files."),
+    ],
     out: Annotated[Path, typer.Option("--out", help="The figure to write (PNG).")],
     at: Annotated[
         str | None,
@@ -200,6 +203,9 @@ def study_plot_command(
     ] = None,
 ) -> None:
     """One table and one MAE-against-interaction-time figure of several study folders (a study run in several sittings).
+
+    A folder's results.json (every study writes one) stands for the folder: committed, it redraws the table and the
+    figure without the runs.
 
     With --at, a second table compares the methods at equal interaction: one column per count N.
     """

@@ -58,7 +58,11 @@ COLUMNS = {
     "etd_fmae_cm": ("ETD-FMAE (cm)", ".2f"),
 }
 """Column heading and number format of each field in ``study.md``."""
-OUTPUTS = ("study.json", "study.md", "study.csv", "study.png")
+BUNDLE = "results.json"
+"""The study's results as data (:func:`report`): what ``study-plot`` redraws the table and figure from."""
+BUNDLE_FORMAT = "efficienttrack-study-results/1"
+"""The ``format`` field of a :data:`BUNDLE`."""
+OUTPUTS = (BUNDLE, "study.json", "study.md", "study.csv", "study.png")
 """The report's files in the study folder."""
 LOG_MAE_SPAN = 10.0
 """The figure's MAE axis is logarithmic when the largest MAE drawn is more than this many times the smallest."""
@@ -94,25 +98,56 @@ def read_result(path: Path) -> dict[str, Any] | None:
         result = json.loads(path.read_text())
     except (OSError, ValueError):
         return None
+    return result if _is_result(result) else None
+
+
+def _is_result(result: Any) -> bool:
+    """Whether ``result`` is a finished job's result: a mapping with ``method``, ``loop``, ``seed`` and a curve."""
     keys = ("method", "loop", "seed", "curve")
-    if not isinstance(result, dict) or any(key not in result for key in keys) or not result["curve"]:
-        return None
-    return result
+    return isinstance(result, dict) and all(key in result for key in keys) and bool(result["curve"])
+
+
+def read_bundle(path: Path) -> dict[str, Any]:
+    """A study's results as data (``results.json``, :func:`report` writes it): what every table and figure is drawn from.
+
+    Args:
+        path: the file.
+
+    Returns:
+        ``{"format", "system", "jobs": [result.json of each finished job], "failed": {job: error}}``.
+
+    Raises:
+        EfficientTrackError: not such a file (unreadable, or another format).
+    """
+    try:
+        bundle = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise EfficientTrackError(f"{path}: not a readable study results file ({exc})") from exc
+    if not isinstance(bundle, dict) or bundle.get("format") != BUNDLE_FORMAT or not isinstance(bundle.get("jobs"), list):
+        raise EfficientTrackError(f"{path}: not a study's {BUNDLE} (format '{BUNDLE_FORMAT}')")
+    jobs = [job for job in bundle["jobs"] if _is_result(job)]
+    if len(jobs) != len(bundle["jobs"]):
+        raise EfficientTrackError(f"{path}: {len(bundle['jobs']) - len(jobs)} job(s) lack a method, loop, seed or curve")
+    return bundle
 
 
 def read_jobs(out: Path) -> tuple[list[dict[str, Any]], dict[str, str]]:
-    """The finished jobs' results and the failed jobs' errors in a study folder.
+    """The finished jobs' results and the failed jobs' errors in a study folder, or in its results file.
 
     Args:
-        out: the study folder (``out/jobs/<name>/result.json`` or ``error.json``).
+        out: the study folder (``out/jobs/<name>/result.json`` or ``error.json``), or its :data:`BUNDLE` file (a
+            committed one, say, its folder long gone).
 
     Returns:
         The results (:func:`read_result`), in the order of the folders' names, and job name → error of the jobs with an
         ``error.json`` or an unreadable ``result.json``.
 
     Raises:
-        EfficientTrackError: ``out`` holds no study (no ``jobs`` folder).
+        EfficientTrackError: ``out`` holds no study (no ``jobs`` folder, not a results file).
     """
+    if out.is_file():
+        bundle = read_bundle(out)
+        return bundle["jobs"], {str(k): str(v) for k, v in dict(bundle.get("failed") or {}).items()}
     if not (out / JOBS).is_dir():
         raise EfficientTrackError(f"{out}: no study here (no {JOBS}/ folder)")
     results, failed = [], {}
@@ -556,9 +591,9 @@ def _minor_label(value: float, _: int) -> str:
 
 
 def _study_system(out: Path) -> dict[str, Any]:
-    """The system a study folder ran on, from its ``study_config.json`` (empty when the file is missing or unreadable)."""
+    """The system a study folder (or results file) ran on, from its ``study_config.json`` (empty when it is missing)."""
     try:
-        identity = json.loads((out / STUDY_CONFIG).read_text())
+        identity = json.loads((out if out.is_file() else out / STUDY_CONFIG).read_text())
     except (OSError, ValueError):
         return {}
     system = identity.get("system") if isinstance(identity, dict) else None
@@ -567,6 +602,10 @@ def _study_system(out: Path) -> dict[str, Any]:
 
 def report(out: str | Path) -> Report:
     """Rebuild the study's report from its jobs' folders: ``study.json``, ``study.md``, ``study.csv``, ``study.png``.
+
+    It also writes the results as data, :data:`BUNDLE`: the study's identity and every job's curve (per seed and
+    point: interaction steps, wall time, test and validation metrics; the job's settings changes and provenance, with
+    the commit), from which ``study-plot`` redraws the table and the figure without the folder.
 
     Args:
         out: the study folder (``out/jobs/<name>/result.json`` of each finished job).
@@ -589,7 +628,10 @@ def report(out: str | Path) -> Report:
          " ".join(e.get("settings_changes", ()))]
         for e in entries
     )  # fmt: skip
+    identity = json.loads((out / STUDY_CONFIG).read_text()) if (out / STUDY_CONFIG).is_file() else {}
+    bundle = {"format": BUNDLE_FORMAT, "system": _study_system(out), "study": identity, "jobs": results, "failed": failed}
     paths = (
+        write_json(out / BUNDLE, bundle),
         write_json(out / "study.json", entries),
         atomic_write(out / "study.md", lambda f: f.write(markdown), mode="w"),
         write_csv(out / "study.csv", header, rows),
