@@ -9,6 +9,7 @@ import sys
 import gymnasium
 import numpy as np
 import pytest
+import torch
 from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
@@ -22,6 +23,8 @@ from efficienttrack.data.references import Reference, save_references
 from efficienttrack.deploy.runtime import track
 from efficienttrack.envs import CLOSED_LOOP_ID, OPEN_LOOP_ID, TrackingEnv, TrackingVectorEnv, evaluate, observation_size
 from efficienttrack.envs.core import reward
+from efficienttrack.learn.policy import AdjustmentPolicy
+from efficienttrack.learn.settings import POLICY_PRESETS
 from efficienttrack.systems.spec import SystemSpec
 
 H = 21
@@ -181,16 +184,21 @@ def test_evaluate_with_zero_actions_is_the_pd_controller(cycles):
     assert compute_metrics(records)["mae_deg"] == compute_metrics(pd)["mae_deg"] > 0
 
 
-@pytest.mark.parametrize("loop", ["closed", "open"])
-def test_evaluate_equals_stepping_the_env(loop, cycles):
-    records = evaluate(toward_next, cycles, loop=loop)
+def gentle(obs: np.ndarray) -> np.ndarray:
+    """``toward_next`` within ±0.2: its adjustment never changes faster than the guard's rate (max_adjust / 2 a step)."""
+    return 0.2 * toward_next(obs)
+
+
+@pytest.mark.parametrize(("loop", "agent"), [("closed", gentle), ("open", toward_next)])
+def test_evaluate_equals_stepping_the_env(loop, agent, cycles):
+    records = evaluate(agent, cycles, loop=loop)
     env = TrackingEnv(loop, refs=cycles)
     for i, record in enumerate(records):
         obs, _ = env.reset(options={"reference": i})
         positions = [obs[Q_T]]
         truncated = False
         while not truncated:
-            obs, _, _, truncated, _ = env.step(toward_next(obs[None])[0])
+            obs, _, _, truncated, _ = env.step(agent(obs[None])[0])
             positions.append(obs[Q_T])
         np.testing.assert_allclose(record.q, np.array(positions[:-1]), atol=1e-6)
         assert len(record) == len(cycles[i]) - 1
@@ -295,3 +303,20 @@ def test_a_loaded_policy_predicts_in_the_registered_environment_and_in_sb3s_eval
     assert np.isfinite(mean)
     with pytest.raises(EfficientTrackError, match="is not h·8 \\+ h·4"):
         policy.predict(obs[:-3])
+
+
+def test_a_policy_scored_as_a_baseline_is_scored_as_efficienttrack_guard_included(cycles):
+    starts = [Reference(ref.name, ref.q[:80]) for ref in cycles]  # before float32 round-off grows in the closed loop
+    policy = AdjustmentPolicy(POLICY_PRESETS["tiny"])
+    torch.nn.init.normal_(policy.pi_phi.body[-1].weight, std=0.5)  # an untrained policy that adjusts, and jumps
+    h, f = policy.cfg.history_length, policy.cfg.future_length  # the policy's own lengths: the same float32 inputs
+    act = lambda obs: policy.predict(obs, future=f)[0]  # noqa: E731
+    as_baseline = evaluate(act, starts, loop="closed", system=SystemSpec(), history=h, future=f)
+    as_efficienttrack = track(SystemSpec().open(), policy, starts, progress=False)
+    for ours, theirs in zip(as_baseline, as_efficienttrack, strict=True):  # equal but for the env's float32 action
+        np.testing.assert_allclose(ours.q_ref, theirs.q_ref, atol=1e-5)
+        assert ours.meta["guard"] == theirs.meta["guard"] and ours.meta["fallbacks"] == theirs.meta["fallbacks"]
+    assert sum(len(r.meta["guard"]["rate_limited"]) for r in as_baseline) >= 3  # the guard's rate limit acted, alike
+    ours, theirs = compute_metrics(as_baseline), compute_metrics(as_efficienttrack)
+    for key in ("mae_deg", "rmse_deg", "fmae_deg", "smt1_deg", "smt2_deg"):
+        assert ours[key] == pytest.approx(theirs[key], rel=1e-5), key

@@ -1,10 +1,13 @@
 """A deterministic agent on every reference once, all at once on the batched system, as episode records to score.
 
 :func:`evaluate` is how a baseline trained on the environments is measured exactly like EfficientTrack: the agent
-sees the environments' observations (:func:`efficienttrack.envs.core.observe`), its actions are applied as the
-environments apply them (:class:`efficienttrack.envs.core.ActionMap`), and the episodes run in the one episode loop
-(:func:`efficienttrack.deploy.episodes.rollout`), so that :func:`efficienttrack.data.metrics.compute_metrics` scores the
-records.
+sees the environments' observations (:func:`efficienttrack.envs.core.observe`), and the episodes run in the one
+episode loop (:func:`efficienttrack.deploy.episodes.rollout`), so that :func:`efficienttrack.data.metrics.compute_metrics`
+scores the records. In the closed loop the agent is called by the guard that deploys EfficientTrack
+(:class:`~efficienttrack.deploy.guard.GuardedRuntime`: its fallbacks, rate limit and clamp, on the guard's histories of
+the references really sent), its action a ∈ [−1, 1] the adjustment ``a · max_adjust``: one scoring path for every
+method. In the open loop (PWM, no reference to guard) the actions are applied as the environments apply them
+(:class:`efficienttrack.envs.core.ActionMap`).
 With ``act`` returning zeros the closed loop is the PD controller alone, record for record.
 """
 
@@ -17,6 +20,7 @@ import numpy as np
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.data.windows import History, push_observation, push_reference
 from efficienttrack.deploy.episodes import STEP_TIMEOUT, Sent, batches, rollout
+from efficienttrack.deploy.guard import GuardedRuntime
 from efficienttrack.envs.core import (
     FUTURE,
     HISTORY,
@@ -57,6 +61,20 @@ class _AgentDriver:
         return Sent(q_ref=command.sent, adjustment=command.adjustment, fallback=np.zeros(n, dtype=bool))
 
 
+class _GuardedAgent:
+    """The agent as the guard calls a policy (:data:`~efficienttrack.deploy.guard.PolicyCall`).
+
+    The environments' observation of the guard's histories goes in, the adjustment ``a · max_adjust`` (rad) comes out.
+    """
+
+    def __init__(self, act: Act, max_adjust: np.ndarray) -> None:
+        self._act, self._max_adjust = act, max_adjust
+
+    def __call__(self, obs_hist: np.ndarray, qref_hist: np.ndarray, q_des_future: np.ndarray) -> np.ndarray:
+        a = self._act(observe(History(obs=obs_hist, q_ref=qref_hist), q_des_future))
+        return check_actions(a, len(obs_hist)) * self._max_adjust
+
+
 def evaluate(
     act: Act,
     refs: RefsArg,
@@ -83,7 +101,8 @@ def evaluate(
     Returns:
         One record per reference, in order: q, qd (T, 4) measured; q_ref (T, 4) rad, the reference sent (closed loop)
         or the desired position q*_{t+1} (open loop); q_des (T, 4) rad; u (T, 4) PWM (the PD controller's, or the
-        agent's), None when the system does not expose it; t (T,) s; meta ``name``, ``loop``, ``fallbacks`` (0).
+        agent's), None when the system does not expose it; t (T,) s; meta ``name``, ``loop``, ``fallbacks`` (the
+        guard's, closed loop; 0 open) and ``guard`` (closed loop: {reason: steps}).
     """
     refs = resolve_references(refs)
     system = open_system(loop, SystemSpec() if system is None else system) if not isinstance(system, BatchedSystem) else system
@@ -94,8 +113,14 @@ def evaluate(
             system.limits.check_reference(ref.q, ref.name)
     records: list[EpisodeRecord] = []
     for part in batches(system, len(refs)):
-        driver = _AgentDriver(act, actions, history, future)
-        part_records = rollout(system, [ref.q for ref in refs[part]], driver, future, step_timeout=step_timeout)
+        arrays = [ref.q for ref in refs[part]]
+        if actions.loop == "closed":
+            agent = _GuardedAgent(act, actions.max_adjust)
+            with GuardedRuntime(agent, (history, future), None, system.limits, system.dt) as guarded:
+                part_records = rollout(system, arrays, guarded, future, step_timeout=step_timeout)
+        else:
+            driver = _AgentDriver(act, actions, history, future)
+            part_records = rollout(system, arrays, driver, future, step_timeout=step_timeout)
         for record, ref in zip(part_records, refs[part], strict=True):
             if actions.loop == "open":  # what was sent is the PWM; the reference is the desired position
                 record.u, record.q_ref = record.q_ref, record.q_des.copy()
