@@ -32,7 +32,7 @@ from efficienttrack.core.progress import ProgressDisplay
 from efficienttrack.data.references import load_references
 from efficienttrack.study.jobs import default_validation, split_validation
 from efficienttrack.study.methods import changed_settings
-from efficienttrack.study.report import selected_point
+from efficienttrack.study.summary import selected_point
 from efficienttrack.systems.spec import SystemSpec
 
 

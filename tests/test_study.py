@@ -22,11 +22,14 @@ from efficienttrack.data.references import Reference, save_references
 from efficienttrack.envs.core import LOOPS
 from efficienttrack.study import METHODS, Job, Study, available_methods, make_jobs, make_study, report, run_study
 from efficienttrack.study.executors import Outcome, process_pool
+from efficienttrack.study.figure import log_mae_axis, plot_study
 from efficienttrack.study.jobs import default_validation, split_validation
 from efficienttrack.study.methods import Method, job_settings, point
 from efficienttrack.study.paper_table import is_paper_system, paper_row
-from efficienttrack.study.report import FIELDS, METRICS, combine, log_mae_axis, markdown_table, plot_study, summarize
+from efficienttrack.study.report import combine
 from efficienttrack.study.run import progress_line
+from efficienttrack.study.summary import FIELDS, METRICS, summarize
+from efficienttrack.study.tables import markdown_table
 from efficienttrack.systems.spec import SystemSpec
 from efficienttrack.workflow.collect import pass_counts
 from efficienttrack.workflow.config import PRESETS

@@ -8,15 +8,9 @@ from typer.testing import CliRunner
 
 from efficienttrack.cli import app
 from efficienttrack.core.errors import EfficientTrackError
-from efficienttrack.study.report import (
-    METRICS,
-    combine,
-    equal_interaction_table,
-    markdown_table,
-    mean_curve,
-    report,
-    summarize,
-)
+from efficienttrack.study.report import combine, report
+from efficienttrack.study.summary import METRICS, mean_curve, summarize
+from efficienttrack.study.tables import equal_interaction_table, markdown_table
 
 PAPER = {"system": "paper", "plant": None, "pd": None, "options": {}}
 

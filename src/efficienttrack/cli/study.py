@@ -210,7 +210,8 @@ def study_plot_command(
     With --at, a second table compares the methods at equal interaction: one column per count N.
     """
     from efficienttrack.core.fileio import check_output_file
-    from efficienttrack.study.report import combine, equal_interaction_table
+    from efficienttrack.study.report import combine
+    from efficienttrack.study.tables import equal_interaction_table
 
     counts = None if at is None else _interaction_counts(at)
     check_output_file(out)

@@ -26,7 +26,9 @@ from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import atomic_write, write_csv, write_json
 from efficienttrack.study.ablations import ABLATIONS, Ablation
 from efficienttrack.study.jobs import STUDY_CONFIG
-from efficienttrack.study.report import COLUMNS, METRICS, cell, read_jobs, stats
+from efficienttrack.study.report import read_jobs
+from efficienttrack.study.summary import METRICS, stats
+from efficienttrack.study.tables import COLUMNS, cell
 
 FIELDS: dict[str, tuple[str, str]] = {
     "interaction_steps": COLUMNS["interaction_steps"],

@@ -29,7 +29,8 @@ from efficienttrack.study.ablation_report import AblationReport, ablation_report
 from efficienttrack.study.ablations import Ablation
 from efficienttrack.study.executors import EXECUTORS, Outcome, run_local, run_ray
 from efficienttrack.study.jobs import JOBS, RESULT, STUDY_CONFIG, Job, Study, job_folder
-from efficienttrack.study.report import OUTPUTS, Report, read_result, report, selected_point
+from efficienttrack.study.report import OUTPUTS, Report, read_result, report
+from efficienttrack.study.summary import selected_point
 
 STUDY_OUTPUTS = (STUDY_CONFIG, JOBS, *OUTPUTS)
 """What a study writes in its folder: a fresh start (``--force``) deletes these."""
