@@ -14,6 +14,7 @@ from efficienttrack.learn.policy import (
     AdjustmentPolicy,
     ImaginedDeployments,
     load_policy,
+    path_roughness,
     policy_rollout,
     predicted_tracking_error,
     save_policy,
@@ -106,8 +107,8 @@ def test_a_policy_trained_on_imagined_deployments_cuts_the_true_tracking_error(m
     test = lag_records(n=4, seed=1, sigma=0.0)
     pd_mae, policy_mae = track_lag_system(None, test), track_lag_system(trained.policy, test)
     assert policy_mae < 0.45 * pd_mae, (pd_mae, policy_mae)
-    with pytest.raises(EfficientTrackError, match="burn_in and imagined_share"):
-        train_policy(dataclasses.replace(cfg, burn_in=2), model, lag_records(), device="cpu", progress=False)
+    with pytest.raises(EfficientTrackError, match=r"burn_in \(2\) and imagined_share \(0.5\).*imagined_share=0"):
+        dataclasses.replace(cfg, burn_in=2)
 
 
 def test_imagined_deployments_go_on_from_the_model_and_restart_at_an_episode_start(model):
@@ -221,3 +222,15 @@ def test_cli_train_policy(model, tmp_path):
     assert json.loads(out.with_suffix(".json").read_text())["training_fingerprint"] == expected
     result = CliRunner().invoke(app, [*args, "--preset", "huge"])
     assert result.exit_code != 0 and "--preset 'huge'" in str(result.exception)
+
+
+def test_the_path_roughness_is_the_squared_second_difference_wrapped_across_pi():
+    line = torch.linspace(0, 1, 6, dtype=torch.float64)[None, :, None].repeat(1, 1, 4)
+    assert path_roughness(line).item() == pytest.approx(0.0, abs=1e-15)
+    zigzag = torch.zeros(1, 5, 4, dtype=torch.float64)
+    zigzag[0, 1::2, 0] = 0.1  # 0, .1, 0, .1, 0: second differences ∓0.2
+    assert path_roughness(zigzag).item() == pytest.approx(0.04)
+    across = torch.tensor([[[0, 0, 0, 3.1], [0, 0, 0, -3.1], [0, 0, 0, -3.0]]], dtype=torch.float64)  # the short way
+    assert path_roughness(across).item() == pytest.approx((0.1 - (2 * np.pi - 6.2)) ** 2)
+    with pytest.raises(EfficientTrackError, match="k_path needs a horizon of at least 3"):
+        dataclasses.replace(POLICY_PRESETS["tiny"], k_path=1.0, horizon=2)

@@ -314,6 +314,19 @@ def policy_loss(q_hat: torch.Tensor, a: torch.Tensor, q_star: torch.Tensor, gamm
     return L_track, L_reg
 
 
+def path_roughness(q_hat: torch.Tensor) -> torch.Tensor:
+    """The predicted path's roughness per window, the term of ``k_path``.
+
+    Args:
+        q_hat: (B, H, 4) rad, positions ``q_{t+1} … q_{t+H}``, H ≥ 3.
+
+    Returns:
+        (B,) (1/(H−2)) Σ ‖Δ²q̂‖², rad², each difference wrapped.
+    """
+    step = wrap(q_hat[:, 1:] - q_hat[:, :-1])
+    return (step[:, 1:] - step[:, :-1]).pow(2).sum(-1).mean(1)
+
+
 class ImaginedDeployments:
     """Rows that deploy the policy on the frozen model across optimizer steps, h steps each (``imagined_share``).
 
@@ -437,8 +450,6 @@ def train_policy(
     started = time.perf_counter()
     device = resolve_device(device)
     H, B, F = cfg.rollout_length, cfg.burn_in, cfg.future_length
-    if B and cfg.imagined_share:
-        raise EfficientTrackError("PolicyConfig: burn_in and imagined_share are two ways of one thing; set one of them")
     desired = desired_length(cfg, B + H)
     check_training_memory("PolicyConfig", cfg.batch_size, H, [cfg, model.cfg], device)
     if network.channel != model.channel or (init is not None and type(init) is not network):
@@ -494,6 +505,8 @@ def train_policy(
             imagined.advance(end_obs, end_qref)
         L_track, L_reg = policy_loss(q_hat, a, q_star[:, :H], cfg.gamma)
         loss = L_track.mean() + cfg.k_smooth * L_reg.mean()
+        if cfg.k_path:
+            loss = loss + cfg.k_path * path_roughness(q_hat).mean()
         # step
         optimizer.zero_grad(set_to_none=True)
         loss.backward()

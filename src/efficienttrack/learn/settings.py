@@ -197,11 +197,25 @@ class PolicyConfig(TrainingSchedule):
     burn_in_share: float = setting(1.0, gt=0, le=1, before=1.0)
     """With ``burn_in``: the share of each batch's windows that get the burn-in; the others start from the recorded
     histories, at any step of an episode, its first B included (1: all windows are burned in)."""
+    k_path: float = setting(0.0, ge=0, before=0.0)
+    """Weight of the predicted path's roughness, (1/(H−2)) Σ ‖wrap(Δ²q̂)‖², the term the 2nd-order oSMT measures on
+    the executed path (0: the paper's loss, which smooths only the adjustment)."""
     imagined_share: float = setting(0.0, ge=0, le=1, before=0.0)
     """Share of each batch whose rows go on through an imagined deployment, h steps per optimizer step: each row
     continues from where the frozen model, driven by the policy, left it at the previous step (gradients truncated
     there), and restarts at a random episode's start after its end. The loss then sees the policy's own closed loop as
     deployed, over whole episodes (0: every window starts from recorded histories)."""
+
+    def __post_init__(self) -> None:
+        """Check the fields, then a horizon that ``k_path`` can use and at most one of ``burn_in`` and ``imagined_share``."""
+        super().__post_init__()
+        if self.k_path and self.horizon < 3:
+            raise EfficientTrackError(f"PolicyConfig: k_path needs a horizon of at least 3 steps, got {self.horizon}")
+        if self.burn_in and self.imagined_share:
+            raise EfficientTrackError(
+                f"PolicyConfig: burn_in ({self.burn_in}) and imagined_share ({self.imagined_share:g}) are two ways of "
+                "one thing; set one of them (for a burn-in: imagined_share=0)"
+            )
 
     @property
     def history_length(self) -> int:
