@@ -55,7 +55,7 @@ def test_on_the_core_install_the_api_names_the_extra_to_install():
     done = subprocess.run([sys.executable, "-c", torch_free], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     assert done.stdout.splitlines() == [
-        *(f"efficienttrack.{name} needs torch, which is not installed: pip install 'efficienttrack[train]'"
-          for name in ("train_model", "load_policy", "run")),
+        *(f"efficienttrack.{name} needs torch, which is not installed: pip install 'efficienttrack[train]' (in a clone "
+          "of the repository: pip install '.[train]')" for name in ("train_model", "load_policy", "run")),
         "load_references",
     ]  # fmt: skip

@@ -36,14 +36,17 @@ def missing_extra(exc: ModuleNotFoundError, what: str) -> MissingExtraError | No
         what: what needs the library, opening the message (``this command``, ``efficienttrack.train_model``).
 
     Returns:
-        ``<what> needs <library>, which is not installed: pip install 'efficienttrack[<extra>]'``, or None when the
+        ``<what> needs <library>, which is not installed: pip install 'efficienttrack[<extra>]'`` (and the same from a
+        clone, there being no release on PyPI yet), or None when the
         missing module is no extra's (a broken install, or a bug: keep the original error).
     """
     library = (exc.name or "").split(".")[0]
     if library not in EXTRAS:
         return None
+    extra = EXTRAS[library]
     error = MissingExtraError(
-        f"{what} needs {library}, which is not installed: pip install 'efficienttrack[{EXTRAS[library]}]'"
+        f"{what} needs {library}, which is not installed: pip install 'efficienttrack[{extra}]' (in a clone of the "
+        f"repository: pip install '.[{extra}]')"
     )
     error.name = exc.name
     return error
