@@ -469,9 +469,11 @@ def test_the_report_selects_each_seeds_point_on_validation_and_gives_its_test_ma
     assert ppo["selected"] is None and ppo["selected_mae_deg"] is None and ppo["selected_mae_deg_std"] is None
     table = markdown_table([et, ppo], {})
     assert "selected on validation" in table.splitlines()[0] and "mean ± sample std over seeds" in table.splitlines()[0]
-    assert "| selected MAE (°) | I.S. selected | best MAE (°) | I.S. at best |" in table
-    assert "| 2.00 ± 0.00 | 15 ± 7 | 1.50 ± 0.71 | 10 ± 0 |" in table  # EfficientTrack: selected, then best
-    assert "| – | – | 3.00 ± 1.41 | 10 ± 0 |" in table  # PPO: a seed without validation, so no selection
+    assert (
+        "| MAE 95 % CI (°) | selected MAE (°) | selected 95 % CI (°) | I.S. selected | best MAE (°) | I.S. at best |" in table
+    )
+    assert "| [2.000, 4.000] | 2.00 ± 0.00 | [2.000, 2.000] | 15 ± 7 | 1.50 ± 0.71 | 10 ± 0 |" in table  # EfficientTrack
+    assert "| [2.000, 4.000] | – | – | – | 3.00 ± 1.41 | 10 ± 0 |" in table  # PPO: a seed without validation, no selection
     line = progress_line(Outcome("efficienttrack-closed-s0", seed0, None), 1, 2)
     assert line.endswith("final MAE 2.00° at 20 interaction steps; selected on validation: 2.00° at 20")
     assert progress_line(Outcome("ppo-closed-s1", partial, None), 2, 2).endswith("final MAE 2.00° at 10 interaction steps")

@@ -156,7 +156,15 @@ def test_a_second_table_gives_each_method_at_its_points_chosen_on_validation_wit
     entries = summarize(results)
     first, second = split_tables(markdown_table(entries, {}))
     assert table_rows(first)["EfficientTrack", "closed"][:5] == ["2", "30 ± 0", "0.000 ± 0.000", "30 ± 0", "0.15 ± 0.07"]
-    assert table_rows(first)["EfficientTrack", "closed"][-4:] == ["0.60 ± 0.28", "15 ± 7", "0.15 ± 0.07", "30 ± 0"]
+    assert table_rows(first)["EfficientTrack", "closed"][-6:] == [
+        "[0.100, 0.200]",  # the final MAE's (0.2 and 0.1) bootstrap interval over the two seeds: their extremes
+        "0.60 ± 0.28",
+        "[0.400, 0.800]",
+        "15 ± 7",
+        "0.15 ± 0.07",
+        "30 ± 0",
+    ]
+    assert entries[1]["mae_deg_ci95"] == [0.1, 0.2] and entries[0]["mae_deg_ci95"] is None  # PD: one seed
     selected = table_rows(second)
     ilc = ("ILC (oracle: sees the test references)", "closed")
     assert list(selected) == [("PD", "closed"), ("EfficientTrack", "closed"), ilc]
@@ -173,8 +181,8 @@ def test_a_second_table_gives_each_method_at_its_points_chosen_on_validation_wit
         "3.00 ± 1.41",  # ETD-MAE, ETD-FMAE
         "3.00 ± 1.41",
     ]
-    assert selected["PD", "closed"] == table_rows(first)["PD", "closed"][:-4]  # its single point, in both tables
-    assert selected[ilc] == table_rows(first)[ilc][:-4] and selected[ilc][4] == "0.05"  # no choice: its final point
+    assert selected["PD", "closed"] == table_rows(first)["PD", "closed"][:-6]  # its single point, in both tables
+    assert selected[ilc] == table_rows(first)[ilc][:-6] and selected[ilc][4] == "0.05"  # no choice: its final point
     assert "lowest MAE on the validation references (held out of every method's training), its test metrics." in second
     assert "Table I" not in second
 

@@ -44,6 +44,30 @@ def stats(values: Sequence[float]) -> tuple[float | None, float | None]:
     return float(np.mean(values)), (float(np.std(values, ddof=1)) if len(values) > 1 else None)
 
 
+BOOTSTRAP_RESAMPLES = 10_000
+"""Resamples of the seeds behind a 95 % interval (:func:`interval`)."""
+
+
+def interval(values: Sequence[float]) -> list[float] | None:
+    """A 95 % percentile bootstrap interval of the mean over seeds: resample the seeds with replacement.
+
+    With 3 seeds it is coarse (its ends are near the smallest and largest values); it is there so that two methods are
+    called different only where their intervals do not overlap. Seeded: the same values give the same interval.
+
+    Args:
+        values: one value per seed.
+
+    Returns:
+        [low, high], or None with fewer than 2 values.
+    """
+    if len(values) < 2:
+        return None
+    x = np.asarray(values, dtype=np.float64)
+    draws = np.random.default_rng(0).integers(0, len(x), (BOOTSTRAP_RESAMPLES, len(x)))  # (R, n) seed indices
+    low, high = np.percentile(x[draws].mean(axis=1), [2.5, 97.5])
+    return [float(low), float(high)]
+
+
 def entry_order(key: tuple[str, str, tuple[str, ...]]) -> tuple[int, str, int, tuple[str, ...]]:
     """Sort key of (method, loop, changes): the registry's order (others after, by name), closed first, presets first."""
     method, loop, changes = key
@@ -143,7 +167,8 @@ def summarize(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
         "smt2_deg", "etd_mae_cm", "etd_fmae_cm" (means at the final points) and each with ``_std``,
         "selected_interaction_steps", "selected_mae_deg" and their ``_std`` (the test MAE at the points selected on
         validation; None unless every seed has one), "best_interaction_steps", "best_mae_deg" and their ``_std`` (at
-        the best points on test), "per_joint_mae_deg": [4], "episodes", "steps": the test set, "final", "best": [per
+        the best points on test), "mae_deg_ci95", "selected_mae_deg_ci95": [low, high] (:func:`interval`; None with
+        one seed), "per_joint_mae_deg": [4], "episodes", "steps": the test set, "final", "best": [per
         seed: the point], "selected": [per seed: the point] or None, "curve": [the mean over seeds at each interaction
         count: {"interaction_steps", "interaction_hours", "mae_deg", "mae_deg_std", "seeds"}], "curves": [{"seed",
         "points": [each point: interaction steps and hours, wall seconds, test metrics, "validation_mae_deg"]}]}``;
@@ -168,6 +193,8 @@ def summarize(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
         for field in BEST_FIELDS:
             entry[f"selected_{field}"], entry[f"selected_{field}_std"] = point_stats(selected or [], field)
             entry[f"best_{field}"], entry[f"best_{field}_std"] = point_stats(best, field)
+        entry["mae_deg_ci95"] = interval([p["mae_deg"] for p in final])
+        entry["selected_mae_deg_ci95"] = interval([p["mae_deg"] for p in selected]) if selected else None
         entry["per_joint_mae_deg"] = np.mean([f["per_joint_mae_deg"] for f in final], axis=0).tolist()
         entry["episodes"], entry["steps"] = final[0].get("episodes"), final[0].get("steps")
         entry["final"], entry["selected"], entry["best"] = final, selected, best

@@ -83,12 +83,28 @@ def _rows(
     return lines
 
 
+def _interval(bounds: Sequence[float] | None) -> str:
+    """A 95 % interval as a cell: ``[0.241, 0.262]``, – without one."""
+    return "–" if bounds is None else f"[{bounds[0]:.3f}, {bounds[1]:.3f}]"
+
+
 def _chosen_cells(e: dict[str, Any]) -> list[str]:
-    """The first table's cells after the metrics: the test MAE and I.S. at the selected points, then at the best."""
+    """The first table's cells after the metrics.
+
+    The final MAE's 95 % interval; the test MAE, its interval and the I.S. at the selected points; the test MAE and the
+    I.S. at the best.
+    """
+
+    def at(which: str, field: str) -> str:
+        return cell(e[f"{which}_{field}"], e[f"{which}_{field}_std"], COLUMNS[field][1])
+
     return [
-        cell(e[f"{which}_{field}"], e[f"{which}_{field}_std"], COLUMNS[field][1])
-        for which in ("selected", "best")
-        for field in ("mae_deg", "interaction_steps")
+        _interval(e.get("mae_deg_ci95")),
+        at("selected", "mae_deg"),
+        _interval(e.get("selected_mae_deg_ci95")),
+        at("selected", "interaction_steps"),
+        at("best", "mae_deg"),
+        at("best", "interaction_steps"),
     ]
 
 
@@ -107,7 +123,7 @@ def markdown_table(entries: Sequence[dict[str, Any]], failed: dict[str, str], pa
     Returns:
         The text of ``study.md``.
     """
-    chosen = ["selected MAE (°)", "I.S. selected", "best MAE (°)", "I.S. at best"]
+    chosen = ["MAE 95 % CI (°)", "selected MAE (°)", "selected 95 % CI (°)", "I.S. selected", "best MAE (°)", "I.S. at best"]
     metrics = ["method", "loop", "seeds", *(COLUMNS[field][0] for field in FIELDS)]
     lines = [
         "# Study: each method at its final point (the end of its budget), then at the point selected on validation "
@@ -120,11 +136,12 @@ def markdown_table(entries: Sequence[dict[str, Any]], failed: dict[str, str], pa
         lines.append("")
         lines.append("No job has finished yet.")
     lines += ["", "I.S.: training interaction steps; I.T.: I.S. at 20 Hz in hours; wall: time to the final point; "
-              "metrics on the held-out test references. Selected MAE: each seed's test MAE at the point of its curve "
-              "with the lowest MAE on the validation references (training references held out of every method's "
-              "training), and where it was; – without validation references (and for the ILC oracle). Best MAE: each "
-              "seed's lowest test MAE along its curve and where it was reached, the paper's selection: chosen on the "
-              "test set, an optimistic figure."]  # fmt: skip
+              "metrics on the held-out test references. 95 % CI: a percentile bootstrap interval of the mean over the "
+              "seeds (coarse with 3 seeds): two methods differ where their intervals do not overlap. Selected MAE: "
+              "each seed's test MAE at the point of its curve with the lowest MAE on the validation references "
+              "(training references held out of every method's training), and where it was; – without validation "
+              "references (and for the ILC oracle). Best MAE: each seed's lowest test MAE along its curve and where "
+              "it was reached, the paper's selection: chosen on the test set, an optimistic figure."]  # fmt: skip
     if paper:
         lines += ["", "*paper, Table I*: the published figures on the paper's simulator (Zou et al. 2025), each method "
                   "at its best point; I.S. of PPO summed over its 16 workers."]  # fmt: skip
