@@ -282,7 +282,7 @@ def test_the_command_refuses_unclear_requests(tmp_path, monkeypatch, capsys):
         (["limits", tmp_path], "episode logs need --from-logs"),
         (["limits", "--from-logs", "--out", tmp_path / "a.yaml"], "give one or more episode files"),
         (["limits", "--from-logs", tmp_path], "give --out FILE"),
-        (["limits", "--check", "xe75", "--out", tmp_path / "a.yaml"], "give --check FILE alone"),
+        (["limits", "--check", "xe75", "--from-logs", tmp_path], "give --check FILE [--out FILE], or --from-logs"),
         (["limits", "--check", tmp_path / "nosuch.yaml"], "neither a limits preset (xe75) nor an existing"),
     ]:
         code, _, err = run_main(argv, monkeypatch, capsys)

@@ -76,7 +76,11 @@ def entry_order(key: tuple[str, str, tuple[str, ...]]) -> tuple[int, str, int, t
 
 
 def entry_key(result: dict[str, Any]) -> tuple[str, str, tuple[str, ...]]:
-    """What one entry of the report gathers the seeds of: method, loop and ``--method-set`` changes."""
+    """What one entry of the report gathers the seeds of: method, loop and ``--method-set`` changes.
+
+    Args:
+        result: a job's ``result.json`` contents.
+    """
     return result["method"], result["loop"], tuple(result.get("settings_changes") or ())
 
 

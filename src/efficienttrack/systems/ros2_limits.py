@@ -39,7 +39,11 @@ JOINT_KEYS = (
 
 
 def is_ros2(data: Any) -> bool:
-    """Whether a limits file's mapping is a ros2_control ``joint_limits.yaml`` (it has a top-level ``joint_limits``)."""
+    """Whether a limits file's mapping is a ros2_control ``joint_limits.yaml`` (it has a top-level ``joint_limits``).
+
+    Args:
+        data: the file's contents, as read.
+    """
     return isinstance(data, dict) and KEY in data
 
 
