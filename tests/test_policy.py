@@ -91,7 +91,7 @@ def test_a_rollout_split_in_two_at_its_histories_is_the_rollout_in_one(model):
 
 @pytest.mark.parametrize("share", [1.0, 0.5])
 def test_a_policy_trained_after_a_burn_in_cuts_the_true_tracking_error(model, share):
-    cfg = dataclasses.replace(POLICY_PRESETS["tiny"], burn_in=6, burn_in_share=share)
+    cfg = dataclasses.replace(POLICY_PRESETS["tiny"], burn_in=6, burn_in_share=share, imagined_share=0.0)
     assert plain_form(cfg)["burn_in"] == 6 and "burn_in" not in plain_form(POLICY_PRESETS["tiny"])  # old folders resume
     trained = train_policy(cfg, model, lag_records(), device="cpu", progress=False)
     test = lag_records(n=4, seed=1, sigma=0.0)
@@ -101,14 +101,21 @@ def test_a_policy_trained_after_a_burn_in_cuts_the_true_tracking_error(model, sh
 
 
 def test_a_policy_trained_on_imagined_deployments_cuts_the_true_tracking_error(model):
-    cfg = dataclasses.replace(POLICY_PRESETS["tiny"], imagined_share=0.5)
-    assert plain_form(cfg)["imagined_share"] == 0.5 and "imagined_share" not in plain_form(POLICY_PRESETS["tiny"])
+    cfg = POLICY_PRESETS["tiny"]
+    assert cfg.imagined_share == 0.5 and plain_form(cfg)["imagined_share"] == 0.5  # the default, in every preset
     trained = train_policy(cfg, model, lag_records(), device="cpu", progress=False)
     test = lag_records(n=4, seed=1, sigma=0.0)
     pd_mae, policy_mae = track_lag_system(None, test), track_lag_system(trained.policy, test)
     assert policy_mae < 0.45 * pd_mae, (pd_mae, policy_mae)
     with pytest.raises(EfficientTrackError, match=r"burn_in \(2\) and imagined_share \(0.5\).*imagined_share=0"):
         dataclasses.replace(cfg, burn_in=2)
+
+
+def test_a_policy_from_before_imagined_deployments_reads_back_as_trained_without_them(tmp_path):
+    paper_way = dataclasses.replace(POLICY_PRESETS["tiny"], imagined_share=0.0)
+    assert "imagined_share" not in plain_form(paper_way)  # stored as a checkpoint from before the field was
+    save_policy(AdjustmentPolicy(paper_way), tmp_path / "policy.pt")
+    assert load_policy(tmp_path / "policy.pt", device="cpu").cfg.imagined_share == 0.0  # not today's default, 0.5
 
 
 def test_imagined_deployments_go_on_from_the_model_and_restart_at_an_episode_start(model):
