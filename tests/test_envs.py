@@ -305,6 +305,15 @@ def test_a_loaded_policy_predicts_in_the_registered_environment_and_in_sb3s_eval
         policy.predict(obs[:-3])
 
 
+@pytest.mark.parametrize(
+    ("act", "message"),
+    [(lambda obs: np.full((len(obs), 4), np.nan), "action: NaN or inf"), (lambda obs: np.zeros(3), "action: expected shape")],
+)
+def test_a_broken_agent_is_an_error_not_scored_as_pd_by_the_guards_fallback(act, message, cycles):
+    with pytest.raises(EfficientTrackError, match=f"evaluate: the agent failed: EfficientTrackError: {message}"):
+        evaluate(act, cycles, loop="closed")
+
+
 def test_a_policy_scored_as_a_baseline_is_scored_as_efficienttrack_guard_included(cycles):
     starts = [Reference(ref.name, ref.q[:80]) for ref in cycles]  # before float32 round-off grows in the closed loop
     policy = AdjustmentPolicy(POLICY_PRESETS["tiny"])

@@ -17,6 +17,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.data.windows import History, push_observation, push_reference
 from efficienttrack.deploy.episodes import STEP_TIMEOUT, Sent, batches, rollout
@@ -65,14 +66,21 @@ class _GuardedAgent:
     """The agent as the guard calls a policy (:data:`~efficienttrack.deploy.guard.PolicyCall`).
 
     The environments' observation of the guard's histories goes in, the adjustment ``a · max_adjust`` (rad) comes out.
+    The guard falls back when a policy fails, as it must on a machine; in an evaluation that would score a broken
+    agent as PD, so the first failure is kept (:attr:`error`) for :func:`evaluate` to raise.
     """
 
     def __init__(self, act: Act, max_adjust: np.ndarray) -> None:
         self._act, self._max_adjust = act, max_adjust
+        self.error: Exception | None = None
 
     def __call__(self, obs_hist: np.ndarray, qref_hist: np.ndarray, q_des_future: np.ndarray) -> np.ndarray:
-        a = self._act(observe(History(obs=obs_hist, q_ref=qref_hist), q_des_future))
-        return check_actions(a, len(obs_hist)) * self._max_adjust
+        try:
+            a = self._act(observe(History(obs=obs_hist, q_ref=qref_hist), q_des_future))
+            return check_actions(a, len(obs_hist)) * self._max_adjust
+        except Exception as exc:
+            self.error = self.error or exc
+            raise
 
 
 def evaluate(
@@ -118,6 +126,9 @@ def evaluate(
             agent = _GuardedAgent(act, actions.max_adjust)
             with GuardedRuntime(agent, (history, future), None, system.limits, system.dt) as guarded:
                 part_records = rollout(system, arrays, guarded, future, step_timeout=step_timeout)
+            if agent.error is not None:
+                error = agent.error
+                raise EfficientTrackError(f"evaluate: the agent failed: {type(error).__name__}: {error}") from error
         else:
             driver = _AgentDriver(act, actions, history, future)
             part_records = rollout(system, arrays, driver, future, step_timeout=step_timeout)
