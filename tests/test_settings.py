@@ -303,3 +303,10 @@ def test_config_show_runs_without_torch():
     done = subprocess.run([sys.executable, "-c", torch_free], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     assert "# efficienttrack settings: preset tiny, --set policy.lr=0.01" in done.stdout and "  lr: 0.01 " in done.stdout
+
+
+@pytest.mark.parametrize("method", ["supertrack", "efficienttrack"])
+@pytest.mark.parametrize("preset_name", ["tiny", "cpu"])
+def test_the_baselines_and_the_open_loop_keep_the_loss_they_were_measured_with(method, preset_name):
+    assert PolicyConfig().imagined_share == 0.5  # the closed loop's default
+    assert preset_settings(method, preset_name).policy.imagined_share == 0.0  # SuperTrack's loss; the open loop's
