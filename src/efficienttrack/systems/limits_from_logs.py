@@ -194,16 +194,14 @@ def log_stats(records: Sequence[EpisodeRecord]) -> LogStats:
     positions[..., SWING] = wrap(positions[..., SWING])
     step = np.diff(positions, axis=1)  # (3, N−1, 4)
     crosses = np.abs(step[..., SWING]) > math.pi  # wrapped angles jump by ~2π where the swing passed ±π
-    move = np.abs(step[0])
-    move[:, SWING] = np.abs(wrap(step[0, :, SWING]))
+    speeds = np.abs(step) / DT  # (3, N−1, 4) rad/s, the moves of q, q_ref, q_des; the swing's the short way round
+    speeds[..., SWING] = np.abs(wrap(step[..., SWING])) / DT
     adjust = positions[1] - positions[2]
     adjust[:, SWING] = wrap(adjust[:, SWING])
     adjust_step = np.abs(np.diff(adjust, axis=0))
     adjust_step[:, SWING] = np.abs(wrap(np.diff(adjust[:, SWING])))
     names = np.concatenate([np.full(len(r), str(r.meta.get("name", "?"))) for r in records])
     times = np.concatenate([r.t for r in records])
-    speeds = np.abs(step) / DT
-    speeds[..., SWING] = np.abs(wrap(step[..., SWING])) / DT
     jumped = [line for k, name in enumerate(POSITION_FIELDS)
               for line in jumps(speeds[k][within], names[1:][within], times[1:][within], name)]  # fmt: skip
     jumped += jumps(np.abs(qd[kept]), names[kept], times[kept], "qd")
@@ -218,7 +216,7 @@ def log_stats(records: Sequence[EpisodeRecord]) -> LogStats:
         highest=positions[:, kept].max(axis=(0, 1)),
         swing_crosses=bool(np.any(crosses & within)),
         top_qd=np.abs(qd[kept]).max(axis=0),
-        top_move=np.max(move[within], axis=0, initial=0.0) / DT,
+        top_move=np.max(speeds[0][within], axis=0, initial=0.0),
         top_adjust=np.abs(adjust[kept]).max(axis=0),
         top_adjust_step=np.max(adjust_step[within], axis=0, initial=0.0),
         longest_repeat=int(runs.max(initial=0)),
