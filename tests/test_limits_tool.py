@@ -396,3 +396,7 @@ def test_the_command_converts_limits_to_ros2_and_checks_a_ros2_file(tmp_path, mo
     assert code == 0 and f"{out}: valid limits" in stdout and "left out" not in stdout, err
     code, _, err = run_main(["limits", "--check", "xe75", "--out", out, "--ros2", "--joint-names", "a,b"], monkeypatch, capsys)
     assert code == 2 and "give four, naming boom, arm, bucket and swing" in err
+    code, _, err = run_main(["limits", "--check", "xe75", "--ros2"], monkeypatch, capsys)
+    assert code == 2 and "--ros2 and --joint-names say how --out is written; give --out FILE" in err
+    code, _, err = run_main(["limits", "--check", "xe75", "--out", out, "--joint-names", names], monkeypatch, capsys)
+    assert code == 2 and "give --ros2 too" in err

@@ -138,6 +138,10 @@ def limits_command(
     file atomically; docs/reference.md ("Limits files") gives the schema and the rules. A ros2_control
     joint_limits.yaml is read wherever a limits file is; --check FILE --out OUT converts one file into the other format.
     """
+    if (ros2 or joint_names != ",".join(JOINT_NAMES)) and out is None:
+        raise EfficientTrackError("limits: --ros2 and --joint-names say how --out is written; give --out FILE")
+    if joint_names != ",".join(JOINT_NAMES) and not ros2:
+        raise EfficientTrackError("limits: --joint-names names the joints of a ros2_control file; give --ros2 too")
     names = [name.strip() for name in joint_names.split(",")] if ros2 else None
     if names is not None:
         to_ros2(DEFAULT_LIMITS.to_dict(), names)  # refuses names that would not read back, before any work
