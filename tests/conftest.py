@@ -1,14 +1,29 @@
+import os
+
 import pytest
 import torch
+
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
 
 @pytest.fixture(autouse=True, scope="session")
 def one_thread():
-    """Tiny networks run fastest (and reproducibly) on one thread, also on a busy 2-core machine."""
+    """Tiny networks run fastest (and reproducibly) on one thread, also on a busy 2-core machine.
+
+    The processes that tests start (commands, study workers, Ray) inherit one thread too: with torch's default of one
+    per core they oversubscribe the cores beside the other test worker, and a tiny run takes ten times as long.
+    """
     threads = torch.get_num_threads()
+    saved = {name: os.environ.get(name) for name in THREAD_VARIABLES}
     torch.set_num_threads(1)
+    os.environ.update(dict.fromkeys(THREAD_VARIABLES, "1"))
     yield
     torch.set_num_threads(threads)
+    for name, value in saved.items():
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value
 
 
 @pytest.fixture
