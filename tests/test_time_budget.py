@@ -21,7 +21,15 @@ from efficienttrack.workflow.config import RunConfig, from_dict
 from efficienttrack.workflow.ledger import Ledger, read_spent
 from efficienttrack.workflow.pipeline import run_pipeline
 from efficienttrack.workflow.stages import COLLECT, RunLog, evaluation
-from efficienttrack.workflow.time_budget import LAST_PLAN_MARGIN, RESERVE, Planner, StepTimes, fit, step_seconds
+from efficienttrack.workflow.time_budget import (
+    LAST_PLAN_MARGIN,
+    MAX_POLICY_SCALE,
+    RESERVE,
+    Planner,
+    StepTimes,
+    fit,
+    step_seconds,
+)
 from toy_system import TOY, TOY_CFG, toy_split
 
 CFG = RunConfig(model=ModelConfig(steps=100), policy=PolicyConfig(steps=50), rounds=3, warm_budget=0.5, time_budget=0.5)
@@ -111,6 +119,21 @@ def test_a_one_round_run_keeps_the_margin_in_its_policy_plan_the_last_one(tmp_pa
     _train(ledger, clock, 1, "model", 10 * planner.scale(1, "model"))
     expected = (15 - clock.now) * (1 - RESERVE) / (10 * (1 + LAST_PLAN_MARGIN))
     assert planner.scale(1, "policy") == pytest.approx(expected)
+
+
+def test_minutes_to_spare_go_to_the_policies_and_no_model_trains_more_than_configured(tmp_path, monkeypatch):
+    planner, ledger, clock = _planning(tmp_path, monkeypatch, minutes=1)  # 57 s for 40 s of training
+    assert planner.scale(1, "model") == 1.0
+    _train(ledger, clock, 1, "model", 10)
+    spare = planner.scale(1, "policy")  # the two models left keep their 10 s; the three policies (20 s) share the rest
+    assert spare == pytest.approx((50 * (1 - RESERVE) - 10) / 20) and spare > 1
+    _train(ledger, clock, 1, "policy", 10 * spare)
+    assert planner.scale(2, "model") == 1.0
+    roomy, ledger, clock = _planning(tmp_path / "roomy", monkeypatch, minutes=60)
+    assert roomy.scale(1, "model") == 1.0
+    _train(ledger, clock, 1, "model", 10)
+    assert roomy.scale(1, "policy") == MAX_POLICY_SCALE
+    assert "round 1's policy trains 300% of its steps" in (tmp_path / "roomy" / "run.log").read_text()
 
 
 def test_a_budget_too_small_to_train_is_refused_and_none_plans_nothing(tmp_path, monkeypatch):

@@ -58,8 +58,9 @@ class RunConfig:
     previous round's networks and need fewer."""
     time_budget: float | None = setting(None, gt=0, before=None)
     """Minutes of wall time for the whole run, all rounds (``--time-budget``): every training's optimizer steps are
-    scaled down by one factor, from step times measured on this machine when training starts
-    (:mod:`efficienttrack.workflow.time_budget`); None: the configured steps."""
+    scaled down by one factor, from step times measured on this machine when training starts, or, when the minutes
+    leave room, the policy's up to three times (:mod:`efficienttrack.workflow.time_budget`); None: the configured
+    steps."""
 
     def __post_init__(self) -> None:
         """Check the fields (EfficientTrackError naming the field); ``collect.seed`` takes the run's seed."""

@@ -1,14 +1,16 @@
-"""Fit a run into a wall-clock budget (``--time-budget MINUTES``) by training fewer optimizer steps.
+"""Fit a run into a wall-clock budget (``--time-budget MINUTES``) by training fewer optimizer steps, or more.
 
 Almost all of a run's time is training, and a training step's cost depends on the machine (it varied by 30 % between
 days on one 2-core machine) and on what else runs on it. So the run measures it: after the collection and the PD
 evaluation it times short trainings of each network (:func:`measure_step_times`). Before every training, :class:`Planner`
 scales its steps by the factor ≤ 1 that fits it, every training after it and the deployments and evaluations left into
 the time left (:func:`fit`), at the step times corrected by how long the finished trainings took against the prediction
-(a short probe can run a third faster than the minutes of training after it). The time spent and what each stage took
-come from the run's :class:`~efficienttrack.workflow.ledger.Ledger`, so a killed and rerun run plans from what is
-actually left. Each factor is kept as a stage: a resumed training trains the steps its checkpoint was made for. The
-budget is a target, not a guarantee: work that starts beside the run after the last plan slows its steps.
+(a short probe can run a third faster than the minutes of training after it). Minutes to spare go to the policy's
+trainings, up to :data:`MAX_POLICY_SCALE` × their steps; the model's never train more than configured. The time spent
+and what each stage took come from the run's :class:`~efficienttrack.workflow.ledger.Ledger`, so a killed and rerun run
+plans from what is actually left. Each factor is kept as a stage: a resumed training trains the steps its checkpoint
+was made for. The budget is a target, not a guarantee: work that starts beside the run after the last plan slows its
+steps.
 """
 
 from __future__ import annotations
@@ -43,6 +45,11 @@ refused, and a later plan trains at least this share."""
 RESERVE = 0.05
 """Share of the budget kept for what the estimate leaves out (model errors, saving, the report's plots): with 3 %, a
 15-minute run beside two training jobs took 15.3 minutes."""
+MAX_POLICY_SCALE = 3.0
+"""Most share of its configured steps a policy's training takes when the budget leaves room. The policy's training
+limits the tracking, the model's does not: three times the ``cpu`` preset's policy steps through one model tracked
+10 % better on the xe75 (3 seeds) and 3 % on the paper's simulator, while three times the model's steps gave a worse
+policy (docs/comparison.md, "Training length" and "Imagined deployments")."""
 LAST_PLAN_MARGIN = 0.15
 """Extra share of its time that the last training's plan keeps free: nothing corrects it afterwards. On a 2-core
 machine a later round's trainings took 0.95–1.15 × what the plan before them predicted (10 plans in five 15-minute
@@ -139,6 +146,9 @@ def fit(seconds_left: float, other: float, trainings: Sequence[tuple[float, floa
 class Planner:
     """The factor on each training's steps: 1 without a budget; with one, what fits the rest of the run into it.
 
+    A tight budget scales every training left by one factor below 1. When everything fits at the configured steps,
+    the models keep theirs and the policies share the rest, up to :data:`MAX_POLICY_SCALE`.
+
     Args:
         cfg: the run's config (``time_budget`` minutes, or None).
         ledger: the run's ledger: the time spent, what each stage took, and where the plans are kept.
@@ -201,15 +211,20 @@ class Planner:
         rest = [(slower * steps, slower * evaluations) for steps, evaluations in itertools.starmap(cost, order[now:])]
         assert cfg.time_budget is not None  # scale() plans only with a budget
         left = cfg.time_budget * 60 - ledger.seconds_spent()
-        scale = fit(left, other, rest, last=now == len(order) - 1)
+        last = now == len(order) - 1
+        scale = fit(left, other, rest, last)
+        if scale > 1 and part == "policy":  # room to spare: every model keeps its steps, the policies share the rest
+            names = [name for _, name in order[now:]]
+            kept = sum(sum(cost) for cost, name in zip(rest, names, strict=True) if name == "model")
+            scale = fit(left, other + kept, [cost for cost, name in zip(rest, names, strict=True) if name == "policy"], last)
         if not finished and scale < MIN_SCALE:
             training = sum(steps for steps, _ in rest)
             raise EfficientTrackError(
                 f"--time-budget {cfg.time_budget:g} min: less than {MIN_SCALE:.0%} of the {training / 60:.1f} min the "
                 "configured training steps take on this machine would fit; give more minutes or fewer steps"
             )
-        scale = min(1.0, max(scale, MIN_SCALE))
+        scale = min(MAX_POLICY_SCALE if part == "policy" else 1.0, max(scale, MIN_SCALE))
         slowness = "" if not finished else f"the trainings so far took {slower:.2f} × the estimate; "
-        share = "its full steps" if scale >= 1 else f"{scale:.0%} of its steps"
+        share = "its full steps" if scale == 1 else f"{scale:.0%} of its steps"
         self.log.print(f"time budget: {slowness}round {k}'s {part} trains {share}")
         return {"scale": scale, "slower_than_probed": slower, "other_seconds": other, "seconds_left": left}
