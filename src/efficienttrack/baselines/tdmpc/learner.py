@@ -78,7 +78,13 @@ class Learner:
             torch.as_tensor(x, device=device) for x in (batch.obs, batch.next_obs, batch.action, batch.reward, batch.weight)
         )
         horizon = action.shape[0]
-        # rollout: latents predicted from the first observation, targets from the observed next ones
+        # targets of every step at once (as TD-MPC2), from the observed next observations (H, B, D)
+        with torch.no_grad():
+            next_z = model.encode(next_obs)
+            target_q = torch.minimum(*self.target.q(next_z, model.pi(next_z, s.min_std, self.generator)))
+            td_target = reward + s.discount * target_q
+            target_z = self.target.encode(next_obs)
+        # rollout: latents predicted from the first observation
         z = model.encode(obs)
         latents = [z.detach()]
         consistency = torch.zeros_like(weight)
@@ -86,17 +92,12 @@ class Learner:
         for t in range(horizon):
             q1, q2 = model.q(z, action[t])
             z, reward_pred = model.next(z, action[t])
-            with torch.no_grad():
-                next_z = model.encode(next_obs[t])
-                target_q = torch.minimum(*self.target.q(next_z, model.pi(next_z, s.min_std, self.generator)))
-                td_target = reward[t] + s.discount * target_q
-                target_z = self.target.encode(next_obs[t])
             latents.append(z.detach())
             rho = s.rho**t
-            consistency = consistency + rho * (z - target_z).pow(2).mean(-1)
+            consistency = consistency + rho * (z - target_z[t]).pow(2).mean(-1)
             reward_loss = reward_loss + rho * (reward_pred - reward[t]).pow(2)
-            value_loss = value_loss + rho * ((q1 - td_target).pow(2) + (q2 - td_target).pow(2))
-            priority = priority + rho * ((q1 - td_target).abs() + (q2 - td_target).abs()).detach()
+            value_loss = value_loss + rho * ((q1 - td_target[t]).pow(2) + (q2 - td_target[t]).pow(2))
+            priority = priority + rho * ((q1 - td_target[t]).abs() + (q2 - td_target[t]).abs()).detach()
         # loss: weighted by the importance weights, gradients scaled by 1/H, clipped
         total = (
             s.consistency_coef * consistency.clamp(max=LOSS_CLAMP)
