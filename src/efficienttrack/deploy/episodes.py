@@ -1,4 +1,8 @@
-"""The one episode loop: a system, references, and a driver that picks the reference sent at every step.
+"""The simulated episode loop: a system, references, and a driver that picks the reference sent at every step.
+
+Of the two time loops, this one runs N episodes at once on a simulator, as fast as it computes; a real machine's,
+one episode on 20 Hz deadlines with watchdogs, is :class:`~efficienttrack.deploy.loop.Loop`. On a simulated clock the
+two give the same episode (tested in ``tests/test_loop.py``).
 
 Data collection (Algorithm 1, :mod:`efficienttrack.workflow.collect`: the desired position plus noise) and deployment
 (Algorithm 2, :mod:`efficienttrack.deploy.runtime`: the desired position plus the policy's adjustment) are two drivers
@@ -182,7 +186,7 @@ def rollout(
     description: str = "rollout",
     step_timeout: float | None = STEP_TIMEOUT,
 ) -> list[EpisodeRecord]:
-    """Run N references together on a batched system (or N = 1 on any system); the only time loop.
+    """Run N references together on a batched system (or N = 1 on any system), as fast as it computes.
 
     Every machine is reset to its ``q*_0``; at step t the driver turns ``o_t`` and the desired
     ``q*_{t+1} … q*_{t+h}`` into the reference sent. Episode i has ``T_i = L_i − 1`` steps; shorter

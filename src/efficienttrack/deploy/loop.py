@@ -51,7 +51,7 @@ from efficienttrack.core.angles import wrap
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.joints import DT, SWING
 from efficienttrack.core.stop_signals import interrupt_name, stop_signals_as_interrupt
-from efficienttrack.deploy.episodes import Guard, Sent
+from efficienttrack.deploy.episodes import Driver, Guard, Sent
 from efficienttrack.deploy.machine import MONOTONIC, Clock, Machine, Reading
 from efficienttrack.deploy.sensor import SENSOR_MARGIN, SENSOR_TOLERANCE, first_sensor_fault
 from efficienttrack.systems.limits import GuardLimits
@@ -60,8 +60,11 @@ STOP_REASONS = ("overruns", "stale_sensor", "sensor_fault", "read_error", "send_
 """Why a run can end before its reference does (``done``: it ran to the end)."""
 
 
-class LoopRuntime(Protocol):
-    """What the loop runs (:class:`~efficienttrack.deploy.runtime.Runtime`'s interface, for one machine, N = 1).
+class LoopRuntime(Driver, Protocol):
+    """What the loop runs: the episodes' :class:`~efficienttrack.deploy.episodes.Driver`, for one machine (N = 1).
+
+    It adds how many desired positions ``step`` needs and a ``stop`` at the end: the interface of
+    :class:`~efficienttrack.deploy.runtime.Runtime`.
 
     A runtime that also has ``sent_instead(q_ref)`` ((1, 4) rad) is told when the loop sent another reference
     than the one ``step`` returned (shadow mode, a hold, the rate limit, a machine that clamps), so that the
@@ -70,14 +73,6 @@ class LoopRuntime(Protocol):
 
     future_length: int
     """F, the desired positions ``step`` needs."""
-
-    def start(self, obs0: np.ndarray) -> None:
-        """Begin (``obs0`` (1, 8))."""
-        ...
-
-    def step(self, obs: np.ndarray, q_des_future: np.ndarray) -> Sent:
-        """The reference of the next step (``obs`` (1, 8), ``q_des_future`` (1, F, 4))."""
-        ...
 
     def stop(self) -> None:
         """End."""
