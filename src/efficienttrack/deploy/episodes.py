@@ -1,8 +1,9 @@
 """The simulated episode loop: a system, references, and a driver that picks the reference sent at every step.
 
 Of the two time loops, this one runs N episodes at once on a simulator, as fast as it computes; a real machine's,
-one episode on 20 Hz deadlines with watchdogs, is :class:`~efficienttrack.deploy.loop.Loop`. On a simulated clock the
-two give the same episode (tested in ``tests/test_loop.py``).
+one episode on 20 Hz deadlines with watchdogs, is :class:`~efficienttrack.deploy.loop.Loop`. On a simulated clock,
+with the controller alone, the two give the same episode (tested in ``tests/test_loop.py``); with a policy the loop
+also limits the adjustment's rate and ramps it to 0 at the end.
 
 Data collection (Algorithm 1, :mod:`efficienttrack.workflow.collect`: the desired position plus noise) and deployment
 (Algorithm 2, :mod:`efficienttrack.deploy.runtime`: the desired position plus the policy's adjustment) are two drivers
