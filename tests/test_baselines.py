@@ -100,6 +100,10 @@ def test_quick_preset_trains_on_the_closed_loop(refs, tmp_path, method, eval_at,
     assert all(finite(p["metrics"]) and p["metrics"]["episodes"] == len(test) for p in curve)
     walls = [p["wall_seconds"] for p in curve]
     assert walls == sorted(walls) and walls[0] >= 0
+    samples = [p["gradient_samples"] for p in curve]  # none before the first update (PPO: a rollout; SAC: 50 steps)
+    assert samples == sorted(samples) and samples[0] == 0 and samples[-1] > 0
+    if method == "ppo":  # the first rollout, 4 environments × 32 steps, and its 2 epochs, before the point at 256
+        assert samples == [0, 0, 2 * 128]
     written = json.loads((tmp_path / "curve.json").read_text())
     assert (written["method"], written["loop"], written["seed"]) == (method, "closed", 0)
     assert written["curve"] == json.loads(json.dumps(curve))

@@ -99,7 +99,8 @@ def test_curve_points_and_file(tmp_path):
         training_run("closed", TOY_DELAYED, refs[:1], refs, 4 * per_trial + 7, 5, tmp_path, [1, 3 * per_trial]), settings
     )
     assert [p["interaction_steps"] for p in curve] == [0, per_trial, 3 * per_trial]
-    assert all(set(p) == {"interaction_steps", "wall_seconds", "metrics"} for p in curve)
+    assert all(set(p) == {"interaction_steps", "wall_seconds", "metrics", "gradient_samples"} for p in curve)
+    assert all(p["gradient_samples"] == 0 for p in curve)  # no gradient: corrections learned by the ILC law
     walls = [p["wall_seconds"] for p in curve]
     assert walls[0] >= 0 and walls == sorted(walls)
     saved = json.loads((tmp_path / CURVE_FILE).read_text())

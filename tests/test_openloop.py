@@ -140,6 +140,9 @@ def test_open_loop_efficienttrack_quick_curve_and_determinism(tmp_path, open_run
     assert pass_counts(1000, 316) == [1, 2]
     curve, folder = open_run
     assert [p["passes"] for p in curve] == [1, 2] and [p["interaction_steps"] for p in curve] == [316, 632]
+    tiny = OPEN_PRESETS["tiny"]  # each pass count its own three trainings: the model, the imitation, the policy
+    samples = tiny.model.steps * tiny.model.batch_size + (tiny.imitation_steps + tiny.policy.steps) * tiny.policy.batch_size
+    assert [p["gradient_samples"] for p in curve] == [samples, samples]
     assert all(np.isfinite(p["metrics"]["mae_deg"]) and p["wall_seconds"] > 0 for p in curve)
     saved = json.loads((folder / CURVE_FILE).read_text())
     assert saved["method"] == "efficienttrack" and saved["loop"] == "open" and len(saved["curve"]) == 2
@@ -170,6 +173,9 @@ def test_an_interrupted_open_loop_efficienttrack_run_keeps_its_finished_pass_cou
 def test_supertrack_quick_curve_and_determinism(tmp_path, loop, supertrack_run):
     curve, folder = supertrack_run(loop)
     assert [p["iterations"] for p in curve] == [1, 3] and curve[-1]["interaction_steps"] >= 700
+    model, policy = SUPERTRACK_SETTINGS.model, SUPERTRACK_SETTINGS.policy  # both trainings' windows, every iteration
+    assert [p["gradient_samples"] for p in curve] == [k * (model.steps * model.batch_size + policy.steps * policy.batch_size)
+                                                       for k in (1, 3)]  # fmt: skip
     assert all(np.isfinite(p["metrics"]["mae_deg"]) for p in curve)
     saved = json.loads((folder / CURVE_FILE).read_text())
     assert saved["method"] == "supertrack" and saved["loop"] == loop and len(saved["curve"]) == 2

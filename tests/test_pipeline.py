@@ -44,6 +44,7 @@ def cli_main(monkeypatch, capsys, *args):
 
 
 RESULT_KEYS = {
+    "gradient_samples",
     "pd",
     "efficienttrack",
     "interaction_steps",
@@ -75,6 +76,8 @@ def test_run_writes_everything_and_beats_pd(finished_run):
     assert set(metrics["model"]) == {"tr_mpe_deg", "te_mpe_deg"}
     assert metrics["interaction_steps"] == 6 * (79 + 69 + 89 + 74)
     assert metrics["interaction_hours"] == pytest.approx(metrics["interaction_steps"] / 20 / 3600, abs=1e-4)
+    assert metrics["gradient_samples"] == 300 * TOY_CFG.model.batch_size + 300 * TOY_CFG.policy.batch_size
+    assert metrics["rounds"][0]["gradient_samples"] == metrics["gradient_samples"]
     assert metrics["references"] == ["ref_04", "ref_05"]
     assert metrics["config"] == TOY_CFG.to_dict()
     assert metrics["provenance"]["device"] == "cpu" and metrics["provenance"]["wall_seconds"] > 0
@@ -96,7 +99,8 @@ def test_run_writes_everything_and_beats_pd(finished_run):
     assert len(list((out / "records" / "pd").glob("*.npz"))) == 2
     # training logs: loss and learning rate every step, the held-out figure (PD on the test references) every 30 steps
     for name, tag in (("model", dynamics.HELD_OUT_TAG), ("policy", policy.HELD_OUT_TAG)):
-        assert json.loads((out / "stages" / f"{name}.json").read_text())["log"] == f"logs/{name}"
+        facts = json.loads((out / "stages" / f"{name}.json").read_text())
+        assert facts["log"] == f"logs/{name}" and facts["steps"] == 300
         scalars = read_scalars(out / "logs" / name)
         assert scalars["train/loss"][0].tolist() == list(range(1, 301)) and len(scalars["train/lr"][0]) == 300
         assert scalars[tag][0].tolist() == list(range(30, 301, 30))

@@ -155,12 +155,17 @@ def test_study_writes_table_json_and_figure(finished):
     assert et["interaction_steps"] == 118 and et["interaction_hours"] == pytest.approx(118 / 20 / 3600)
     for entry in entries:
         for field in FIELDS:
+            if (entry["method"], field) == ("pd", "samples_per_step"):  # no interaction step to share compute over
+                assert entry[field] is None
+                continue
             assert math.isfinite(entry[field]) and entry[f"{field}_std"] is None  # one seed: no spread
         assert entry["episodes"] == 1 and len(entry["per_joint_mae_deg"]) == 4
         points = entry["curves"][0]["points"]
         assert entry["mae_deg"] == max(points, key=lambda p: p["interaction_steps"])["mae_deg"]  # the final point
         assert entry["best_mae_deg"] == min(p["mae_deg"] for p in points)
     assert et["mae_deg"] != pd["mae_deg"]
+    assert et["samples_per_step"] == pytest.approx((30 * 64 + 30 * 64) / 118)  # both trainings' windows (FAST)
+    assert ppo["samples_per_step"] == 0  # its first update comes after a rollout of 4 × 32 steps, past the budget
     # PPO (4 environments, the quick preset) is evaluated at 1, 2, 5, 10, 20, 50, 100 steps, as multiples of 4, and at 118
     assert [p["interaction_steps"] for p in ppo["curve"]] == [4, 8, 12, 20, 52, 100, 120]
     # the job's own record of its curve, and the run folder of its one pass count
@@ -174,6 +179,7 @@ def test_study_writes_table_json_and_figure(finished):
     assert (
         "| PD | closed | 1 | 0 |" in table and "| EfficientTrack | closed | 1 | 118 |" in table and "| PPO | open |" in table
     )
+    assert "| wall (s) | grad. samples / I.S. |" in table
     header = (out / "study.csv").read_text().splitlines()[0].split(",")
     assert header[:4] == ["method", "loop", "seeds", "interaction_steps"] and {f"{m}_std" for m in METRICS} <= set(header)
     assert (out / "study.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -239,7 +245,8 @@ def test_the_table_gives_the_final_point_and_the_best_on_test_apart_with_the_pap
     assert "final point" in plain and "| EfficientTrack | closed | 2 | 20 ± 0 |" in plain and "Table I" not in plain
     assert "| 3.00 ± 1.41 |" in plain and plain.count("| 1.50 ± 0.71 | 10 ± 0 |") == 1
     paper = markdown_table([entry], {}, paper=True)
-    published = "| *paper, Table I* | closed |  | *176,720* | *2.454* | *–* | *0.32* | *0.46* | *0.23* | *0.670* | *0.590* |"
+    published = "| *paper, Table I* | closed |  | *176,720* | *2.454* | *–* | *–* | *0.32* | *0.46* | *0.23* | *0.670* | "
+    published += "*0.590* |"
     assert published in paper
     assert paper_row("pd", "open")["mae_deg"] == 2.73 and paper_row("ilc", "closed") is None
     assert is_paper_system({"system": "paper", "plant": None, "pd": None, "options": {}})

@@ -56,7 +56,7 @@ def test_study_folders_of_one_system_make_one_table_and_figure(tmp_path):
     pd_here, pd_there = (study_folder(tmp_path / f"pd{i}", PAPER, ("pd", "closed", i, [2.73])) for i in (0, 1))
     pd_only = combine([pd_here, pd_there], tmp_path / "x.png")
     assert len(pd_only.entries) == 1  # PD ignores the seed: one measurement
-    assert "| *paper, Table I* | closed |  | *–* | *–* | *–* | *2.73* |" in pd_only.markdown  # PD's row has no I.S.
+    assert "| *paper, Table I* | closed |  | *–* | *–* | *–* | *–* | *2.73* |" in pd_only.markdown  # PD's row has no I.S.
     pd_other = study_folder(tmp_path / "pd2", PAPER, ("pd", "closed", 0, [2.74]))
     with pytest.raises(EfficientTrackError, match="both hold pd-closed-s0"):
         combine([pd_here, pd_other], tmp_path / "x.png")  # not the same figures: not the same measurement
@@ -155,7 +155,7 @@ def test_a_second_table_gives_each_method_at_its_points_chosen_on_validation_wit
     ]
     entries = summarize(results)
     first, second = split_tables(markdown_table(entries, {}))
-    assert table_rows(first)["EfficientTrack", "closed"][:5] == ["2", "30 ± 0", "0.000 ± 0.000", "30 ± 0", "0.15 ± 0.07"]
+    assert table_rows(first)["EfficientTrack", "closed"][:6] == ["2", "30 ± 0", "0.000 ± 0.000", "30 ± 0", "–", "0.15 ± 0.07"]
     assert table_rows(first)["EfficientTrack", "closed"][-6:] == [
         "[0.100, 0.200]",  # the final MAE's (0.2 and 0.1) bootstrap interval over the two seeds: their extremes
         "0.60 ± 0.28",
@@ -173,6 +173,7 @@ def test_a_second_table_gives_each_method_at_its_points_chosen_on_validation_wit
         "15 ± 7",  # I.S.: 10 and 20
         "0.000 ± 0.000",
         "15 ± 7",  # wall time
+        "–",  # gradient samples per interaction step: these points do not count them
         "0.60 ± 0.28",  # MAE: 0.4 and 0.8
         "3.00 ± 1.41",  # RMSE, FMAE: 2 and 4
         "3.00 ± 1.41",
@@ -182,7 +183,7 @@ def test_a_second_table_gives_each_method_at_its_points_chosen_on_validation_wit
         "3.00 ± 1.41",
     ]
     assert selected["PD", "closed"] == table_rows(first)["PD", "closed"][:-6]  # its single point, in both tables
-    assert selected[ilc] == table_rows(first)[ilc][:-6] and selected[ilc][4] == "0.05"  # no choice: its final point
+    assert selected[ilc] == table_rows(first)[ilc][:-6] and selected[ilc][5] == "0.05"  # no choice: its final point
     assert "lowest MAE on the validation references (held out of every method's training), its test metrics." in second
     assert "Table I" not in second
 
@@ -196,7 +197,7 @@ def test_the_papers_rows_are_under_the_second_table_on_its_simulator_and_no_seco
     lines = second.splitlines()
     ours = next(i for i, line in enumerate(lines) if line.startswith("| EfficientTrack | closed | 2 | 15 ± 7 |"))
     assert lines[ours + 1] == (
-        "| *paper, Table I* | closed |  | *176,720* | *2.454* | *–* | *0.32* | *0.46* | *0.23* | *0.670* | *0.590* "
+        "| *paper, Table I* | closed |  | *176,720* | *2.454* | *–* | *–* | *0.32* | *0.46* | *0.23* | *0.670* | *0.590* "
         "| *3.94* | *2.00* |"
     )  # as in the first table, without its selected and best columns
     assert lines[ours + 1] + "  |  |  |  |" in first

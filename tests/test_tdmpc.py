@@ -166,6 +166,8 @@ def test_quick_preset_trains_on_the_closed_loop(refs, tmp_path):
     assert all(finite(p["metrics"]) and p["metrics"]["episodes"] == len(test) for p in curve)
     walls = [p["wall_seconds"] for p in curve]
     assert walls == sorted(walls) and walls[0] >= 0
+    # seeding, then 50 updates at once at step 50, then one update a step: sequences of the batch per update
+    assert [p["gradient_samples"] for p in curve] == [0, 50 * 16, 70 * 16]
     written = json.loads((tmp_path / "curve.json").read_text())
     assert (written["method"], written["loop"], written["seed"], written["budget"]) == ("tdmpc", "closed", 0, 70)
     assert written["curve"] == json.loads(json.dumps(curve))

@@ -367,7 +367,7 @@ def train_ilc(
                     recorder.header["lead_identified"] = list(lead)
                 if k in record_at:
                     began = time.perf_counter()
-                    recorder.add(k * per_trial, wall, compute_metrics(records))
+                    recorder.add(k * per_trial, wall, compute_metrics(records), {"gradient_samples": 0})
                     scoring += time.perf_counter() - began
                 recorder.show(k * per_trial)
                 if k < trials:

@@ -204,15 +204,16 @@ def train_efficienttrack_open(
                     collect_seconds.append(time.perf_counter() - began)
                     recorder.show(len(collect_seconds) * steps_per_pass)
                 began = time.perf_counter()
-                policy = train_open_loop(settings, records, seed)
+                policy, samples = train_open_loop(settings, records, seed)
                 wall = sum(collect_seconds[:passes]) + time.perf_counter() - began
-                recorder.measure(policy_act(policy, "open"), passes * steps_per_pass, wall, {"passes": passes})
+                extra = {"passes": passes, "gradient_samples": samples}
+                recorder.measure(policy_act(policy, "open"), passes * steps_per_pass, wall, extra)
         finally:
             recorder.close()
     return recorder.curve
 
 
-def train_open_loop(settings: OpenLoopSettings, records: Sequence[EpisodeRecord], seed: int) -> PWMPolicy:
+def train_open_loop(settings: OpenLoopSettings, records: Sequence[EpisodeRecord], seed: int) -> tuple[PWMPolicy, int]:
     """Steps 2 and 3 of the module docstring: the plant model, then the PWM policy through it (on the CPU at the end).
 
     Args:
@@ -221,11 +222,13 @@ def train_open_loop(settings: OpenLoopSettings, records: Sequence[EpisodeRecord]
         seed: seeds both trainings and the imitation.
 
     Returns:
-        π_φ, in eval mode on the CPU.
+        π_φ, in eval mode on the CPU, and the windows the three trainings' optimizer steps took (steps × batch).
     """
-    g_theta = train_model(settings.model, records, settings.device, seed, progress=False, network=PlantModel).model
+    model = train_model(settings.model, records, settings.device, seed, progress=False, network=PlantModel)
     init = imitate(settings.policy, records, settings.imitation_steps, seed, settings.device)
     policy = train_policy(
-        settings.policy, g_theta, records, settings.device, seed, progress=False, init=init, network=PWMPolicy
+        settings.policy, model.model, records, settings.device, seed, progress=False, init=init, network=PWMPolicy
     )
-    return cast(PWMPolicy, policy.policy.cpu().eval())  # train_policy built a network=PWMPolicy
+    samples = (model.steps * settings.model.batch_size
+               + (settings.imitation_steps + policy.steps) * settings.policy.batch_size)  # fmt: skip
+    return cast(PWMPolicy, policy.policy.cpu().eval()), samples  # train_policy built a network=PWMPolicy

@@ -18,6 +18,8 @@ from dataclasses import asdict
 from typing import Any
 
 import numpy as np
+from stable_baselines3 import PPO, SAC
+from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnv
 
@@ -72,9 +74,24 @@ class _Curve(BaseCallback):
         count = self.num_timesteps
         if self.points and count >= self.points[0]:
             self.points = [p for p in self.points if p > count]
-            self.recorder.measure(lambda obs: self.model.predict(self.see(obs), deterministic=True)[0], count)
+            self.recorder.measure(
+                lambda obs: self.model.predict(self.see(obs), deterministic=True)[0], count,
+                extra={"gradient_samples": gradient_samples(self.model)},
+            )  # fmt: skip
         self.recorder.show(count)
         return count < self.budget
+
+
+def gradient_samples(model: BaseAlgorithm) -> int:
+    """The transitions the model's gradient steps took so far (a curve point's ``gradient_samples``).
+
+    PPO's epochs × its rollout (n_steps × n_envs; an epoch that its KL target cut short counts whole), SAC's gradient
+    steps × its batch.
+    """
+    if isinstance(model, PPO):
+        return int(model._n_updates) * model.n_steps * model.n_envs
+    assert isinstance(model, SAC), type(model)
+    return int(model._n_updates) * model.batch_size
 
 
 def train_baseline(

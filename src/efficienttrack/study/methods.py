@@ -103,9 +103,9 @@ def run_pd(job: Job, folder: Path) -> list[Point]:
     metrics = rounded(compute_metrics(track(system, None, study.test, progress=False, description="pd")))
     wall = time.perf_counter() - start
     if not study.validation:
-        return [point(0, wall, metrics)]
+        return [point(0, wall, metrics, gradient_samples=0)]
     validation = rounded(compute_metrics(track(system, None, study.validation, progress=False, description="pd")))
-    return [point(0, wall, metrics, validation=validation)]
+    return [point(0, wall, metrics, validation=validation, gradient_samples=0)]
 
 
 def check_passes(study: Study) -> None:
@@ -145,7 +145,8 @@ def run_efficienttrack(job: Job, folder: Path) -> list[Point]:
 
     Returns:
         One point per pass count: the test metrics of EfficientTrack at the run's interaction steps, with ``passes``,
-        the run's guard ``warning`` (None, or why the figures are mostly the PD controller's) and, with validation
+        ``gradient_samples`` (both trainings' windows), the run's guard ``warning`` (None, or why the figures are mostly
+        the PD controller's) and, with validation
         references, ``validation``: the policy's metrics on them. Its wall time is the run's, without the validation.
 
     Raises:
@@ -176,6 +177,7 @@ def run_efficienttrack(job: Job, folder: Path) -> list[Point]:
             scored = evaluate(study.system, study.validation, folder / "validation" / f"passes_{passes}", m["policy"],
                               cfg.device, Console(quiet=True), 0)  # fmt: skip
             extra["validation"] = scored["efficienttrack"]
+        extra["gradient_samples"] = m.get("gradient_samples")
         curve.append(point(m["interaction_steps"], wall, m["efficienttrack"], passes=passes, warning=m["warning"], **extra))
         write_json(done, curve[-1])
     return curve

@@ -17,7 +17,7 @@ from efficienttrack.study.methods import METHODS
 
 METRICS = METRIC_KEYS[2:-1]
 """Table I's metrics: MAE, RMSE, FMAE, 1st/2nd-order smoothness (°), ETD-MAE, ETD-FMAE (cm)."""
-FIELDS = ("interaction_steps", "interaction_hours", "wall_seconds", *METRICS)
+FIELDS = ("interaction_steps", "interaction_hours", "wall_seconds", "samples_per_step", *METRICS)
 """What the report gives as mean ± std over seeds, at each seed's final point."""
 BEST_FIELDS = ("interaction_steps", "mae_deg")
 """What it gives at each seed's selected and best points too (``selected_<field>``, ``best_<field>`` and their ``_std``)."""
@@ -85,14 +85,19 @@ def entry_key(result: dict[str, Any]) -> tuple[str, str, tuple[str, ...]]:
 
 
 def _flat(p: dict[str, Any]) -> dict[str, Any]:
-    """A curve point as the report shows it: interaction steps and hours, wall time, the test metrics, the validation MAE.
+    """A curve point as the report shows it: interaction steps and hours, wall time, compute, the test and validation MAE.
 
-    ``validation_mae_deg`` is None for a point not measured on validation references.
+    ``samples_per_step`` is the point's gradient samples (the batch rows its optimizer steps took) per interaction
+    step: None before the first interaction step, and for a point that did not count them (made before they were
+    kept). ``validation_mae_deg`` is None for a point not measured on validation references.
     """
+    samples, steps = p.get("gradient_samples"), p["interaction_steps"]
     return {
-        "interaction_steps": p["interaction_steps"],
-        "interaction_hours": interaction_hours(p["interaction_steps"]),
+        "interaction_steps": steps,
+        "interaction_hours": interaction_hours(steps),
         "wall_seconds": p.get("wall_seconds"),
+        "gradient_samples": samples,
+        "samples_per_step": samples / steps if samples is not None and steps > 0 else None,
         **p["metrics"],
         "validation_mae_deg": p["validation"]["mae_deg"] if "validation" in p else None,
     }
@@ -167,15 +172,16 @@ def summarize(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     Returns:
         Entries ordered as :data:`~efficienttrack.study.methods.METHODS`, closed loop first, a method's preset before its
         ``--method-set`` changes: ``{"method", "loop", "settings_changes": [change] (only with changes), "seeds": [int],
-        "interaction_steps", "interaction_hours", "wall_seconds", "mae_deg", "rmse_deg", "fmae_deg", "smt1_deg",
-        "smt2_deg", "etd_mae_cm", "etd_fmae_cm" (means at the final points) and each with ``_std``,
+        "interaction_steps", "interaction_hours", "wall_seconds", "samples_per_step", "mae_deg", "rmse_deg", "fmae_deg",
+        "smt1_deg", "smt2_deg", "etd_mae_cm", "etd_fmae_cm" (means at the final points) and each with ``_std``,
         "selected_interaction_steps", "selected_mae_deg" and their ``_std`` (the test MAE at the points selected on
         validation; None unless every seed has one), "best_interaction_steps", "best_mae_deg" and their ``_std`` (at
         the best points on test), "mae_deg_ci95", "selected_mae_deg_ci95": [low, high] (:func:`interval`; None with
         one seed), "per_joint_mae_deg": [4], "episodes", "steps": the test set, "final", "best": [per
         seed: the point], "selected": [per seed: the point] or None, "curve": [the mean over seeds at each interaction
         count: {"interaction_steps", "interaction_hours", "mae_deg", "mae_deg_std", "seeds"}], "curves": [{"seed",
-        "points": [each point: interaction steps and hours, wall seconds, test metrics, "validation_mae_deg"]}]}``;
+        "points": [each point: interaction steps and hours, wall seconds, "gradient_samples", "samples_per_step", test
+        metrics, "validation_mae_deg"]}]}``;
         a point of "final", "selected", "best" is ``{"seed", **that point}``.
     """
     groups: dict[tuple[str, str, tuple[str, ...]], list[dict[str, Any]]] = {}

@@ -16,6 +16,7 @@ COLUMNS = {
     "interaction_steps": ("I.S.", ",.0f"),
     "interaction_hours": ("I.T. (h)", ".3f"),
     "wall_seconds": ("wall (s)", ".0f"),
+    "samples_per_step": ("grad. samples / I.S.", ",.1f"),
     "mae_deg": ("MAE (°)", ".2f"),
     "rmse_deg": ("RMSE (°)", ".2f"),
     "fmae_deg": ("FMAE (°)", ".2f"),

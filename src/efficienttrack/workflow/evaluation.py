@@ -122,7 +122,8 @@ def results(
         ``{"pd", "efficienttrack": compute_metrics' dicts (None without a policy), "interaction_steps",
         "interaction_hours", "train_seconds", "model", "fallbacks", "fallback_share", "warning" (:func:`fallback_share`),
         "worse_than_pd" (:func:`worse_than_pd`), "references", "policy", "system", "config", "rounds": None,
-        "time_budget": None, "provenance"}`` (a run fills ``rounds`` and ``time_budget``).
+        "gradient_samples": None, "time_budget": None, "provenance"}`` (a run fills ``rounds``, ``gradient_samples`` and
+        ``time_budget``).
     """
     share, warning = fallback_share(et_records)
     pd, efficienttrack = (
@@ -145,6 +146,7 @@ def results(
         "system": system.to_dict(),
         "config": config,
         "rounds": None,
+        "gradient_samples": None,
         "time_budget": None,
         "provenance": provenance(device, wall_seconds),
     }

@@ -51,7 +51,15 @@ from efficienttrack.workflow.collect import collect
 from efficienttrack.workflow.config import DEMO, RunConfig
 from efficienttrack.workflow.evaluation import check_plots, publish, record_verdict, results
 from efficienttrack.workflow.ledger import Ledger
-from efficienttrack.workflow.rounds import RoundState, Run, rounds_rows, rounds_table, run_round, write_rounds
+from efficienttrack.workflow.rounds import (
+    RoundState,
+    Run,
+    add_samples,
+    rounds_rows,
+    rounds_table,
+    run_round,
+    write_rounds,
+)
 from efficienttrack.workflow.stages import COLLECT, RunLog, evaluate_stage
 from efficienttrack.workflow.time_budget import Planner, measure_step_times
 
@@ -186,6 +194,7 @@ def _report(
         wall_seconds=time.perf_counter() - start,
     )
     metrics["rounds"] = summaries
+    metrics["gradient_samples"] = add_samples(*(entry["gradient_samples"] for entry in summaries))
     metrics["time_budget"] = run.planner.summary()
     measured = {
         "PD, measured test MAE": metrics["pd"]["mae_deg"],

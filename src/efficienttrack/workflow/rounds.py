@@ -32,6 +32,7 @@ from efficienttrack.data.references import Reference
 from efficienttrack.learn import dynamics, policy
 from efficienttrack.learn.dynamics import ClosedLoopModel
 from efficienttrack.learn.policy import AdjustmentPolicy
+from efficienttrack.learn.settings import TrainingSchedule
 from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.workflow.config import RunConfig
 from efficienttrack.workflow.ledger import Ledger
@@ -110,6 +111,7 @@ def round_summary(
     g_theta: ClosedLoopModel,
     train_records: Sequence[EpisodeRecord],
     train_seconds: float,
+    gradient_samples: int | None,
 ) -> dict[str, Any]:
     """One round's entry of ``metrics.json``'s ``rounds`` list.
 
@@ -120,9 +122,10 @@ def round_summary(
         g_theta: the round's model.
         train_records: what the round trained on (for Tr.MPE).
         train_seconds: the round's model and policy training time, s.
+        gradient_samples: the windows the round's optimizer steps took, both trainings (:func:`gradient_samples`).
 
     Returns:
-        ``{"round", "interaction_steps", "interaction_hours", "train_seconds", "efficienttrack": {metrics},
+        ``{"round", "interaction_steps", "interaction_hours", "train_seconds", "gradient_samples", "efficienttrack": {metrics},
         "model": {"tr_mpe_deg", "te_mpe_deg"}}``.
     """
     return {
@@ -130,6 +133,7 @@ def round_summary(
         "interaction_steps": interaction_steps,
         "interaction_hours": round(interaction_hours(interaction_steps), 4),
         "train_seconds": round(train_seconds, 2),
+        "gradient_samples": gradient_samples,
         "efficienttrack": rounded(compute_metrics(test_records)),
         "model": {
             "tr_mpe_deg": round(float(dynamics.model_error(g_theta, train_records).mpe_deg), 4),
@@ -170,11 +174,27 @@ def run_round(k: int, previous: RoundState, run: Run) -> RoundState:
     test_records = evaluate_stage(ledger, k, "efficienttrack", run.system, pi_phi, run.test_refs, device)
     steps = previous.interaction_steps + sum(len(r) for r in deployed)
     seconds = model_facts["seconds"] + policy_facts["seconds"]
-    summary = round_summary(k, steps, test_records, g_theta, train_records, seconds)
+    samples = add_samples(gradient_samples(model_facts, g_cfg), gradient_samples(policy_facts, pi_cfg))
+    summary = round_summary(k, steps, test_records, g_theta, train_records, seconds, samples)
     if k > 1:
         ledger.once(INTERACTIONS, lambda: {"interaction_steps": steps}, k, ("interaction_steps",))
         run.log.print(f"round {k}: test MAE {summary['efficienttrack']['mae_deg']:.3f}° after {steps} interaction steps")
     return RoundState(g_theta, pi_phi, records, steps, test_records, summary, {"model": model_facts, "policy": policy_facts})
+
+
+def gradient_samples(facts: dict[str, Any], cfg: TrainingSchedule) -> int | None:
+    """The windows a training stage's optimizer steps took (steps × batch), or None for a stage that did not keep its steps.
+
+    Args:
+        facts: the stage's facts (:func:`~efficienttrack.workflow.stages.train_stage`).
+        cfg: the schedule it trained with.
+    """
+    return None if facts.get("steps") is None else int(facts["steps"]) * cfg.batch_size
+
+
+def add_samples(*counts: int | None) -> int | None:
+    """The sum of gradient-sample counts, or None when one of them is unknown."""
+    return None if any(c is None for c in counts) else sum(c for c in counts if c is not None)
 
 
 def _warm(config: ConfigT, previous: ConfigT | None) -> ConfigT:

@@ -194,14 +194,15 @@ def train_stage(
         device: where the loaded network goes.
 
     Returns:
-        The trained network (eval mode, on ``device``, as read back) and the stage's facts (``seconds``, ``log``).
+        The trained network (eval mode, on ``device``, as read back) and the stage's facts (``seconds``, ``log``, and
+        ``steps``, the optimizer steps trained; absent in a folder made before it was kept).
     """
     folder = ledger.folder(k)
 
     def work() -> tuple[None, dict[str, Any]]:
         result = train(checkpoint=folder / "checkpoints" / f"{name}.ckpt", log_dir=folder / LOGS / name)
         save(result[0], folder / f"{name}.pt", result.fingerprint)
-        return None, {"log": f"{LOGS}/{name}"}
+        return None, {"log": f"{LOGS}/{name}", "steps": result.steps}
 
     _, facts = ledger.run(name, work, lambda: None, k, ("seconds", "log"))
     skipped = ", earlier run" if ledger.key(name, k) in ledger.skipped else ""

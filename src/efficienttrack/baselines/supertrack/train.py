@@ -120,6 +120,10 @@ def train_supertrack(
     policy_cfg = replace(settings.policy, max_adjust=bound) if closed else settings.policy
     header = {"method": "supertrack", "loop": loop, "seed": seed, "budget": run.budget, "system": system.to_dict(),
               "settings": asdict(settings)}  # fmt: skip
+    per_iteration = (  # windows of an iteration's two trainings; an epoch schedule's follow the buffer: not counted
+        None if settings.model.steps is None or policy_cfg.steps is None
+        else settings.model.steps * settings.model.batch_size + policy_cfg.steps * policy_cfg.batch_size
+    )  # fmt: skip
     rng = np.random.default_rng([seed, 0x5E7])
     noise = Noise(settings.noise(loop), settings.noise_rho, rng)
     buffer: list[EpisodeRecord] = []
@@ -151,7 +155,9 @@ def train_supertrack(
                 # evaluate at the points reached
                 if points and count >= points[0]:
                     points = [p for p in points if p > count]
-                    recorder.measure(policy_act(policy, loop), count, extra={"iterations": iteration})
+                    samples = iteration * per_iteration if per_iteration is not None else None
+                    recorder.measure(policy_act(policy, loop), count,
+                                     extra={"iterations": iteration, "gradient_samples": samples})  # fmt: skip
                 recorder.show(count)
                 if time.perf_counter() - saved >= save_every_seconds and count < run.budget:
                     done = Progress(count, iteration, buffer, recorder.curve, recorder.wall_seconds)

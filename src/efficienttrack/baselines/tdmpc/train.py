@@ -235,7 +235,8 @@ def _run(
         # evaluate
         if points and count >= points[0]:
             points = [p for p in points if p > count]
-            recorder.measure(evaluation_agent(model, settings, count, seed, see), count)
+            samples = {"gradient_samples": learner.updates * settings.batch_size}  # sequences of H steps
+            recorder.measure(evaluation_agent(model, settings, count, seed, see), count, extra=samples)
         recorder.show(count)
         # save between episodes, when due
         if first and count < budget and time.perf_counter() - saved >= resume.every:
