@@ -18,6 +18,7 @@ from typer.testing import CliRunner
 from efficienttrack.cli import app
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.data.cycles import generate_references
+from efficienttrack.data.metrics import TABLE_METRICS
 from efficienttrack.data.references import Reference, save_references
 from efficienttrack.envs.core import LOOPS
 from efficienttrack.study import METHODS, Job, Study, available_methods, make_jobs, make_study, report, run_study
@@ -28,7 +29,7 @@ from efficienttrack.study.methods import Method, job_settings, point
 from efficienttrack.study.paper_table import is_paper_system, paper_row
 from efficienttrack.study.report import combine
 from efficienttrack.study.run import progress_line
-from efficienttrack.study.summary import FIELDS, METRICS, summarize
+from efficienttrack.study.summary import FIELDS, summarize
 from efficienttrack.study.tables import markdown_table
 from efficienttrack.systems.spec import SystemSpec
 from efficienttrack.workflow.collect import pass_counts
@@ -181,7 +182,8 @@ def test_study_writes_table_json_and_figure(finished):
     )
     assert "| wall (s) | grad. samples / I.S. |" in table
     header = (out / "study.csv").read_text().splitlines()[0].split(",")
-    assert header[:4] == ["method", "loop", "seeds", "interaction_steps"] and {f"{m}_std" for m in METRICS} <= set(header)
+    assert header[:4] == ["method", "loop", "seeds", "interaction_steps"]
+    assert {f"{m}_std" for m in TABLE_METRICS} <= set(header)
     assert (out / "study.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
@@ -232,8 +234,8 @@ def test_report_is_rebuilt_from_the_folders(finished, tmp_path):
 
 def test_the_table_gives_the_final_point_and_the_best_on_test_apart_with_the_papers_rows():
     def result(seed, maes):
-        points = [{"interaction_steps": 10 * i, "wall_seconds": i, "metrics": {**dict.fromkeys(METRICS, 1.0), "mae_deg": m,
-                   "per_joint_mae_deg": [m] * 4}} for i, m in enumerate(maes)]  # fmt: skip
+        points = [{"interaction_steps": 10 * i, "wall_seconds": i, "metrics": {**dict.fromkeys(TABLE_METRICS, 1.0),
+                   "mae_deg": m, "per_joint_mae_deg": [m] * 4}} for i, m in enumerate(maes)]  # fmt: skip
         return {"method": "efficienttrack", "loop": "closed", "seed": seed, "curve": points}
 
     (entry,) = summarize([result(0, [3.0, 1.0, 2.0]), result(1, [3.0, 2.0, 4.0])])
@@ -456,8 +458,8 @@ def test_a_study_folder_with_another_validation_split_is_refused_naming_it(refs3
 
 def test_the_report_selects_each_seeds_point_on_validation_and_gives_its_test_mae():
     def result(seed, maes, validation, method="efficienttrack"):
-        points = [{"interaction_steps": 10 * i, "wall_seconds": i, "metrics": {**dict.fromkeys(METRICS, 1.0), "mae_deg": m,
-                   "per_joint_mae_deg": [m] * 4}} for i, m in enumerate(maes)]  # fmt: skip
+        points = [{"interaction_steps": 10 * i, "wall_seconds": i, "metrics": {**dict.fromkeys(TABLE_METRICS, 1.0),
+                   "mae_deg": m, "per_joint_mae_deg": [m] * 4}} for i, m in enumerate(maes)]  # fmt: skip
         for p, v in zip(points, validation or [], strict=False):
             p["validation"] = {**p["metrics"], "mae_deg": v}
         return {"method": method, "loop": "closed", "seed": seed, "curve": points, "wall_seconds": 1.0}

@@ -8,8 +8,9 @@ from typer.testing import CliRunner
 
 from efficienttrack.cli import app
 from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.data.metrics import TABLE_METRICS
 from efficienttrack.study.report import combine, report
-from efficienttrack.study.summary import METRICS, mean_curve, summarize
+from efficienttrack.study.summary import mean_curve, summarize
 from efficienttrack.study.tables import equal_interaction_table, markdown_table
 
 PAPER = {"system": "paper", "plant": None, "pd": None, "options": {}}
@@ -31,7 +32,7 @@ def study_folder(folder, system, *jobs):
     folder.mkdir()
     (folder / "study_config.json").write_text(json.dumps({"system": system}))
     for method, loop, seed, maes in jobs:
-        curve = [{"interaction_steps": 10 * (i + 1), "wall_seconds": 1.0, "metrics": {**dict.fromkeys(METRICS, 1.0),
+        curve = [{"interaction_steps": 10 * (i + 1), "wall_seconds": 1.0, "metrics": {**dict.fromkeys(TABLE_METRICS, 1.0),
                   "mae_deg": m, "per_joint_mae_deg": [m] * 4}} for i, m in enumerate(maes)]  # fmt: skip
         job = folder / "jobs" / f"{method}-{loop}-s{seed}"
         job.mkdir(parents=True)
@@ -83,7 +84,7 @@ def test_a_job_run_again_with_a_larger_budget_is_shown_once_at_its_longer_run(tm
 
 def result(method, loop, seed, *pairs):
     """A job's result with its curve's (interaction steps, test MAE)."""
-    curve = [{"interaction_steps": steps, "metrics": {**dict.fromkeys(METRICS, 1.0), "mae_deg": mae,
+    curve = [{"interaction_steps": steps, "metrics": {**dict.fromkeys(TABLE_METRICS, 1.0), "mae_deg": mae,
               "per_joint_mae_deg": [mae] * 4}} for steps, mae in pairs]  # fmt: skip
     return {"method": method, "loop": loop, "seed": seed, "curve": curve}
 
@@ -133,7 +134,7 @@ def test_study_plot_at_prints_the_equal_interaction_table_and_refuses_bad_counts
 def validated(method, loop, seed, *points):
     """A job's result with validation figures: each point (interaction steps, test MAE, validation MAE, the other
     metrics' value), its wall time equal to its interaction steps."""
-    curve = [{"interaction_steps": steps, "wall_seconds": steps, "metrics": {**dict.fromkeys(METRICS, other),
+    curve = [{"interaction_steps": steps, "wall_seconds": steps, "metrics": {**dict.fromkeys(TABLE_METRICS, other),
               "mae_deg": mae, "per_joint_mae_deg": [mae] * 4}, "validation": {"mae_deg": val}}
              for steps, mae, val, other in points]  # fmt: skip
     return {"method": method, "loop": loop, "seed": seed, "curve": curve}

@@ -32,19 +32,11 @@ from efficienttrack.data.records import EpisodeRecord, load_record, record_files
 if TYPE_CHECKING:
     import torch
 
-METRIC_KEYS = (
-    "episodes",
-    "steps",
-    "mae_deg",
-    "rmse_deg",
-    "fmae_deg",
-    "smt1_deg",
-    "smt2_deg",
-    "etd_mae_cm",
-    "etd_fmae_cm",
-    "per_joint_mae_deg",
-)
-"""Keys of the dict returned by :func:`compute_metrics`."""
+TABLE_METRICS = ("mae_deg", "rmse_deg", "fmae_deg", "smt1_deg", "smt2_deg", "etd_mae_cm", "etd_fmae_cm")
+"""Table I's metrics: MAE, RMSE, FMAE, 1st/2nd-order smoothness (°), ETD-MAE, ETD-FMAE (cm)."""
+METRIC_KEYS = ("episodes", "steps", *TABLE_METRICS, "per_joint_mae_deg")
+"""Keys of the dict returned by :func:`compute_metrics`: the episodes and steps measured, :data:`TABLE_METRICS`, and
+the MAE per joint."""
 MIN_STEPS = 4
 """Shortest episode with every metric defined (the 2nd-order smoothness needs q[1], q[2], q[3])."""
 MPE_STEPS = 20
@@ -192,7 +184,7 @@ def compute_metrics(records: Sequence[EpisodeRecord]) -> dict[str, Any]:
         raise EfficientTrackError(f"metrics: episode(s) {', '.join(short[:5])} have fewer than {MIN_STEPS} steps")
     per_episode = [episode_metrics(record) for record in records]
     result: dict[str, Any] = {"episodes": len(records), "steps": int(sum(len(r) for r in records))}
-    for key in METRIC_KEYS[2:-1]:
+    for key in TABLE_METRICS:
         result[key] = float(np.mean([m[key] for m in per_episode]))
     result["per_joint_mae_deg"] = np.mean([m["per_joint_mae_deg"] for m in per_episode], axis=0).tolist()
     return result
@@ -351,7 +343,7 @@ def metrics_table(
         steps = (training_steps or {}).get(name)
         table.add_row(
             name,
-            *(f"{m[key]:.2f}" for key in METRIC_KEYS[2:-1]),
+            *(f"{m[key]:.2f}" for key in TABLE_METRICS),
             *(f"{v:.2f}" for v in m["per_joint_mae_deg"]),
             str(m["episodes"]),
             str(m["steps"]),

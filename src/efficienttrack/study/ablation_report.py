@@ -24,10 +24,11 @@ import numpy as np
 
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import atomic_write, write_csv, write_json
+from efficienttrack.data.metrics import TABLE_METRICS
 from efficienttrack.study.ablations import ABLATIONS, Ablation
 from efficienttrack.study.jobs import STUDY_CONFIG
 from efficienttrack.study.report import read_jobs
-from efficienttrack.study.summary import METRICS, stats
+from efficienttrack.study.summary import stats
 from efficienttrack.study.tables import COLUMNS, cell
 
 FIELDS: dict[str, tuple[str, str]] = {
@@ -36,7 +37,7 @@ FIELDS: dict[str, tuple[str, str]] = {
     "te_mpe_deg": ("Te.MPE (°)", ".2f"),
     "po_mae_train_deg": ("Po.MAE, training (°)", ".3f"),
     "po_mae_heldout_deg": ("Po.MAE, held-out (°)", ".3f"),
-    **{metric: COLUMNS[metric] for metric in METRICS},
+    **{metric: COLUMNS[metric] for metric in TABLE_METRICS},
     "wall_seconds": COLUMNS["wall_seconds"],
 }
 """Every field of a variant's row, with its column heading and number format."""
@@ -86,7 +87,7 @@ def job_values(result: dict[str, Any]) -> dict[str, Any]:
         "te_mpe_deg": model.get("te_mpe_deg"),
         "po_mae_train_deg": po_mae.get("train_deg"),
         "po_mae_heldout_deg": po_mae.get("heldout_deg"),
-        **{metric: p["metrics"].get(metric) for metric in METRICS},
+        **{metric: p["metrics"].get(metric) for metric in TABLE_METRICS},
         "wall_seconds": p.get("wall_seconds"),
         "per_joint_mae_deg": p["metrics"].get("per_joint_mae_deg"),
     }

@@ -11,13 +11,11 @@ from typing import Any
 
 import numpy as np
 
-from efficienttrack.data.metrics import METRIC_KEYS, interaction_hours
+from efficienttrack.data.metrics import TABLE_METRICS, interaction_hours
 from efficienttrack.envs.core import LOOPS
 from efficienttrack.study.methods import METHODS
 
-METRICS = METRIC_KEYS[2:-1]
-"""Table I's metrics: MAE, RMSE, FMAE, 1st/2nd-order smoothness (°), ETD-MAE, ETD-FMAE (cm)."""
-FIELDS = ("interaction_steps", "interaction_hours", "wall_seconds", "samples_per_step", *METRICS)
+FIELDS = ("interaction_steps", "interaction_hours", "wall_seconds", "samples_per_step", *TABLE_METRICS)
 """What the report gives as mean ± std over seeds, at each seed's final point."""
 BEST_FIELDS = ("interaction_steps", "mae_deg")
 """What it gives at each seed's selected and best points too (``selected_<field>``, ``best_<field>`` and their ``_std``)."""
