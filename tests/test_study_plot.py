@@ -2,6 +2,7 @@
 
 import json
 import shutil
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
@@ -226,3 +227,19 @@ def test_a_studys_results_file_redraws_its_table_and_figure_without_the_folder(t
     committed.write_text(json.dumps({"format": "something else", "jobs": []}))
     with pytest.raises(EfficientTrackError, match="not a study's results.json"):
         combine([committed], tmp_path / "x.png")
+
+
+COMMITTED = sorted((Path(__file__).resolve().parents[1] / "docs" / "results").glob("*.json"))
+"""The results files committed for the published tables (docs/results/NAME.json, its tables in NAME.md)."""
+
+
+def test_results_for_the_published_tables_are_committed():
+    assert COMMITTED, "docs/results/ holds no study results file"
+
+
+@pytest.mark.parametrize("path", COMMITTED, ids=[p.stem for p in COMMITTED])
+def test_a_committed_results_file_redraws_its_published_table(path, tmp_path):
+    """What ``study-plot docs/results/NAME.json`` prints is the committed NAME.md, from the data file alone."""
+    drawn = combine([path], tmp_path / "figure.png")
+    assert drawn.markdown in path.with_suffix(".md").read_text(), f"{path.name} no longer gives {path.stem}.md"
+    assert (tmp_path / "figure.png").stat().st_size > 0
