@@ -153,7 +153,7 @@ def test_a_run_with_validation_references_measures_every_point_on_them_too(refs,
         (p["interaction_steps"], p["metrics"]) for p in plain
     ]
     assert all("validation" not in p for p in plain)
-    assert all(set(p) == {"interaction_steps", "wall_seconds", "metrics", "validation"} for p in validated)
+    assert all(set(p) == {"interaction_steps", "wall_seconds", "metrics", "validation", "gradient_samples"} for p in validated)
     assert all(p["validation"]["episodes"] == 1 and finite(p["validation"]) for p in validated)
     pd = compute_metrics(evaluate(lambda obs: np.zeros((len(obs), 4)), validation, "closed", SystemSpec()))
     assert validated[0]["validation"]["mae_deg"] == pytest.approx(pd["mae_deg"], abs=1e-12)  # untrained: the PD controller
