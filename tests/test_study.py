@@ -21,7 +21,7 @@ from efficienttrack.data.cycles import generate_references
 from efficienttrack.data.metrics import TABLE_METRICS
 from efficienttrack.data.references import Reference, save_references
 from efficienttrack.envs.core import LOOPS
-from efficienttrack.study import METHODS, Job, Study, available_methods, make_jobs, make_study, report, run_study
+from efficienttrack.study import METHODS, Job, Study, available_methods, executors, make_jobs, make_study, report, run_study
 from efficienttrack.study.executors import Outcome, process_pool
 from efficienttrack.study.figure import log_mae_axis, plot_study
 from efficienttrack.study.jobs import default_validation, split_validation
@@ -617,3 +617,14 @@ def test_the_figure_draws_each_settings_variant_of_a_method_with_its_own_line(tm
         ("SuperTrack (noise_open=0.1) (open loop)", "--"),
         ("SuperTrack (noise_open=0.5) (open loop)", ":"),
     ]
+
+
+def test_a_jobs_provenance_names_the_commit_it_started_from(refs, tmp_path, monkeypatch):
+    commits = iter(["a" * 40, "b" * 40])  # a commit made while the job ran
+    real = executors.provenance
+    monkeypatch.setattr(executors, "provenance", lambda **kw: {**real(**kw), "git_commit": next(commits)})
+    [job] = make_jobs(tiny_study(refs), ["pd"])
+    facts = executors.execute(job, tmp_path).result["provenance"]
+    assert facts["git_commit"] == "a" * 40 and facts["git_commit_at_end"] == "b" * 40 and facts["wall_seconds"] >= 0
+    monkeypatch.setattr(executors, "provenance", real)
+    assert "git_commit_at_end" not in executors.execute(job, tmp_path / "again").result["provenance"]

@@ -85,7 +85,9 @@ def execute(job: Job, out: Path, threads: int = 1) -> Outcome:
     ``--method-set`` changes it trained with, if any); on failure ``error.json``
     (``{"job", "error", "traceback"}``). ``"wall_seconds"`` is this sitting's wall time, evaluations included: a job
     resumed after a kill counts from the resume, while the wall times of its curve points carry on across the resume
-    (what the study's table reports). torch uses ``threads`` CPU threads while the job runs.
+    (what the study's table reports). Its provenance names the commit the job started from (``git_commit``,
+    ``git_dirty``), and ``git_commit_at_end`` when another was checked out by the time it ended. torch uses ``threads``
+    CPU threads while the job runs.
 
     Args:
         job: the job.
@@ -100,7 +102,7 @@ def execute(job: Job, out: Path, threads: int = 1) -> Outcome:
     previous = torch.get_num_threads()
     if threads:
         torch.set_num_threads(threads)
-    start = time.perf_counter()
+    start, began = time.perf_counter(), provenance()
     try:
         with open(folder / JOB_LOG, "a") as log, redirect_stdout(log), redirect_stderr(log):
             curve = check_curve(METHODS[job.method].run(job, folder))
@@ -111,6 +113,10 @@ def execute(job: Job, out: Path, threads: int = 1) -> Outcome:
     finally:
         torch.set_num_threads(previous)
     wall = time.perf_counter() - start
+    ended = provenance(wall_seconds=wall)
+    code = {key: began[key] for key in ("git_commit", "git_dirty")}  # what the job started from, not what is there now
+    if ended["git_commit"] != began["git_commit"]:  # a commit made while it ran: modules it imported later may be it
+        code["git_commit_at_end"] = ended["git_commit"]
     result = {
         "job": job.name,
         "method": job.method,
@@ -119,7 +125,7 @@ def execute(job: Job, out: Path, threads: int = 1) -> Outcome:
         "budget": job.budget,
         "curve": curve,
         "wall_seconds": round(wall, 2),
-        "provenance": provenance(wall_seconds=wall),
+        "provenance": {**ended, **code},
     }
     if job.variant is not None:
         result["variant"] = job.variant.to_dict()
