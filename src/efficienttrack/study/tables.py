@@ -136,13 +136,14 @@ def markdown_table(entries: Sequence[dict[str, Any]], failed: dict[str, str], pa
     if not entries:
         lines.append("")
         lines.append("No job has finished yet.")
-    lines += ["", "I.S.: training interaction steps; I.T.: I.S. at 20 Hz in hours; wall: time to the final point; "
-              "metrics on the held-out test references. 95 % CI: a percentile bootstrap interval of the mean over the "
-              "seeds (coarse with 3 seeds): two methods differ where their intervals do not overlap. Selected MAE: "
-              "each seed's test MAE at the point of its curve with the lowest MAE on the validation references "
-              "(training references held out of every method's training), and where it was; – without validation "
-              "references (and for the ILC oracle). Best MAE: each seed's lowest test MAE along its curve and where "
-              "it was reached, the paper's selection: chosen on the test set, an optimistic figure."]  # fmt: skip
+    lines += ["", "I.S.: training interaction steps; I.T.: I.S. at 20 Hz in hours; wall: time to the final point; grad. "
+              "samples / I.S.: the batch rows the method's optimizer steps took, per interaction step (– where not "
+              "counted); metrics on the held-out test references. 95 % CI: a percentile bootstrap interval of the "
+              "mean over the seeds (coarse with 3 seeds): two methods differ where their intervals do not overlap. "
+              "Selected MAE: each seed's test MAE at the point of its curve with the lowest MAE on the validation "
+              "references (training references held out of every method's training), and where it was; – without "
+              "validation references (and for the ILC oracle). Best MAE: each seed's lowest test MAE along its curve "
+              "and where it was reached, the paper's selection: chosen on the test set, an optimistic figure."]  # fmt: skip
     if paper:
         lines += ["", "*paper, Table I*: the published figures on the paper's simulator (Zou et al. 2025), each method "
                   "at its best point; I.S. of PPO summed over its 16 workers."]  # fmt: skip

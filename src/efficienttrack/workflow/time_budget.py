@@ -47,9 +47,9 @@ RESERVE = 0.05
 15-minute run beside two training jobs took 15.3 minutes."""
 MAX_POLICY_SCALE = 3.0
 """Most share of its configured steps a policy's training takes when the budget leaves room. The policy's training
-limits the tracking, the model's does not: three times the ``cpu`` preset's policy steps through one model tracked
-10 % better on the xe75 (3 seeds) and 3 % on the paper's simulator, while three times the model's steps gave a worse
-policy (docs/comparison.md, "Training length" and "Imagined deployments")."""
+limits the tracking, the model's does not: three times the model's steps gave a worse policy (docs/comparison.md,
+"Training length"), while 2.7–2.8 times the policy's, with 20 minutes, tracked 5 % better on the validation
+references of the xe75 and the paper's simulator (docs/rounds.md). Not tuned: three is the one multiple measured."""
 LAST_PLAN_MARGIN = 0.15
 """Extra share of its time that the last training's plan keeps free: nothing corrects it afterwards. On a 2-core
 machine a later round's trainings took 0.95–1.15 × what the plan before them predicted (10 plans in five 15-minute
