@@ -613,9 +613,9 @@ def test_the_figure_draws_each_settings_variant_of_a_method_with_its_own_line(tm
     monkeypatch.setattr(Axes, "plot", spy)
     plot_study(entries, tmp_path / "variants.png")
     assert drawn[:3] == [
-        ("SuperTrack (open loop)", "-"),
-        ("SuperTrack (noise_open=0.1) (open loop)", "--"),
-        ("SuperTrack (noise_open=0.5) (open loop)", ":"),
+        ("SuperTrack (reduced) (open loop)", "-"),
+        ("SuperTrack (reduced) (noise_open=0.1) (open loop)", "--"),
+        ("SuperTrack (reduced) (noise_open=0.5) (open loop)", ":"),
     ]
 
 

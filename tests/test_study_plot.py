@@ -50,7 +50,10 @@ def test_study_folders_of_one_system_make_one_table_and_figure(tmp_path):
     assert result.exit_code == 0, result.output
     assert (tmp_path / "all.png").stat().st_size > 0
     rows = [line for line in result.output.splitlines() if line.startswith("| SuperTrack") or line.startswith("| Effic")]
-    assert [row.split(" | ")[:3] for row in rows] == [["| EfficientTrack", "open", "1"], ["| SuperTrack", "closed", "2"]]
+    assert [row.split(" | ")[:3] for row in rows] == [
+        ["| EfficientTrack", "open", "1"],
+        ["| SuperTrack (reduced)", "closed", "2"],
+    ]
     assert "*paper, Table I*" in result.output  # the paper's rows under ours: these studies ran on its simulator
     again = study_folder(tmp_path / "again", PAPER, ("supertrack", "closed", 1, [0.7, 0.5]))
     with pytest.raises(EfficientTrackError, match=r"again and .*one both hold supertrack-closed-s1"):
@@ -106,7 +109,11 @@ def test_equal_interaction_cells_hold_each_seeds_last_point_at_or_below_the_coun
     markdown = equal_interaction_table(summarize(results), [30, 5, 11, 15, 20, 20])
     assert "| method | loop | seeds | ≤ 5 | ≤ 11 | ≤ 15 | ≤ 20 | ≤ 30 |" in markdown  # sorted, once each
     rows = table_rows(markdown)
-    assert list(rows) == [("PD", "closed"), ("EfficientTrack", "closed"), ("SAC", "closed")]  # the main table's order
+    assert list(rows) == [
+        ("PD", "closed"),
+        ("EfficientTrack", "closed"),
+        ("SAC (reduced)", "closed"),
+    ]  # the main table's order
     assert rows["PD", "closed"] == ["1", "2.730 (0)", "", "", "", ""]  # in the first column only
     assert rows["EfficientTrack", "closed"] == [
         "2",
@@ -116,7 +123,7 @@ def test_equal_interaction_cells_hold_each_seeds_last_point_at_or_below_the_coun
         "0.500 ± 0.141 (20)",
         "",  # past the final points, already shown
     ]
-    assert rows["SAC", "closed"] == ["1", "", "1.000 (10)", "1.000 (10)", "1.000 (10)", "1.000 (10)"]  # no ± alone
+    assert rows["SAC (reduced)", "closed"] == ["1", "", "1.000 (10)", "1.000 (10)", "1.000 (10)", "1.000 (10)"]  # no ± alone
     assert "last curve point at or below the column's interaction steps" in markdown
 
 
@@ -125,7 +132,7 @@ def test_study_plot_at_prints_the_equal_interaction_table_and_refuses_bad_counts
     figure = tmp_path / "all.png"
     result = CliRunner().invoke(app, ["study-plot", str(one), "--out", str(figure), "--at", "15,20,1000"])
     assert result.exit_code == 0, result.output
-    assert "| SAC | closed | 2 | 0.700 ± 0.141 (10) | 0.500 ± 0.141 (20) |  |" in result.output
+    assert "| SAC (reduced) | closed | 2 | 0.700 ± 0.141 (10) | 0.500 ± 0.141 (20) |  |" in result.output
     for bad in ("15,abc", "15,0", "-5", "1.5"):
         result = CliRunner().invoke(app, ["study-plot", str(one), "--out", str(tmp_path / "x.png"), "--at", bad])
         assert result.exit_code != 0 and f"--at '{bad.split(',')[-1]}'" in str(result.exception)

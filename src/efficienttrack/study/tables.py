@@ -138,7 +138,8 @@ def markdown_table(entries: Sequence[dict[str, Any]], failed: dict[str, str], pa
         lines.append("No job has finished yet.")
     lines += ["", "I.S.: training interaction steps; I.T.: I.S. at 20 Hz in hours; wall: time to the final point; grad. "
               "samples / I.S.: the batch rows the method's optimizer steps took, per interaction step (– where not "
-              "counted); metrics on the held-out test references. 95 % CI: a percentile bootstrap interval of the "
+              "counted); (reduced): a baseline run with fewer gradient samples per step than its research code "
+              "(docs/baselines.md); metrics on the held-out test references. 95 % CI: a percentile bootstrap interval of the "
               "mean over the seeds (coarse with 3 seeds): two methods differ where their intervals do not overlap. "
               "Selected MAE: each seed's test MAE at the point of its curve with the lowest MAE on the validation "
               "references (training references held out of every method's training), and where it was; – without "
