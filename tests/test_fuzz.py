@@ -465,6 +465,11 @@ FOUND: dict[str, tuple[str, bytes | Callable[[bytes], bytes], str]] = {
         _npy(b"{'descr': ',', 'fortran_order': False, 'shape': (24, 4), }\n"),
         "a damaged header (SyntaxError",
     ),
+    "npy header, a NUL byte (SystemError from Python 3.12's tokenizer)": (
+        "reference .npy",
+        _npy(b"{'descr': '<f8', 'fortran_order': False, 'shape': (24, 4), }\0\n"),
+        "a damaged header (it holds a NUL byte)",
+    ),
     "npy v2 header declaring 4 GiB": ("reference .npy", _npy(b"{}\n", 2, 2**32 - 1), "Header info length 4294967295"),
     "pickle, a frame of 2^62 bytes": ("upstream episode .npy", _pickled(b"\x80\x04\x95" + struct.pack("<Q", 2**62)), ""),
     "pickle, a bytearray of 2^62 bytes": (

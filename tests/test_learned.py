@@ -42,7 +42,8 @@ def test_learned_system_steps_as_the_model_rolls_out_from_rest(history):
     refs = torch.as_tensor(q0, dtype=torch.float32)[:, None].repeat(1, h, 1)
     with torch.no_grad():
         expected = rollout(model, start, refs, torch.as_tensor(q_ref, dtype=torch.float32).transpose(0, 1))
-    np.testing.assert_allclose(obs, expected.transpose(0, 1).numpy(), rtol=0, atol=1e-6)
+    # float32: stepwise and batched products round alike on one machine, to ~20 ulps apart on another CPU or torch
+    np.testing.assert_allclose(obs, expected.transpose(0, 1).numpy(), rtol=0, atol=1e-5)
 
 
 def test_learned_system_takes_single_machines_and_wraps_the_swing():

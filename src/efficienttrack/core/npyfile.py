@@ -94,6 +94,8 @@ def _read_header(f: IO[bytes]) -> tuple[tuple[int, ...], bool, np.dtype]:
     header = f.read(length)
     if len(header) != length:
         raise ValueError(f"truncated in its header ({len(header)} of {length} bytes)")
+    if b"\0" in header:  # never in a header numpy writes; Python 3.12's tokenizer fails on it with a SystemError
+        raise ValueError("a damaged header (it holds a NUL byte)")
     try:
         return parse(io.BytesIO(length_bytes + header))
     except (tokenize.TokenError, SyntaxError) as exc:  # numpy's header parser (tokenize, ast, np.dtype) lets these out
