@@ -483,6 +483,10 @@ def test_the_report_selects_each_seeds_point_on_validation_and_gives_its_test_ma
     )
     assert "| [2.000, 4.000] | 2.00 ± 0.00 | [2.000, 2.000] | 15 ± 7 | 1.50 ± 0.71 | 10 ± 0 |" in table  # EfficientTrack
     assert "| [2.000, 4.000] | – | – | – | 3.00 ± 1.41 | 10 ± 0 |" in table  # PPO: a seed without validation, no selection
+    assert et["selection_steps"] == 0 + 10 + 20 and ppo["selection_steps"] is None  # EfficientTrack's points: runs
+    assert "chosen among runs that took 30 interaction steps in all" in table
+    [supertrack] = summarize([{**seed0, "method": "supertrack"}])
+    assert supertrack["selection_steps"] is None  # its points are one run's checkpoints
     line = progress_line(Outcome("efficienttrack-closed-s0", seed0, None), 1, 2)
     assert line.endswith("final MAE 2.00° at 20 interaction steps; selected on validation: 2.00° at 20")
     assert progress_line(Outcome("ppo-closed-s1", partial, None), 2, 2).endswith("final MAE 2.00° at 10 interaction steps")

@@ -65,6 +65,8 @@ class Method:
             study, before any job runs; None: it can always run.
         settings: ``settings(preset)``, the settings object of the baselines' preset ``cpu``, ``tiny`` … that
             ``--method-set`` changes, its module imported only when called; None: no settings (``pd``).
+        separate_runs: the loops where each point of its curve is a run of its own (EfficientTrack's pass counts), so
+            that a point chosen among them cost the steps of them all; elsewhere a curve is one run's checkpoints.
     """
 
     name: str
@@ -75,6 +77,7 @@ class Method:
     requires: tuple[str, ...] = ()
     check: Callable[[Study], None] | None = None
     settings: Callable[[str], Any] | None = None
+    separate_runs: tuple[str, ...] = ()
 
     def available(self) -> bool:
         """Whether every module in ``requires`` can be imported here (checked without importing them)."""
@@ -410,7 +413,8 @@ def _settings_of(module: str, function: str, *args: str) -> Callable[[str], Any]
 METHODS: dict[str, Method] = {
     "pd": Method("pd", "PD", run_pd, ("closed",), seeded=False),
     "efficienttrack": Method("efficienttrack", "EfficientTrack", run_efficienttrack, LOOPS, check=check_passes,
-                             settings=_settings_of("efficienttrack.baselines.openloop", "open_settings")),
+                             settings=_settings_of("efficienttrack.baselines.openloop", "open_settings"),
+                             separate_runs=("closed",)),
     "sac": Method("sac", "SAC (reduced)", run_sb3, LOOPS, requires=SB3_MODULES,
                   settings=_settings_of("efficienttrack.baselines.settings", "method_settings", "sac")),
     "ppo": Method("ppo", "PPO", run_sb3, LOOPS, requires=SB3_MODULES,

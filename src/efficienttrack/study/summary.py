@@ -175,11 +175,13 @@ def summarize(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
         "selected_interaction_steps", "selected_mae_deg" and their ``_std`` (the test MAE at the points selected on
         validation; None unless every seed has one), "best_interaction_steps", "best_mae_deg" and their ``_std`` (at
         the best points on test), "mae_deg_ci95", "selected_mae_deg_ci95": [low, high] (:func:`interval`; None with
-        one seed), "per_joint_mae_deg": [4], "episodes", "steps": the test set, "final", "best": [per
-        seed: the point], "selected": [per seed: the point] or None, "curve": [the mean over seeds at each interaction
-        count: {"interaction_steps", "interaction_hours", "mae_deg", "mae_deg_std", "seeds"}], "curves": [{"seed",
-        "points": [each point: interaction steps and hours, wall seconds, "gradient_samples", "samples_per_step", test
-        metrics, "validation_mae_deg"]}]}``;
+        one seed), "selection_steps": for a method whose points are separate runs (``Method.separate_runs``), the
+        interaction steps of all the runs its validation choice looked at, mean over seeds (else None),
+        "per_joint_mae_deg": [4], "episodes", "steps": the test set, "final", "best": [per seed: the point],
+        "selected": [per seed: the point] or None, "curve": [the mean over seeds at each interaction count:
+        {"interaction_steps", "interaction_hours", "mae_deg", "mae_deg_std", "seeds"}], "curves": [{"seed", "points":
+        [each point: interaction steps and hours, wall seconds, "gradient_samples", "samples_per_step", test metrics,
+        "validation_mae_deg"]}]}``;
         a point of "final", "selected", "best" is ``{"seed", **that point}``.
     """
     groups: dict[tuple[str, str, tuple[str, ...]], list[dict[str, Any]]] = {}
@@ -203,6 +205,10 @@ def summarize(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
             entry[f"best_{field}"], entry[f"best_{field}_std"] = point_stats(best, field)
         entry["mae_deg_ci95"] = interval([p["mae_deg"] for p in final])
         entry["selected_mae_deg_ci95"] = interval([p["mae_deg"] for p in selected]) if selected else None
+        separate = method in METHODS and loop in METHODS[method].separate_runs
+        entry["selection_steps"] = (
+            stats([sum(p["interaction_steps"] for p in c["points"]) for c in curves])[0] if separate and selected else None
+        )
         entry["per_joint_mae_deg"] = np.mean([f["per_joint_mae_deg"] for f in final], axis=0).tolist()
         entry["episodes"], entry["steps"] = final[0].get("episodes"), final[0].get("steps")
         entry["final"], entry["selected"], entry["best"] = final, selected, best

@@ -145,6 +145,11 @@ def markdown_table(entries: Sequence[dict[str, Any]], failed: dict[str, str], pa
               "references (training references held out of every method's training), and where it was; – without "
               "validation references (and for the ILC oracle). Best MAE: each seed's lowest test MAE along its curve "
               "and where it was reached, the paper's selection: chosen on the test set, an optimistic figure."]  # fmt: skip
+    for e in entries:
+        if e.get("selection_steps") is not None:
+            lines += ["", f"{method_label(e)} ({e['loop']} loop): each point of its curve is a run of its own, so the point "
+                      f"selected on validation was chosen among runs that took {e['selection_steps']:,.0f} interaction "
+                      "steps in all (its I.S. counts its own run's alone)."]  # fmt: skip
     if paper:
         lines += ["", "*paper, Table I*: the published figures on the paper's simulator (Zou et al. 2025), each method "
                   "at its best point; I.S. of PPO summed over its 16 workers."]  # fmt: skip
