@@ -5,6 +5,7 @@ Each script runs in this process as ``python benchmarks/<script> …`` would run
 the second or two a fresh interpreter spends importing torch.
 """
 
+import json
 import os
 import re
 import runpy
@@ -45,6 +46,7 @@ HELP_ONLY = {
     "oracle_floor.py": "--system",
     "precision.py": "--held-speed",
     "rounds.py": "--presets",
+    "rounds_curve.py": "--study-metric",
     "supertrack_ablation.py": "--variant",
     "tdmpc_plan_eval.py": "--train-refs",
     "tdmpc_throughput.py": "--steps",
@@ -112,6 +114,32 @@ def test_benchmark_parses_its_arguments(script, run):
     description = (BENCHMARKS / script).read_text().split('"""')[1].splitlines()[0]  # argparse's description
     assert " ".join(description.split()) in " ".join(out.split())
     assert "-h, --help" in out and HELP_ONLY[script] in out
+
+
+def test_rounds_curve_draws_rounds_beside_a_committed_study(tmp_path, run):
+    def rounds_run(name, maes, scored=None):  # a run folder's metrics.json with its rounds, and their evaluations
+        folder = tmp_path / name
+        folder.mkdir()
+        rounds = [
+            {"round": k, "interaction_steps": 15738 * k, "efficienttrack": {"mae_deg": m}} for k, m in enumerate(maes, 1)
+        ]
+        (folder / "metrics.json").write_text(json.dumps({"rounds": rounds}))
+        for k, m in enumerate(scored or [], 1):
+            (folder / "test_eval" / f"round_{k}").mkdir(parents=True)
+            (folder / "test_eval" / f"round_{k}" / "metrics.json").write_text(json.dumps({"efficienttrack": {"mae_deg": m}}))
+        return str(folder)
+
+    runs = ",".join([rounds_run("s0", [0.5, 0.4, 0.3], [0.9, 0.8]), rounds_run("s1", [0.7, 0.4])])
+    study = Path(__file__).resolve().parents[1] / "docs" / "results" / "table1-xe75-closed.json"
+    code, out, err = run(
+        "rounds_curve.py", "--group", f"rounds={runs}", "--study", str(study), "--out", str(tmp_path / "f.png")
+    )
+    assert code == 0, err[-2000:]
+    assert "| rounds | 2 | 15,738 → 0.600 ± 0.141, 31,476 → 0.400 ± 0.000 |" in out  # the rounds both seeds have
+    assert "| SuperTrack (reduced) (study) | 5 |" in out and (tmp_path / "f.png").stat().st_size > 0
+    code, out, err = run("rounds_curve.py", "--group", f"s0={runs.split(',')[0]}", "--scored", "test_eval", "--out",
+                         str(tmp_path / "g.png"))  # fmt: skip
+    assert "| s0 | 1 | 15,738 → 0.900, 31,476 → 0.800 |" in out  # the evaluated rounds only
 
 
 def test_baseline_throughput_refuses_steps_within_the_warm_up(run):
