@@ -6,11 +6,13 @@ interaction steps (I.S.) and its policy's MAE on the run's test references (``me
 of ``RUN/rounds/<k>/policy.pt``). Runs of one group (``--group NAME=RUN,RUN,...``) are seeds of one line: mean ± sample
 std over them where every seed has the round. A committed study file (``--study FILE``, a study's ``results.json``)
 adds each method's mean curve over its seeds, on its validation references (``--study-metric validation``) or its test
-references (``test``).
+references (``test``). ``--export FILE`` keeps the groups' points (small JSON, for committing); ``--from FILE`` redraws
+from such a file without the run folders.
 
     python benchmarks/rounds_curve.py --group paper=runs/r40/paper_fs4_s0,runs/r40/paper_fs4_s1 --out rounds.png
     python benchmarks/rounds_curve.py --group xe75=runs/r40/xe75_fs4_s0 --study docs/results/table1-xe75-closed.json \
-        --study-metric validation --out xe75.png
+        --study-metric validation --export docs/results/rounds-xe75-validation.json --out xe75.png
+    python benchmarks/rounds_curve.py --from docs/results/rounds-xe75-validation.json --out xe75.png
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import numpy as np  # noqa: E402
 from matplotlib.ticker import FormatStrFormatter  # noqa: E402
 
 from efficienttrack.core.errors import EfficientTrackError  # noqa: E402
+from efficienttrack.core.fileio import write_json  # noqa: E402
 from efficienttrack.study.methods import METHODS  # noqa: E402
 from efficienttrack.study.summary import mean_curve  # noqa: E402
 
@@ -82,19 +85,32 @@ def study_curves(path: Path, metric: str) -> dict[str, list[dict[str, Any]]]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--group", action="append", required=True, help="NAME=RUN[,RUN...]: the seeds of one line")
+    parser.add_argument("--group", action="append", default=[], help="NAME=RUN[,RUN...]: the seeds of one line")
+    parser.add_argument("--from", dest="source", type=Path, default=None, help="the groups' points from an --export file")
+    parser.add_argument("--export", type=Path, default=None, help="write the groups' points here (JSON)")
     parser.add_argument("--scored", default=None, help="evaluations under each run: DIR/round_<k>/metrics.json")
     parser.add_argument("--study", type=Path, default=None, help="a study's results.json whose curves to draw beside")
     parser.add_argument("--study-metric", choices=("validation", "test"), default="test")
     parser.add_argument("--title", default="MAE against interaction steps")
     parser.add_argument("--out", type=Path, required=True, help="the figure (.png)")
     args = parser.parse_args()
+    if bool(args.group) == (args.source is not None):
+        parser.error("give --group (run folders) or --from (an --export file), not both")
+    if args.source is not None:
+        groups = json.loads(args.source.read_text())["groups"]
+    else:
+        groups = {}
+        for group in args.group:
+            name, _, runs = group.partition("=")
+            groups[name] = [{"run": run, "points": round_points(Path(run), args.scored)} for run in runs.split(",")]
+    if args.export is not None:
+        command = f"python benchmarks/rounds_curve.py {shlex.join(sys.argv[1:])}"
+        write_json(args.export, {"groups": groups, "scored": args.scored, "command": command})
 
     fig, ax = plt.subplots(figsize=(7.5, 4.5))
     print(f"| line | seeds | {' | '.join(['I.S. → MAE (°)'])} |\n|---|---:|---|")
-    for group in args.group:
-        name, _, runs = group.partition("=")
-        curves = [round_points(Path(run), args.scored) for run in runs.split(",")]
+    for name, seeds in groups.items():
+        curves = [seed["points"] for seed in seeds]
         rows = mean_curve([c[: min(len(c) for c in curves)] for c in curves])
         steps = np.array([r["interaction_steps"] for r in rows])
         mae = np.array([r["mae_deg"] for r in rows])

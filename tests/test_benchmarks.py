@@ -10,6 +10,7 @@ import os
 import re
 import runpy
 import shlex
+import shutil
 import sys
 from pathlib import Path
 
@@ -131,12 +132,19 @@ def test_rounds_curve_draws_rounds_beside_a_committed_study(tmp_path, run):
 
     runs = ",".join([rounds_run("s0", [0.5, 0.4, 0.3], [0.9, 0.8]), rounds_run("s1", [0.7, 0.4])])
     study = Path(__file__).resolve().parents[1] / "docs" / "results" / "table1-xe75-closed.json"
+    kept, figure = str(tmp_path / "points.json"), str(tmp_path / "f.png")
     code, out, err = run(
-        "rounds_curve.py", "--group", f"rounds={runs}", "--study", str(study), "--out", str(tmp_path / "f.png")
+        "rounds_curve.py", "--group", f"rounds={runs}", "--study", str(study), "--export", kept, "--out", figure
     )
     assert code == 0, err[-2000:]
     assert "| rounds | 2 | 15,738 → 0.600 ± 0.141, 31,476 → 0.400 ± 0.000 |" in out  # the rounds both seeds have
     assert "| SuperTrack (reduced) (study) | 5 |" in out and (tmp_path / "f.png").stat().st_size > 0
+    for name in ("s0", "s1"):
+        shutil.rmtree(tmp_path / name)  # the exported points redraw the same without the run folders
+    code, again, err = run("rounds_curve.py", "--from", kept, "--study", str(study), "--out", figure)
+    assert code == 0 and again.split("\nfigure:")[0] == out.split("\nfigure:")[0], err[-2000:]
+    assert json.loads(Path(kept).read_text())["command"].startswith("python benchmarks/rounds_curve.py --group")
+    runs = ",".join([rounds_run("s0", [0.5, 0.4, 0.3], [0.9, 0.8]), rounds_run("s1", [0.7, 0.4])])
     code, out, err = run("rounds_curve.py", "--group", f"s0={runs.split(',')[0]}", "--scored", "test_eval", "--out",
                          str(tmp_path / "g.png"))  # fmt: skip
     assert "| s0 | 1 | 15,738 → 0.900, 31,476 → 0.800 |" in out  # the evaluated rounds only
