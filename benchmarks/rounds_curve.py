@@ -97,12 +97,20 @@ def main() -> None:
     if bool(args.group) == (args.source is not None):
         parser.error("give --group (run folders) or --from (an --export file), not both")
     if args.source is not None:
-        groups = json.loads(args.source.read_text())["groups"]
+        try:
+            groups = json.loads(args.source.read_text())["groups"]
+        except (OSError, ValueError, KeyError) as exc:
+            parser.error(f"--from {args.source}: not an --export file of this script ({type(exc).__name__}: {exc})")
     else:
         groups = {}
         for group in args.group:
-            name, _, runs = group.partition("=")
-            groups[name] = [{"run": run, "points": round_points(Path(run), args.scored)} for run in runs.split(",")]
+            name, sep, runs = group.partition("=")
+            if not sep or not name or not runs:
+                parser.error(f"--group '{group}': expected NAME=RUN[,RUN...]")
+            try:
+                groups[name] = [{"run": run, "points": round_points(Path(run), args.scored)} for run in runs.split(",")]
+            except (EfficientTrackError, OSError, ValueError, KeyError) as exc:
+                parser.error(f"--group '{name}': {exc}")
     if args.export is not None:
         command = f"python benchmarks/rounds_curve.py {shlex.join(sys.argv[1:])}"
         write_json(args.export, {"groups": groups, "scored": args.scored, "command": command})

@@ -148,6 +148,10 @@ def test_rounds_curve_draws_rounds_beside_a_committed_study(tmp_path, run):
     code, out, err = run("rounds_curve.py", "--group", f"s0={runs.split(',')[0]}", "--scored", "test_eval", "--out",
                          str(tmp_path / "g.png"))  # fmt: skip
     assert "| s0 | 1 | 15,738 → 0.900, 31,476 → 0.800 |" in out  # the evaluated rounds only
+    for bad, says in [(["--group", "s0"], "expected NAME=RUN"), (["--group", f"x={tmp_path}"], "no metrics.json"),
+                      (["--from", str(tmp_path / "f.png")], "not an --export file")]:  # fmt: skip
+        code, out, err = run("rounds_curve.py", *bad, "--out", str(tmp_path / "h.png"))
+        assert code == 2 and says in err and "Traceback" not in err
 
 
 def test_baseline_throughput_refuses_steps_within_the_warm_up(run):
