@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 
@@ -261,10 +260,17 @@ def test_bad_inputs_name_the_problem(tmp_path, short):
         TrackingEnv("closed", refs=[outside])
 
 
-def test_the_package_imports_without_gymnasium():
-    code = "import sys; sys.modules['gymnasium'] = None; import efficienttrack; print('envs' in dir(efficienttrack))"
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=os.environ.copy())
-    assert out.stdout.strip() == "False"  # imported, and registered nothing
+def test_the_package_does_not_import_gymnasium_and_make_imports_the_registration(tmp_path, short):
+    save_references(short, tmp_path / "refs")
+    code = (
+        "import sys, efficienttrack\n"
+        "print('gymnasium' in sys.modules)\n"
+        "import gymnasium\n"
+        "env = gymnasium.make('efficienttrack.envs:EfficientTrack/ClosedLoop-v0', refs=sys.argv[1])\n"
+        "print(env.reset(seed=0)[0].shape, gymnasium.make('EfficientTrack/OpenLoop-v0', refs=sys.argv[1]).spec.id)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "refs")], capture_output=True, text=True)
+    assert out.stdout.splitlines() == ["False", "(332,) EfficientTrack/OpenLoop-v0"], out.stderr
 
 
 def test_the_vector_env_takes_one_reference_per_sub_environment(short):

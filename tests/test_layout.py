@@ -62,6 +62,10 @@ def test_no_module_imports_upward(module):
     assert not upward, f"{module} ({LAYERS[own][0]}) imports from layers above it: {upward}"
 
 
+def test_the_package_init_imports_only_the_core():
+    assert {layer_of(name) for name in imported("efficienttrack")} <= {0}, imported("efficienttrack")
+
+
 def test_systems_import_nothing_from_learning():
     learning = {name for _, names in LAYERS[3:] for name in names}
     for module in package_modules():

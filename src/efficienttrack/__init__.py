@@ -6,9 +6,10 @@ name ``efficienttrack.study`` is its package), with what they take (``SystemSpec
 records). They are imported on first use, so ``import efficienttrack`` stays light: the torch-free runtime imports
 the package without torch.
 
-Importing the package registers the Gymnasium environments ``EfficientTrack/ClosedLoop-v0`` and
-``EfficientTrack/OpenLoop-v0`` (:mod:`efficienttrack.envs`) when gymnasium is installed; without it (a torch- and
-gymnasium-free runtime install) the package imports all the same.
+The Gymnasium environments ``EfficientTrack/ClosedLoop-v0`` and ``EfficientTrack/OpenLoop-v0`` are registered by
+``import efficienttrack.envs`` (Gymnasium 1.x has no plugin entry point; a module-qualified id,
+``"efficienttrack.envs:EfficientTrack/ClosedLoop-v0"``, makes ``gymnasium.make`` import it), so importing this package
+imports no Gymnasium.
 """
 
 import inspect
@@ -70,13 +71,3 @@ def __getattr__(name: str) -> Any:
 def __dir__() -> list[str]:
     """The module's names, the lazily imported API included."""
     return sorted({*globals(), *API})
-
-
-try:
-    import gymnasium  # noqa: F401  (only to learn whether it is installed)
-except ImportError:
-    pass
-else:
-    from efficienttrack.envs import register_envs
-
-    register_envs()

@@ -1,13 +1,15 @@
 """Gymnasium environments over any system: the closed loop (adjust the PD reference) and the open loop (send PWM).
 
-``import efficienttrack`` registers :data:`CLOSED_LOOP_ID` and :data:`OPEN_LOOP_ID` (when gymnasium is installed), so
-``gymnasium.make(CLOSED_LOOP_ID, system="xe75", refs=DIR)`` and ``gymnasium.make_vec(CLOSED_LOOP_ID, num_envs=16, ...)``
-(the native :class:`TrackingVectorEnv`, one batched system call per step) work with no extra step. The observation,
+Importing this package registers :data:`CLOSED_LOOP_ID` and :data:`OPEN_LOOP_ID` (Gymnasium 1.x's convention:
+``import efficienttrack.envs``, or ``gymnasium.make("efficienttrack.envs:EfficientTrack/ClosedLoop-v0")``, which
+imports it), so ``gymnasium.make(CLOSED_LOOP_ID, system="xe75", refs=DIR)`` and
+``gymnasium.make_vec(CLOSED_LOOP_ID, num_envs=16, ...)`` (the native :class:`TrackingVectorEnv`, one batched system
+call per step) work. ``import efficienttrack`` alone does not import Gymnasium. The observation,
 action and reward are defined in :mod:`efficienttrack.envs.core` and tabled in ``docs/envs.md``; :func:`evaluate`
 runs a trained agent on held-out references as records that :func:`efficienttrack.data.metrics.compute_metrics` scores.
 
-Only the ids and the registration are imported with this package (registering on ``import efficienttrack`` stays
-cheap); the other names load their module when first used.
+Only the ids and the registration are imported with this package; the other names load their module when first
+used.
 """
 
 from __future__ import annotations
@@ -32,6 +34,8 @@ _HOMES = {
 """Public name → the module of this package that defines it."""
 
 __all__ = ["CLOSED_LOOP_ID", "OPEN_LOOP_ID", "register_envs", *_HOMES]
+
+register_envs()
 
 
 def __getattr__(name: str) -> Any:
