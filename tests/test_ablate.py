@@ -2,6 +2,7 @@
 
 import json
 import math
+import pickle
 from dataclasses import replace
 
 import pytest
@@ -14,7 +15,6 @@ from efficienttrack.data.references import Reference, save_references
 from efficienttrack.study import (
     ABLATIONS,
     ablation_jobs,
-    ablation_report,
     make_ablation_study,
     make_jobs,
     make_study,
@@ -165,12 +165,11 @@ def test_cli_ablate(refs, tmp_path, monkeypatch):
         assert isinstance(refused.exception, EfficientTrackError) and message in str(refused.exception), refused.output
 
 
-@pytest.mark.slow
-def test_ray_runs_an_ablation_job(refs, tmp_path):
-    ray = pytest.importorskip("ray")
+def test_ablation_jobs_travel_to_a_worker_as_study_jobs_do(refs):
+    # ablations run through the study's executors (run_jobs); a process pool or Ray sends each job pickled, and the
+    # study's tests run both executors: what is left to check is that an ablation's jobs survive the trip
     study = tiny_ablation(refs)
     jobs = ablation_jobs(ABLATIONS["noise-ratio"], study, [0], ["9:2"])
-    result = run_ablation(ABLATIONS["noise-ratio"], study, jobs, tmp_path, executor="ray", log=lambda line: None)
-    assert not ray.is_initialized() and result.ran == ("efficienttrack-ratio-9-2-s0",) and not result.failed
-    entry = ablation_report(tmp_path).entries[0]
-    assert entry["variant"] == "ratio-9-2" and math.isfinite(entry["mae_deg"]) and math.isfinite(entry["tr_mpe_deg"])
+    [sent] = pickle.loads(pickle.dumps(jobs))
+    assert sent.name == jobs[0].name and sent.variant.overrides == jobs[0].variant.overrides
+    assert sent.variant.apply(sent.study.run_config) == jobs[0].variant.apply(jobs[0].study.run_config)
