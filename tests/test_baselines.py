@@ -254,12 +254,12 @@ def test_bad_input_is_refused_before_training(refs, tmp_path, change, message):
 @pytest.mark.parametrize(
     ("settings", "message"),
     [
-        (lambda: PPOSettings(n_envs=0), "ppo.n_envs: must be an integer ≥ 1"),
-        (lambda: PPOSettings(gamma=1.5), r"ppo.gamma: must be a number in \[0, 1\]"),
-        (lambda: PPOSettings(net_arch=()), "ppo.net_arch: needs at least one hidden layer"),
-        (lambda: SACSettings(learning_rate=float("nan")), "sac.learning_rate: must be a finite number > 0"),
-        (lambda: SACSettings(learning_starts=-1), "sac.learning_starts: must be an integer ≥ 0"),
-        (lambda: SACSettings(ent_coef=0.0), "sac.ent_coef: must be a finite number > 0"),
+        (lambda: PPOSettings(n_envs=0), "PPOSettings.n_envs must be an integer ≥ 1, got 0"),
+        (lambda: PPOSettings(gamma=1.5), r"PPOSettings.gamma must be a finite number in \[0, 1\], got 1.5"),
+        (lambda: PPOSettings(net_arch=()), "PPOSettings.net_arch must be a list of at least one integer ≥ 1"),
+        (lambda: SACSettings(learning_rate=float("nan")), "SACSettings.learning_rate must be a finite number > 0"),
+        (lambda: SACSettings(learning_starts=-1), "SACSettings.learning_starts must be an integer ≥ 0"),
+        (lambda: SACSettings(ent_coef=0.0), "SACSettings.ent_coef must be a finite number > 0"),
     ],
 )
 def test_bad_settings_name_the_field(settings, message):

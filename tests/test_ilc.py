@@ -136,13 +136,13 @@ def test_update_law():
 @pytest.mark.parametrize(
     ("changes", "message"),
     [
-        ({"gain": -1.0}, "ilc.gain"),
-        ({"gain": (1.0, 1.0)}, "ilc.gain"),
-        ({"lead": -1}, "ilc.lead"),
-        ({"lead": (1, 2, 3)}, "ilc.lead"),
-        ({"cutoff_hz": 0.0}, "ilc.cutoff_hz"),
-        ({"trials": 0}, "ilc.trials"),
-        ({"filter_order": 0}, "ilc.filter_order"),
+        ({"gain": -1.0}, "ILCSettings.gain must be a list of 4 finite numbers > 0"),
+        ({"gain": (1.0, 1.0)}, "ILCSettings.gain must be a list of 4"),
+        ({"lead": -1}, "ILCSettings.lead must be auto or 4 integers ≥ 0"),
+        ({"lead": (1, 2, 3)}, "ILCSettings.lead must be a list of 4 integers"),
+        ({"cutoff_hz": 0.0}, "ILCSettings.cutoff_hz must be a finite number > 0"),
+        ({"trials": 0}, "ILCSettings.trials must be an integer ≥ 1"),
+        ({"filter_order": 0}, "ILCSettings.filter_order must be an integer ≥ 1"),
     ],
 )
 def test_bad_settings(changes, message):

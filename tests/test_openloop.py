@@ -224,5 +224,5 @@ def test_bad_input_is_refused(tmp_path):
         train_supertrack(training_run("closed", SystemSpec(), TRAIN, TEST, 0, 0, tmp_path))
     with pytest.raises(EfficientTrackError, match="run: expected a TrainingRun"):
         train_supertrack("closed")
-    with pytest.raises(EfficientTrackError, match="imitation_steps"):
+    with pytest.raises(EfficientTrackError, match=r"OpenLoopSettings.imitation_steps must be an integer in \[0, 10000000\]"):
         dataclasses.replace(OPEN_PRESETS["tiny"], imitation_steps=-1)

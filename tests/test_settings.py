@@ -2,19 +2,21 @@
 
 import dataclasses
 import json
+import re
 import subprocess
 import sys
 
 import pytest
 import yaml
 
+from efficienttrack.baselines.supertrack import SuperTrackSettings
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.settings import check_fields, parse_override, plain_form, setting, settings_from_dict, settings_table
 from efficienttrack.learn import dynamics, policy
 from efficienttrack.learn.dynamics import ClosedLoopModel, save_model
 from efficienttrack.learn.policy import AdjustmentPolicy, save_policy
 from efficienttrack.learn.settings import MODEL_PRESETS, POLICY_PRESETS, ModelConfig, PolicyConfig
-from efficienttrack.study.methods import changed_settings, preset_settings, settable
+from efficienttrack.study.methods import METHODS, changed_settings, preset_settings, settable
 from efficienttrack.workflow import next_round, pipeline
 from efficienttrack.workflow.collect import CollectConfig
 from efficienttrack.workflow.config import PRESETS, RunConfig, apply_overrides, from_dict, load_config
@@ -55,6 +57,7 @@ def test_the_library_defaults_are_the_cpu_preset():
         (lambda: PolicyConfig(horizon=1), "PolicyConfig.horizon must be an integer in [2, 400], got 1"),
         (lambda: CollectConfig(passes=True), "CollectConfig.passes must be an integer in [1, 1000], got True"),
         (lambda: CollectConfig(noise_ratio=(0, 0)), "CollectConfig.noise_ratio: needs a weight > 0"),
+        (lambda: SuperTrackSettings(noise_rho=1), "SuperTrackSettings.noise_rho must be a finite number in [0, 1), got 1"),
     ],
 )
 def test_python_refuses_what_a_file_refuses(make, message):
@@ -172,6 +175,26 @@ def test_config_show_lists_every_study_methods_settings_as_method_set_reads_them
     assert changed_settings(method, "tiny", [f"{method}.{key}={json.dumps(value)}" for key, value in shown.items()]) == (
         preset_settings(method, "tiny")
     )  # every field shown is one --method-set takes, at the preset's value
+
+
+def sections(settings):
+    """A settings object and every settings dataclass nested in it."""
+    yield settings
+    for spec in dataclasses.fields(settings):
+        if dataclasses.is_dataclass(value := getattr(settings, spec.name)):
+            yield from sections(value)
+
+
+@pytest.mark.parametrize("method", settable())
+def test_every_methods_settings_go_through_the_one_validator(method):
+    if not METHODS[method].available():
+        pytest.skip(f"{method} needs {', '.join(METHODS[method].requires)}")
+    for section in sections(preset_settings(method, "tiny")):
+        owner = type(section).__name__
+        for spec in dataclasses.fields(section):
+            assert spec.metadata.get("bounds") is not None, f"{owner}.{spec.name} is not made with setting()"
+            with pytest.raises(EfficientTrackError, match=f"^{re.escape(owner)}\\.{spec.name} must be "):
+                dataclasses.replace(section, **{spec.name: object()})  # the wrong type: refused by check_fields
 
 
 def test_config_show_of_a_method_without_settings_or_with_run_options_is_refused():

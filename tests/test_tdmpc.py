@@ -263,13 +263,13 @@ def test_bad_input_is_refused_before_training(refs, tmp_path, change, message):
 @pytest.mark.parametrize(
     ("change", "message"),
     [
-        ({"horizon": 0}, "tdmpc.horizon: must be an integer ≥ 1"),
-        ({"num_elites": 600}, "tdmpc.num_elites: must be ≤ the sequences sampled"),
-        ({"rho": 1.5}, r"tdmpc.rho: must be a number in \[0, 1\]"),
-        ({"min_std": 0.0}, r"tdmpc.min_std: must be a number in \(0, 2\]"),
-        ({"learning_rate": float("nan")}, "tdmpc.learning_rate: must be a number"),
-        ({"horizon_start": 6}, "tdmpc.horizon_start: must be ≤ horizon = 5"),
-        ({"evaluate_with": "mean"}, "tdmpc.evaluate_with: must be one of policy, plan"),
+        ({"horizon": 0}, "TDMPCSettings.horizon must be an integer ≥ 1, got 0"),
+        ({"num_elites": 600}, "TDMPCSettings.num_elites must be ≤ the sequences sampled"),
+        ({"rho": 1.5}, r"TDMPCSettings.rho must be a finite number in \[0, 1\]"),
+        ({"min_std": 0.0}, r"TDMPCSettings.min_std must be a finite number in \(0, 2\]"),
+        ({"learning_rate": float("nan")}, "TDMPCSettings.learning_rate must be a finite number > 0"),
+        ({"horizon_start": 6}, "TDMPCSettings.horizon_start must be ≤ horizon = 5"),
+        ({"evaluate_with": "mean"}, "TDMPCSettings.evaluate_with must be one of policy, plan"),
     ],
 )
 def test_bad_settings_name_the_field(change, message):

@@ -25,7 +25,6 @@ hydraulic integrator without feedback drifts trial after trial, which no fair co
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
@@ -40,7 +39,7 @@ from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import output_lock
 from efficienttrack.core.joints import N_JOINTS, SWING
 from efficienttrack.core.progress import ProgressDisplay
-from efficienttrack.core.settings import canonical_preset
+from efficienttrack.core.settings import canonical_preset, check_fields, setting
 from efficienttrack.data.metrics import compute_metrics
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.data.references import Reference
@@ -59,56 +58,34 @@ METHOD = "ilc"
 class ILCSettings:
     """Settings of the ILC oracle: the same on every system, the lead identified per system (docs/ilc.md)."""
 
-    gain: tuple[float, ...] = (0.35, 0.35, 0.35, 0.35)
+    gain: tuple[float, ...] = setting((0.35, 0.35, 0.35, 0.35), gt=0, length=N_JOINTS)
     """L, the learning gain per joint (boom, arm, bucket, swing): the share of the last trial's error added to the
     correction each trial; a single number is taken for all four joints."""
-    lead: tuple[int, ...] | int | str = "auto"
+    lead: tuple[int, ...] | int | str = setting(AUTO, length=N_JOINTS)
     """δ ≥ 0 per joint, steps by which the closed loop's response lags behind the step after the reference is sent
     (its dead time and, at a cycle's frequencies, most of its phase lag): the correction of step t learns from the
     error at step t + 1 + δ; a single integer is taken for all four joints; ``"auto"``: identified from trial 0's
     records (:func:`identify_lead`)."""
-    cutoff_hz: float | None = 1.5
+    cutoff_hz: float | None = setting(1.5, gt=0)
     """Cut-off frequency of the zero-phase low-pass Q over time, Hz (below the Nyquist frequency 1 / (2 dt));
     None: no filter."""
-    filter_order: int = 2
+    filter_order: int = setting(2, ge=1)
     """Order of the Butterworth low-pass Q (run forwards and backwards: twice the order, no phase lag)."""
-    trials: int = 80
+    trials: int = setting(80, ge=1)
     """Learning trials after trial 0 (the PD controller alone); each runs every test reference once. Fewer when the
     budget ends first."""
 
     def __post_init__(self) -> None:
-        """Check the values (EfficientTrackError naming the field); a single gain is spread over the four joints."""
-        gain = self.gain
-        if isinstance(gain, int | float) and not isinstance(gain, bool):
-            gain = (float(gain),) * N_JOINTS
-        if (
-            not isinstance(gain, tuple)
-            or len(gain) != N_JOINTS
-            or not all(isinstance(g, int | float) and not isinstance(g, bool) and math.isfinite(g) and g > 0 for g in gain)
-        ):
-            raise EfficientTrackError(f"ilc.gain: must be a number > 0 or 4 of them (boom, arm, bucket, swing), got {gain!r}")
-        object.__setattr__(self, "gain", tuple(float(g) for g in gain))
-        lead = self.lead
-        if isinstance(lead, int) and not isinstance(lead, bool):
-            lead = (lead,) * N_JOINTS
-        if lead != AUTO and (
-            not isinstance(lead, tuple)
-            or len(lead) != N_JOINTS
-            or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in lead)
-        ):
+        """Spread a single gain or lead over the four joints, check the fields, then that the lead is auto or ≥ 0."""
+        if isinstance(self.gain, int | float) and not isinstance(self.gain, bool):
+            object.__setattr__(self, "gain", (self.gain,) * N_JOINTS)
+        if isinstance(self.lead, int) and not isinstance(self.lead, bool):
+            object.__setattr__(self, "lead", (self.lead,) * N_JOINTS)
+        check_fields(self)
+        if self.lead != AUTO and not (isinstance(self.lead, tuple) and min(self.lead) >= 0):
             raise EfficientTrackError(
-                f"ilc.lead: must be 'auto', an integer ≥ 0 or 4 such (boom, arm, bucket, swing), got {lead!r}"
+                f"ILCSettings.lead must be {AUTO} or {N_JOINTS} integers ≥ 0 (boom, arm, bucket, swing), got {self.lead!r}"
             )
-        object.__setattr__(self, "lead", lead)
-        for field, low in (("filter_order", 1), ("trials", 1)):
-            value = getattr(self, field)
-            if not isinstance(value, int) or isinstance(value, bool) or value < low:
-                raise EfficientTrackError(f"ilc.{field}: must be an integer ≥ {low}, got {value!r}")
-        cutoff = self.cutoff_hz
-        if cutoff is not None and (
-            not isinstance(cutoff, int | float) or isinstance(cutoff, bool) or not (math.isfinite(cutoff) and cutoff > 0)
-        ):
-            raise EfficientTrackError(f"ilc.cutoff_hz: must be a number > 0 Hz or None (no filter), got {cutoff!r}")
 
 
 ILC_PRESETS: dict[str, ILCSettings] = {"cpu": ILCSettings(), "tiny": ILCSettings(trials=5)}

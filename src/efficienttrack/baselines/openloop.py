@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Any, cast
 
 import torch
@@ -36,12 +36,12 @@ from efficienttrack.core.configfile import check_seed
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import output_lock
 from efficienttrack.core.progress import ProgressDisplay
-from efficienttrack.core.settings import canonical_preset
+from efficienttrack.core.settings import DEVICE, canonical_preset, check_fields, inherit, setting
 from efficienttrack.data.dataset import Sequences
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.envs.core import open_system
 from efficienttrack.learn.dynamics import NORM_SAMPLES, PlantModel, train_model
-from efficienttrack.learn.nets import check_size, resolve_device
+from efficienttrack.learn.nets import resolve_device
 from efficienttrack.learn.policy import PWMPolicy, train_policy
 from efficienttrack.learn.settings import MAX_STEPS, ModelConfig, PolicyConfig
 from efficienttrack.workflow.collect import MAX_PASSES, CollectConfig, pass_counts, run_pass
@@ -51,33 +51,36 @@ from efficienttrack.workflow.collect import MAX_PASSES, CollectConfig, pass_coun
 class OpenLoopSettings:
     """Settings of open-loop EfficientTrack: the closed loop's, with a plant model, a PWM policy and imitation."""
 
-    model: ModelConfig = field(
+    model: ModelConfig = setting(
         default_factory=lambda: ModelConfig(history=5, steps=1000, batch_size=256, lr=1e-3, cosine_decay=True)
     )
     """The plant model g_θ and its training (the closed loop's ``cpu`` preset: history 5 = 0.25 s, horizon 20, 128 × 3
     units, weight decay 0.003 as in the paper; 1000 steps instead of 4000 to keep a pass count within minutes)."""
-    policy: PolicyConfig = field(default_factory=lambda: PolicyConfig(horizon=20, steps=500, imagined_share=0.0))
+    policy: PolicyConfig = setting(default_factory=lambda: PolicyConfig(horizon=20, steps=500, imagined_share=0.0))
     """π_φ and its training: the paper's horizon 20, γ 0.98 and k_smooth 1.0; 128 × 3 units. ``k_smooth`` weighs the
     change of the command in (PWM / 1000)², as the research code's open loop does (docs/openloop.md measures 0.01
     against 1.0: with 0.01 the policy switches the valves between dead zone and full speed). ``imagined_share`` 0, the
     paper's loss: imagined deployments were measured in the closed loop only."""
-    sigma_max: float = 0.05
+    sigma_max: float = inherit(CollectConfig, "sigma_max", 0.05)
     """Collection: bound of the per-episode noise level on the PD reference, rad (the paper's 0.05)."""
-    noise_ratio: tuple[float, float] = (9.0, 2.0)
+    noise_ratio: tuple[float, float] = inherit(CollectConfig, "noise_ratio", (9.0, 2.0))
     """Collection: noisy : clean episodes (the paper's best, 9:2)."""
-    imitation_steps: int = 500
+    imitation_steps: int = setting(500, ge=0, le=MAX_STEPS)
     """Behaviour-cloning steps that fit π_φ to the PD law's recorded commands before training through g_θ (ours; 0:
     start from u = 0). Same batch size and learning rate as the policy's training."""
-    device: str = "cpu"
+    device: str = setting("cpu", pattern=DEVICE)
     """Torch device of the training (``auto``, ``cpu``, ``cuda``); evaluation runs the policy on the CPU."""
 
     def __post_init__(self) -> None:
-        """Check the values (EfficientTrackError naming the field)."""
+        """Check the fields (:func:`~efficienttrack.core.settings.check_fields`), the noise mix (CollectConfig), the device."""
+        check_fields(self)
         CollectConfig(sigma_max=self.sigma_max, noise_ratio=self.noise_ratio)
-        check_size("OpenLoopSettings", "imitation_steps", self.imitation_steps, 0, MAX_STEPS)
-        if not isinstance(self.model, ModelConfig) or not isinstance(self.policy, PolicyConfig):
-            raise EfficientTrackError("OpenLoopSettings: model must be a ModelConfig and policy a PolicyConfig")
-        resolve_device(self.device)
+        try:
+            resolve_device(self.device)
+        except EfficientTrackError:  # the name matched DEVICE: CUDA is not here
+            raise EfficientTrackError(
+                f"OpenLoopSettings.device must be auto or cpu (CUDA is not available on this machine), got {self.device!r}"
+            ) from None
 
 
 OPEN_PRESETS: dict[str, OpenLoopSettings] = {

@@ -21,7 +21,6 @@ values, for comparison.
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -31,40 +30,18 @@ from stable_baselines3.common.vec_env import VecEnv
 from torch import nn
 
 from efficienttrack.core.errors import EfficientTrackError
-from efficienttrack.core.settings import canonical_preset
+from efficienttrack.core.settings import DEVICE, canonical_preset, check_fields, setting
 
 INPUTS = ("relative", "raw")
 """What a baseline sees: the standardized relative features every learner shares, or the raw flat observation."""
 
 
-def _check_count(value: object, field: str) -> None:
-    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-        raise EfficientTrackError(f"{field}: must be an integer ≥ 1, got {value!r}")
-
-
-def _check_positive(value: object, field: str) -> None:
-    if not isinstance(value, int | float) or isinstance(value, bool) or not (math.isfinite(value) and value > 0):
-        raise EfficientTrackError(f"{field}: must be a finite number > 0, got {value!r}")
-
-
-def _check_fraction(value: object, field: str) -> None:
-    if not isinstance(value, int | float) or isinstance(value, bool) or not 0 <= value <= 1:
-        raise EfficientTrackError(f"{field}: must be a number in [0, 1], got {value!r}")
-
-
-def _check_common(settings: PPOSettings | SACSettings, name: str) -> None:
-    _check_count(settings.n_envs, f"{name}.n_envs")
-    _check_count(settings.batch_size, f"{name}.batch_size")
-    _check_positive(settings.learning_rate, f"{name}.learning_rate")
-    _check_fraction(settings.gamma, f"{name}.gamma")
+def _check_net_arch(settings: PPOSettings | SACSettings) -> None:
+    """Refuse networks without a hidden layer (what :func:`~efficienttrack.core.settings.check_fields` cannot say)."""
     if not settings.net_arch:
-        raise EfficientTrackError(f"{name}.net_arch: needs at least one hidden layer, got {settings.net_arch!r}")
-    for width in settings.net_arch:
-        _check_count(width, f"{name}.net_arch")
-    if not isinstance(settings.device, str) or not settings.device:
-        raise EfficientTrackError(f"{name}.device: must be 'auto', 'cpu', 'cuda' or 'cuda:<i>', got {settings.device!r}")
-    if settings.inputs not in INPUTS:
-        raise EfficientTrackError(f"{name}.inputs: must be one of {', '.join(INPUTS)}, got {settings.inputs!r}")
+        raise EfficientTrackError(
+            f"{type(settings).__name__}.net_arch must be a list of at least one integer ≥ 1, got {settings.net_arch!r}"
+        )
 
 
 def start_at_pd(head: nn.Module) -> None:
@@ -86,53 +63,46 @@ def start_at_pd(head: nn.Module) -> None:
 class PPOSettings:
     """Settings of PPO (SB3's ``PPO`` with an ``MlpPolicy``): the paper's where it gives them, SB3's defaults otherwise."""
 
-    n_envs: int = 16
+    n_envs: int = setting(16, ge=1)
     """Parallel environments stepping together (the paper: 16 workers; SB3 has no default, it takes the env given)."""
-    n_steps: int = 2048
+    n_steps: int = setting(2048, ge=1)
     """Steps per environment in one rollout, so a rollout is ``n_envs · n_steps`` interaction steps (SB3 default)."""
-    batch_size: int = 64
+    batch_size: int = setting(64, ge=1)
     """Minibatch size of the updates (SB3 default)."""
-    n_epochs: int = 10
+    n_epochs: int = setting(10, ge=1)
     """Passes over each rollout (SB3 default)."""
-    learning_rate: float = 3e-4
+    learning_rate: float = setting(3e-4, gt=0)
     """Adam learning rate, constant (SB3 default)."""
-    gamma: float = 0.99
+    gamma: float = setting(0.99, ge=0, le=1)
     """Discount factor (SB3 default)."""
-    gae_lambda: float = 0.95
+    gae_lambda: float = setting(0.95, ge=0, le=1)
     """λ of generalized advantage estimation (SB3 default)."""
-    clip_range: float = 0.2
+    clip_range: float = setting(0.2, gt=0)
     """PPO's clip range ε (SB3 default)."""
-    ent_coef: float = 0.0
+    ent_coef: float = setting(0.0, ge=0)
     """Entropy bonus coefficient (SB3 default)."""
-    vf_coef: float = 0.5
+    vf_coef: float = setting(0.5, ge=0)
     """Value-loss coefficient (SB3 default)."""
-    max_grad_norm: float = 0.5
+    max_grad_norm: float = setting(0.5, gt=0)
     """Gradient-norm clip (SB3 default)."""
-    net_arch: tuple[int, ...] = (64, 64)
+    net_arch: tuple[int, ...] = setting((64, 64), ge=1)
     """Hidden layers of the policy and (separately) of the value network, tanh (SB3's default ``MlpPolicy``)."""
-    log_std_init: float = 0.0
+    log_std_init: float = setting(0.0)
     """Initial log standard deviation of the Gaussian actions (SB3 default 0: σ = 1 over the whole ±1 action range)."""
-    inputs: str = "relative"
+    inputs: str = setting("relative", choices=INPUTS)
     """What the policy sees (:data:`INPUTS`): the relative standardized features every learner shares, or ``"raw"``."""
-    device: str = "auto"
+    device: str = setting("auto", pattern=DEVICE)
     """Torch device: ``"auto"`` takes CUDA when present, else the CPU (SB3 default)."""
 
     def __post_init__(self) -> None:
-        """Check the values (EfficientTrackError naming the field)."""
-        _check_common(self, "ppo")
-        if not isinstance(self.log_std_init, int | float) or not math.isfinite(self.log_std_init):
-            raise EfficientTrackError(f"ppo.log_std_init: must be a finite number, got {self.log_std_init!r}")
-        _check_count(self.n_steps, "ppo.n_steps")
-        _check_count(self.n_epochs, "ppo.n_epochs")
+        """Check the fields (:func:`~efficienttrack.core.settings.check_fields`), a hidden layer and a rollout of 2 steps."""
+        check_fields(self)
+        _check_net_arch(self)
         if self.n_steps * self.n_envs < 2:
-            raise EfficientTrackError("ppo.n_steps: a rollout (n_steps · n_envs) needs at least 2 steps")
-        _check_fraction(self.gae_lambda, "ppo.gae_lambda")
-        _check_positive(self.clip_range, "ppo.clip_range")
-        for field in ("ent_coef", "vf_coef"):
-            value = getattr(self, field)
-            if not isinstance(value, int | float) or not (math.isfinite(value) and value >= 0):
-                raise EfficientTrackError(f"ppo.{field}: must be a finite number ≥ 0, got {value!r}")
-        _check_positive(self.max_grad_norm, "ppo.max_grad_norm")
+            raise EfficientTrackError(
+                f"PPOSettings.n_steps must make a rollout (n_steps · n_envs) of at least 2 steps, got {self.n_steps} "
+                f"with n_envs = {self.n_envs}"
+            )
 
     def build(self, env: VecEnv, seed: int) -> PPO:
         """A fresh SB3 ``PPO`` with these settings on ``env``, seeded (SB3 seeds Python, numpy, torch and the env).
@@ -156,45 +126,39 @@ class PPOSettings:
 class SACSettings:
     """Settings of SAC (SB3's ``SAC`` with an ``MlpPolicy``): the paper's where it gives them, SB3's defaults otherwise."""
 
-    n_envs: int = 1
+    n_envs: int = setting(1, ge=1)
     """Parallel environments on one batched system (the paper: one; SB3's SAC examples use one). With ``train_freq``
     and ``gradient_steps`` of 1, SB3 takes one gradient step per vector step, i.e. one per ``n_envs`` interaction
     steps."""
-    buffer_size: int = 100_000
+    buffer_size: int = setting(100_000, ge=1)
     """Replay buffer capacity in transitions (the paper: 100,000; SB3's default is 1,000,000)."""
-    learning_starts: int = 100
+    learning_starts: int = setting(100, ge=0)
     """Interaction steps of random actions before the first update (SB3 default)."""
-    batch_size: int = 256
+    batch_size: int = setting(256, ge=1)
     """Minibatch size of each update (SB3 default)."""
-    learning_rate: float = 3e-4
+    learning_rate: float = setting(3e-4, gt=0)
     """Adam learning rate of actor, critics and entropy coefficient (SB3 default)."""
-    gamma: float = 0.99
+    gamma: float = setting(0.99, ge=0, le=1)
     """Discount factor (SB3 default)."""
-    tau: float = 0.005
+    tau: float = setting(0.005, ge=0, le=1)
     """Polyak coefficient of the target critics (SB3 default)."""
-    train_freq: int = 1
+    train_freq: int = setting(1, ge=1)
     """Vector-environment steps (each ``n_envs`` interaction steps) between updates (SB3 default)."""
-    gradient_steps: int = 1
+    gradient_steps: int = setting(1, ge=1)
     """Gradient steps per update (SB3 default)."""
-    ent_coef: float | None = None
+    ent_coef: float | None = setting(None, gt=0)
     """Entropy coefficient α; None learns it from an initial 1.0 towards the target entropy −dim(A) (SB3's ``"auto"``)."""
-    net_arch: tuple[int, ...] = (256, 256)
+    net_arch: tuple[int, ...] = setting((256, 256), ge=1)
     """Hidden layers of the actor and of each critic, ReLU (SB3's default for SAC)."""
-    inputs: str = "relative"
+    inputs: str = setting("relative", choices=INPUTS)
     """What the policy and critics see (:data:`INPUTS`): the relative standardized features, or ``"raw"``."""
-    device: str = "auto"
+    device: str = setting("auto", pattern=DEVICE)
     """Torch device: ``"auto"`` takes CUDA when present, else the CPU (SB3 default)."""
 
     def __post_init__(self) -> None:
-        """Check the values (EfficientTrackError naming the field)."""
-        _check_common(self, "sac")
-        for field in ("buffer_size", "train_freq", "gradient_steps"):
-            _check_count(getattr(self, field), f"sac.{field}")
-        if not isinstance(self.learning_starts, int) or isinstance(self.learning_starts, bool) or self.learning_starts < 0:
-            raise EfficientTrackError(f"sac.learning_starts: must be an integer ≥ 0, got {self.learning_starts!r}")
-        _check_fraction(self.tau, "sac.tau")
-        if self.ent_coef is not None:
-            _check_positive(self.ent_coef, "sac.ent_coef")
+        """Check the fields (:func:`~efficienttrack.core.settings.check_fields`), then that there is a hidden layer."""
+        check_fields(self)
+        _check_net_arch(self)
 
     def build(self, env: VecEnv, seed: int) -> SAC:
         """A fresh SB3 ``SAC`` with these settings on ``env``, seeded (SB3 seeds Python, numpy, torch and the env).

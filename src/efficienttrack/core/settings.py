@@ -38,6 +38,7 @@ class Bounds:
         ge: smallest value allowed (inclusive), or None.
         gt: the value must exceed this, or None.
         le: largest value allowed (inclusive), or None.
+        lt: the value must be below this, or None.
         choices: the only values allowed (strings), or None.
         length: a tuple's number of elements, or None for any.
         pattern: a regular expression a string must match whole, and how a reader names what it admits; or None.
@@ -49,6 +50,7 @@ class Bounds:
     choices: tuple[str, ...] | None = None
     length: int | None = None
     pattern: tuple[str, str] | None = None
+    lt: float | None = None
 
     def admits(self, value: Any) -> bool:
         """Whether one (scalar) value lies within the bounds."""
@@ -60,20 +62,24 @@ class Bounds:
             (self.ge is None or value >= self.ge)
             and (self.gt is None or value > self.gt)
             and (self.le is None or value <= self.le)
+            and (self.lt is None or value < self.lt)
         )
 
     def describe(self) -> str:
-        """The bounds as a reader would write them: ``in (0, 10]``, ``≥ 1``, ``one of auto, cpu, cuda``; ``""`` if none."""
+        """The bounds as a reader would write them: ``in (0, 10]``, ``in [0, 1)``, ``≥ 1``, ``one of a, b``; ``""`` if none."""
         if self.choices is not None:
             return f"one of {', '.join(self.choices)}"
         if self.pattern is not None:
             return self.pattern[1]
         low = f"[{_number(self.ge)}" if self.ge is not None else f"({_number(self.gt)}" if self.gt is not None else None
-        if low is not None and self.le is not None:
-            return f"in {low}, {_number(self.le)}]"
+        high = f"{_number(self.le)}]" if self.le is not None else f"{_number(self.lt)})" if self.lt is not None else None
+        if low is not None and high is not None:
+            return f"in {low}, {high}"
         if low is not None:
             return f"≥ {_number(self.ge)}" if self.ge is not None else f"> {_number(self.gt)}"
-        return f"≤ {_number(self.le)}" if self.le is not None else ""
+        if high is not None:
+            return f"≤ {_number(self.le)}" if self.le is not None else f"< {_number(self.lt)}"
+        return ""
 
 
 def _number(value: float | None) -> str:
@@ -99,6 +105,7 @@ def setting(
     ge: float | None = None,
     gt: float | None = None,
     le: float | None = None,
+    lt: float | None = None,
     choices: Sequence[str] | None = None,
     length: int | None = None,
     pattern: tuple[str, str] | None = None,
@@ -112,6 +119,7 @@ def setting(
         ge: smallest value allowed.
         gt: the value must exceed this.
         le: largest value allowed.
+        lt: the value must be below this.
         choices: the only values allowed.
         length: a tuple's number of elements.
         pattern: (regular expression a string must match whole, what it admits in words), e.g. :data:`DEVICE`.
@@ -123,7 +131,7 @@ def setting(
     Returns:
         The field, to assign in the class body: ``lr: float = setting(1e-3, gt=0, le=MAX_LR)``.
     """
-    bounds = Bounds(ge, gt, le, tuple(choices) if choices is not None else None, length, pattern)
+    bounds = Bounds(ge, gt, le, tuple(choices) if choices is not None else None, length, pattern, lt)
     metadata = {"bounds": bounds, "before": before}
     return field(default=default, default_factory=default_factory, metadata=metadata)
 

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from efficienttrack.core.errors import EfficientTrackError
-from efficienttrack.core.settings import canonical_preset
-from efficienttrack.learn.nets import check_size, resolve_device
+from efficienttrack.core.settings import DEVICE, canonical_preset, check_fields, setting
+from efficienttrack.learn.nets import resolve_device
 from efficienttrack.learn.settings import MAX_STEPS, ModelConfig, PolicyConfig
 
 
@@ -20,12 +19,12 @@ class SuperTrackSettings:
     is SuperTrack's 32 in the paper; here it is 20, the most desired positions the environments show (F = 20).
     """
 
-    model: ModelConfig = field(
+    model: ModelConfig = setting(
         default_factory=lambda: ModelConfig(horizon=8, history=5, steps=100, batch_size=256, lr=1e-3, cosine_decay=False)
     )
     """The world model g_θ (closed loop: of the PD loop; open loop: of the plant) and the optimizer steps it is trained
     per iteration (``steps``); horizon 8: SuperTrack's world-model window; history 5 as our closed loop's ``cpu``."""
-    policy: PolicyConfig = field(
+    policy: PolicyConfig = setting(
         default_factory=lambda: PolicyConfig(
             horizon=20, steps=100, batch_size=128, lr=1e-3, cosine_decay=False, imagined_share=0.0
         )
@@ -34,33 +33,29 @@ class SuperTrackSettings:
     tracking loss plus k_smooth × the action's change (:func:`efficienttrack.learn.policy.train_policy`); its
     ``max_adjust`` is replaced by the system's bound in the closed loop and not used in the open loop;
     ``imagined_share`` 0: SuperTrack's loss on its world model's windows, not EfficientTrack's imagined deployments."""
-    steps_per_iteration: int = 4096
+    steps_per_iteration: int = setting(4096, ge=1, le=MAX_STEPS)
     """Interaction steps collected per iteration (whole episodes on training references drawn at random, seeded)."""
-    buffer_steps: int = 200_000
+    buffer_steps: int = setting(200_000, ge=1, le=100 * MAX_STEPS)
     """Replay buffer: the most recent episodes whose steps fit (older ones are dropped)."""
-    noise_closed: float = 0.1
+    noise_closed: float = setting(0.1, ge=0)
     """Exploration noise σ in the closed loop, in action units (× the adjustment bound: 10 % of it)."""
-    noise_open: float = 0.3
+    noise_open: float = setting(0.3, ge=0)
     """Exploration noise σ in the open loop, in action units (PWM / 1000: 300 PWM, enough to leave the valves' dead
     zone, so that the first iteration, with the policy still at u = 0, moves the machine)."""
-    noise_rho: float = 0.9
+    noise_rho: float = setting(0.9, ge=0, lt=1)
     """Correlation of consecutive noise steps (AR(1)): slow noise moves a hydraulic joint, white noise averages out."""
-    device: str = "cpu"
+    device: str = setting("cpu", pattern=DEVICE)
     """Torch device of the training (``auto``, ``cpu``, ``cuda``); collection and evaluation run the policy on the CPU."""
 
     def __post_init__(self) -> None:
-        """Check the values (EfficientTrackError naming the field)."""
-        if not isinstance(self.model, ModelConfig) or not isinstance(self.policy, PolicyConfig):
-            raise EfficientTrackError("SuperTrackSettings: model must be a ModelConfig and policy a PolicyConfig")
-        check_size("SuperTrackSettings", "steps_per_iteration", self.steps_per_iteration, 1, MAX_STEPS)
-        check_size("SuperTrackSettings", "buffer_steps", self.buffer_steps, 1, 100 * MAX_STEPS)
-        for name in ("noise_closed", "noise_open"):
-            value = getattr(self, name)
-            if not isinstance(value, int | float) or not (math.isfinite(value) and value >= 0):
-                raise EfficientTrackError(f"SuperTrackSettings.{name}: must be a number ≥ 0, got {value!r}")
-        if not isinstance(self.noise_rho, int | float) or not 0 <= self.noise_rho < 1:
-            raise EfficientTrackError(f"SuperTrackSettings.noise_rho: must be in [0, 1), got {self.noise_rho!r}")
-        resolve_device(self.device)
+        """Check the fields (:func:`~efficienttrack.core.settings.check_fields`), then that the device is on this machine."""
+        check_fields(self)
+        try:
+            resolve_device(self.device)
+        except EfficientTrackError:  # the name matched DEVICE: CUDA is not here
+            raise EfficientTrackError(
+                f"SuperTrackSettings.device must be auto or cpu (CUDA is not available on this machine), got {self.device!r}"
+            ) from None
 
     def noise(self, loop: str) -> float:
         """The exploration σ of ``loop`` (``"closed"`` or ``"open"``), in action units.

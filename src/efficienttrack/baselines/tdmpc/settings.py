@@ -11,135 +11,105 @@ hundred interaction steps take seconds on a CPU (tests and smoke runs; its curve
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 from efficienttrack.core.errors import EfficientTrackError
-from efficienttrack.core.settings import canonical_preset
+from efficienttrack.core.settings import DEVICE, canonical_preset, check_fields, setting
 
 EVALUATE_WITH = ("policy", "plan")
 """How the curve's deterministic agent acts: π's mean action, or the planner without exploration noise."""
-
-
-def _check_count(value: object, field: str, low: int = 1) -> None:
-    if not isinstance(value, int) or isinstance(value, bool) or value < low:
-        raise EfficientTrackError(f"tdmpc.{field}: must be an integer ≥ {low}, got {value!r}")
-
-
-def _check_number(value: object, field: str, low: float, high: float, low_open: bool = False) -> None:
-    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-    ok = ok and (low < value if low_open else low <= value) and value <= high  # type: ignore[operator]
-    if not ok:
-        interval = f"{'(' if low_open else '['}{low:g}, {high:g}]"
-        raise EfficientTrackError(f"tdmpc.{field}: must be a number in {interval}, got {value!r}")
 
 
 @dataclass(frozen=True)
 class TDMPCSettings:
     """Settings of TD-MPC: the paper's TD-MPC config where it gives it, the public TD-MPC code's defaults otherwise."""
 
-    horizon: int = 5
+    horizon: int = setting(5, ge=1)
     """Planning horizon H, and the length of the sequences the TOLD model is trained on (paper: 5)."""
-    iterations: int = 6
+    iterations: int = setting(6, ge=1)
     """Planning iterations of the sampling planner per step (paper: 6)."""
-    num_samples: int = 512
+    num_samples: int = setting(512, ge=1)
     """Action sequences sampled from the planner's Gaussian per iteration (paper: 512)."""
-    num_elites: int = 64
+    num_elites: int = setting(64, ge=1)
     """Best sequences the new mean and standard deviation are fitted to (paper: 64)."""
-    mixture_coef: float = 0.05
+    mixture_coef: float = setting(0.05, ge=0, le=1)
     """Share of extra sequences rolled out with π, ``int(mixture_coef · num_samples)`` of them (paper: 0.05)."""
-    min_std: float = 0.05
+    min_std: float = setting(0.05, gt=0, le=2)
     """Final lower bound of the planner's standard deviation, and π's noise in the TD target and π loss (paper: 0.05)."""
-    std_start: float = 0.5
+    std_start: float = setting(0.5, gt=0, le=2)
     """Lower bound of the planner's standard deviation at step 0, falling linearly to ``min_std`` over
     ``schedule_steps`` (public code: ``std_schedule: linear(0.5, min_std, 25000)``)."""
-    horizon_start: int = 1
+    horizon_start: int = setting(1, ge=1)
     """Planning horizon at step 0, rising linearly to ``horizon`` over ``schedule_steps`` (public code:
     ``horizon_schedule: linear(1, horizon, 25000)``)."""
-    schedule_steps: int = 25_000
+    schedule_steps: int = setting(25_000, ge=1)
     """Interaction steps over which the two schedules above run (public code: 25,000)."""
-    temperature: float = 0.5
+    temperature: float = setting(0.5, gt=0)
     """Temperature of the elites' weights ``exp(temperature · (value − max value))`` (paper: 0.5)."""
-    momentum: float = 0.1
+    momentum: float = setting(0.1, ge=0, le=1)
     """Weight of the previous mean in each iteration's new mean (paper: 0.1)."""
-    batch_size: int = 512
+    batch_size: int = setting(512, ge=1)
     """Sequences per update (paper: 512)."""
-    buffer_size: int = 180_000
+    buffer_size: int = setting(180_000, ge=1)
     """Replay buffer capacity in transitions (paper: 180,000)."""
-    reward_coef: float = 0.5
+    reward_coef: float = setting(0.5, ge=0)
     """Weight of the reward prediction loss (paper: 0.5)."""
-    value_coef: float = 0.1
+    value_coef: float = setting(0.1, ge=0)
     """Weight of the Q (TD) loss (paper: 0.1)."""
-    consistency_coef: float = 2.0
+    consistency_coef: float = setting(2.0, ge=0)
     """Weight of the latent consistency loss (paper: 2)."""
-    rho: float = 0.5
+    rho: float = setting(0.5, ge=0, le=1)
     """ρ: the loss of horizon step t is weighted ρ^t (paper: 0.5)."""
-    learning_rate: float = 1e-3
+    learning_rate: float = setting(1e-3, gt=0)
     """Adam learning rate of the model and of π (paper: 1e-3)."""
-    grad_clip_norm: float = 10.0
+    grad_clip_norm: float = setting(10.0, gt=0)
     """Gradient-norm clip of both updates (public code: 10)."""
-    seed_steps: int = 5_000
+    seed_steps: int = setting(5_000, ge=0)
     """Interaction steps of uniformly random actions before planning; when they end, as many updates run at once, then
     one per interaction step (paper: 5,000; public code's update schedule)."""
-    target_every: int = 2
+    target_every: int = setting(2, ge=1)
     """Updates between two Polyak steps of the target network (paper: ``update_freq`` 2, the public code's period of
     the target update)."""
-    tau: float = 0.01
+    tau: float = setting(0.01, ge=0, le=1)
     """Polyak coefficient of the target network (paper: 0.01)."""
-    latent_dim: int = 50
+    latent_dim: int = setting(50, ge=1)
     """Size of the latent state z (paper: 50)."""
-    hidden: int = 512
+    hidden: int = setting(512, ge=1)
     """Width of the hidden layers of dynamics, reward, π and Q (paper: MLPs 512 wide)."""
-    encoder_hidden: int = 256
+    encoder_hidden: int = setting(256, ge=1)
     """Width of the encoder's hidden layer (public code: ``enc_dim`` 256)."""
-    discount: float = 0.98
+    discount: float = setting(0.98, ge=0, le=1)
     """Discount factor γ (paper: 0.98)."""
-    per_alpha: float = 0.6
+    per_alpha: float = setting(0.6, ge=0, le=1)
     """Prioritized replay: sequences are drawn with probability ∝ priority^α (paper: 0.6)."""
-    per_beta: float = 0.4
+    per_beta: float = setting(0.4, ge=0, le=1)
     """Prioritized replay: importance weights (n · P(i))^−β, divided by their maximum (paper: 0.4)."""
-    evaluate_with: str = "policy"
+    evaluate_with: str = setting("policy", choices=EVALUATE_WITH)
     """The curve's deterministic agent: ``"policy"`` (π's mean action, one network call for all test references) or
     ``"plan"`` (the planner without exploration noise, as the public code evaluates; vectorized over the test
     references, but about ``iterations · (num_samples + π samples)`` times the cost; see docs/tdmpc.md)."""
-    inputs: str = "relative"
+    inputs: str = setting("relative", choices=("relative", "raw"))
     """What the networks see: ``"relative"``, the standardized relative features every learner shares
     (:class:`~efficienttrack.envs.features.ObservationPipeline`), or ``"raw"``, the flat observation."""
-    device: str = "auto"
+    device: str = setting("auto", pattern=DEVICE)
     """Torch device: ``"auto"`` takes CUDA when present, else the CPU."""
 
     def __post_init__(self) -> None:
-        """Check the values (EfficientTrackError naming the field)."""
-        if self.inputs not in ("relative", "raw"):
-            raise EfficientTrackError(f"tdmpc.inputs: must be relative or raw, got {self.inputs!r}")
-        for field in ("horizon", "iterations", "num_samples", "num_elites", "batch_size", "buffer_size", "target_every"):
-            _check_count(getattr(self, field), field)
-        for field in ("latent_dim", "hidden", "encoder_hidden", "schedule_steps", "horizon_start"):
-            _check_count(getattr(self, field), field)
-        _check_count(self.seed_steps, "seed_steps", 0)
+        """Check the fields (:func:`~efficienttrack.core.settings.check_fields`), then the horizons and the elites."""
+        check_fields(self)
         if self.horizon_start > self.horizon:
-            raise EfficientTrackError(f"tdmpc.horizon_start: must be ≤ horizon = {self.horizon}, got {self.horizon_start}")
+            raise EfficientTrackError(
+                f"TDMPCSettings.horizon_start must be ≤ horizon = {self.horizon}, got {self.horizon_start}"
+            )
         if self.num_elites > self.num_samples + self.num_pi_samples:
             raise EfficientTrackError(
-                f"tdmpc.num_elites: must be ≤ the sequences sampled ({self.num_samples + self.num_pi_samples}), "
+                f"TDMPCSettings.num_elites must be ≤ the sequences sampled ({self.num_samples + self.num_pi_samples}), "
                 f"got {self.num_elites}"
             )
         if self.buffer_size < self.horizon:
-            raise EfficientTrackError(f"tdmpc.buffer_size: must hold at least one sequence of {self.horizon} steps")
-        for field in ("mixture_coef", "momentum", "rho", "tau", "discount", "per_alpha", "per_beta"):
-            _check_number(getattr(self, field), field, 0.0, 1.0)
-        _check_number(self.min_std, "min_std", 0.0, 2.0, low_open=True)
-        _check_number(self.std_start, "std_start", 0.0, 2.0, low_open=True)
-        for field in ("temperature", "learning_rate", "grad_clip_norm"):
-            _check_number(getattr(self, field), field, 0.0, math.inf, low_open=True)
-        for field in ("reward_coef", "value_coef", "consistency_coef"):
-            _check_number(getattr(self, field), field, 0.0, math.inf)
-        if self.evaluate_with not in EVALUATE_WITH:
             raise EfficientTrackError(
-                f"tdmpc.evaluate_with: must be one of {', '.join(EVALUATE_WITH)}, got {self.evaluate_with!r}"
+                f"TDMPCSettings.buffer_size must hold a sequence of horizon = {self.horizon} steps, got {self.buffer_size}"
             )
-        if not isinstance(self.device, str) or not self.device:
-            raise EfficientTrackError(f"tdmpc.device: must be 'auto', 'cpu', 'cuda' or 'cuda:<i>', got {self.device!r}")
 
     @property
     def num_pi_samples(self) -> int:
