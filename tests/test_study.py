@@ -21,7 +21,18 @@ from efficienttrack.data.cycles import generate_references
 from efficienttrack.data.metrics import TABLE_METRICS
 from efficienttrack.data.references import Reference, save_references
 from efficienttrack.envs.core import LOOPS
-from efficienttrack.study import METHODS, Job, Study, available_methods, executors, make_jobs, make_study, report, run_study
+from efficienttrack.study import (
+    METHODS,
+    Job,
+    Study,
+    available_methods,
+    executors,
+    make_jobs,
+    make_study,
+    methods,
+    report,
+    run_study,
+)
 from efficienttrack.study.executors import Outcome, process_pool
 from efficienttrack.study.figure import log_mae_axis, plot_study
 from efficienttrack.study.jobs import default_validation, split_validation
@@ -632,3 +643,24 @@ def test_a_jobs_provenance_names_the_commit_it_started_from(refs, tmp_path, monk
     assert facts["git_commit"] == "a" * 40 and facts["git_commit_at_end"] == "b" * 40 and facts["wall_seconds"] >= 0
     monkeypatch.setattr(executors, "provenance", real)
     assert "git_commit_at_end" not in executors.execute(job, tmp_path / "again").result["provenance"]
+
+
+def test_efficienttrack_in_rounds_is_one_run_with_a_point_per_round_each_validated(refs3, tmp_path, monkeypatch):
+    train, test = refs3  # two training references after val_01 is held out: a pass is 118 steps
+    study = make_study(SystemSpec(), train, test, budget=2 * 59, preset="tiny", run_config=FAST, validation=1,
+                       method_budgets={"efficienttrack-rounds": 5 * 59})  # fmt: skip
+    [job] = make_jobs(study, ["efficienttrack-rounds"])
+    result = run_study(study, [job], tmp_path, log=lambda line: None)
+    folder = tmp_path / "jobs" / "efficienttrack-rounds-closed-s0"
+    curve = json.loads((folder / "result.json").read_text())["curve"]
+    assert [(p["round"], p["interaction_steps"]) for p in curve] == [(1, 118), (2, 236)]  # 295 steps hold two rounds
+    rounds = json.loads((folder / "run" / "metrics.json").read_text())["rounds"]
+    assert [p["metrics"]["mae_deg"] for p in curve] == [r["efficienttrack"]["mae_deg"] for r in rounds]
+    assert all(p["validation"]["episodes"] == 1 for p in curve) and curve[1]["wall_seconds"] > curve[0]["wall_seconds"]
+    assert 0 < curve[0]["gradient_samples"] < curve[1]["gradient_samples"]
+    [entry] = result.report.entries
+    chosen = min(curve, key=lambda p: p["validation"]["mae_deg"])
+    assert entry["selected_interaction_steps"] == chosen["interaction_steps"] and entry["selection_steps"] is None
+    assert "| EfficientTrack (rounds) | closed |" in result.report.markdown
+    monkeypatch.setattr(methods, "run_pipeline", lambda *args, **kwargs: pytest.fail("a finished round ran again"))
+    assert methods.run_efficienttrack_rounds(job, folder) == curve  # each round's point is read back

@@ -16,6 +16,7 @@ and has none.
 
 ``pd`` (the PD controller alone, one point at 0 interactions), ``efficienttrack`` (the whole pipeline after 1, 2, 5,
 10 … collection passes; in the open loop a plant model and a PWM policy, :mod:`efficienttrack.baselines.openloop`),
+``efficienttrack-rounds`` (one pass, then rounds on the policy's own deployments, a point after each),
 the Stable-Baselines3 baselines ``sac`` and ``ppo`` (:func:`efficienttrack.baselines.sb3.train_baseline`, where
 that module can be imported), ``tdmpc`` and ``supertrack`` (:mod:`efficienttrack.baselines.tdmpc`,
 :mod:`efficienttrack.baselines.supertrack`), and ``ilc``, the oracle lower bound
@@ -46,6 +47,7 @@ from efficienttrack.envs.core import LOOPS
 from efficienttrack.study.ablations import run_variant
 from efficienttrack.study.jobs import STUDY_PRESETS, Job, Point, Study, check_seeds, point
 from efficienttrack.workflow.collect import pass_counts
+from efficienttrack.workflow.config import MAX_ROUNDS, RunConfig
 from efficienttrack.workflow.evaluation import evaluate
 from efficienttrack.workflow.pipeline import run_pipeline
 
@@ -111,18 +113,19 @@ def run_pd(job: Job, folder: Path) -> list[Point]:
     return [point(0, wall, metrics, validation=validation, gradient_samples=0)]
 
 
-def check_passes(study: Study) -> None:
+def check_passes(study: Study, method: str = "efficienttrack") -> None:
     """Refuse a budget that allows not even one collection pass over the training references (EfficientTrack's minimum).
 
     Args:
         study: the study.
+        method: ``efficienttrack`` or ``efficienttrack-rounds``, whose budget is checked.
 
     Raises:
-        EfficientTrackError: the budget is smaller than one pass (naming ``--budget``).
+        EfficientTrackError: the budget is smaller than one pass (naming ``--budget`` or ``--method-budget``).
     """
-    budget = study.budget_of("efficienttrack")
+    budget = study.budget_of(method)
     if not pass_counts(budget, study.steps_per_pass):
-        option = "--method-budget efficienttrack=" if "efficienttrack" in dict(study.method_budgets) else "--budget "
+        option = f"--method-budget {method}=" if method in dict(study.method_budgets) else "--budget "
         raise EfficientTrackError(
             f"{option}{budget}: less than one collection pass over the training references "
             f"({study.steps_per_pass} interaction steps), which EfficientTrack needs"
@@ -167,23 +170,77 @@ def run_efficienttrack(job: Job, folder: Path) -> list[Point]:
     curve = []
     for passes in pass_counts(job.budget, study.steps_per_pass):
         run_folder = folder / f"passes_{passes}"
-        done = run_folder / "point.json"
-        if done.exists():
-            curve.append(json.loads(done.read_text()))
-            continue
-        start = time.perf_counter()
         cfg = replace(base, collect=replace(base.collect, passes=passes))
-        result = run_pipeline(study.system, study.train, study.test, run_folder, cfg, Console(quiet=True), 0, "study")
-        m, wall = result.metrics, time.perf_counter() - start
-        extra = {}
-        if study.validation:
-            scored = evaluate(study.system, study.validation, folder / "validation" / f"passes_{passes}", m["policy"],
-                              cfg.device, Console(quiet=True), 0)  # fmt: skip
-            extra["validation"] = scored["efficienttrack"]
-        extra["gradient_samples"] = m.get("gradient_samples")
-        curve.append(point(m["interaction_steps"], wall, m["efficienttrack"], passes=passes, warning=m["warning"], **extra))
-        write_json(done, curve[-1])
+        done = run_folder / "point.json"
+        curve.append(_pipeline_point(job, folder, run_folder, cfg, done, f"passes_{passes}", 0.0, passes=passes))
     return curve
+
+
+def run_efficienttrack_rounds(job: Job, folder: Path) -> list[Point]:
+    """EfficientTrack in rounds (the ``fastset`` line): one collection pass, then as many rounds as the budget holds.
+
+    Round k ≥ 2 deploys the latest policy once on the training references and trains model and policy on, warm
+    (:mod:`efficienttrack.workflow.rounds`); every round costs one pass's interaction steps. ``folder/run/`` is the one
+    run folder, extended round by round (:func:`~efficienttrack.workflow.pipeline.run_pipeline` with ``rounds = k``);
+    round k's point, measured on the test and validation references as EfficientTrack's are, is written to
+    ``folder/points/round_<k>.json`` and read from there on a rerun. A curve is one run's rounds, so a point chosen
+    on it cost only the steps up to it.
+
+    Args:
+        job: the job (closed loop).
+        folder: the job's folder.
+
+    Returns:
+        One point per round, with ``round``, ``gradient_samples`` (so far), ``warning`` and, with validation references,
+        ``validation``; its wall time is the run's up to that round, without the validation.
+
+    Raises:
+        EfficientTrackError: the budget allows not even one collection pass.
+    """
+    study = job.study
+    check_passes(study, job.method)
+    first = replace(job.run_config, collect=replace(job.run_config.collect, passes=1))
+    curve: list[Point] = []
+    for k in range(1, min(job.budget // study.steps_per_pass, MAX_ROUNDS) + 1):
+        wall = curve[-1]["wall_seconds"] if curve else 0.0
+        done = folder / "points" / f"round_{k}.json"
+        cfg = replace(first, rounds=k)
+        curve.append(_pipeline_point(job, folder, folder / "run", cfg, done, f"round_{k}", wall, round=k))
+    return curve
+
+
+def _pipeline_point(
+    job: Job, folder: Path, run_folder: Path, cfg: RunConfig, done: Path, name: str, wall_before: float, **facts: Any
+) -> Point:
+    """One point of EfficientTrack's curve: the run in ``run_folder`` with ``cfg``, and its policy on the validation set.
+
+    Args:
+        job: the job.
+        folder: the job's folder (the validation scoring goes to ``folder/validation/<name>``).
+        run_folder: the run's folder (it resumes, and more rounds extend it).
+        cfg: the run's settings.
+        done: where the point is written when finished, and read from on a rerun.
+        name: the validation scoring's folder under ``<job folder>/validation/``.
+        wall_before: wall time spent before this run's call (earlier rounds of the same run).
+        **facts: the point's own facts (``passes``, ``round``).
+
+    Returns:
+        The point.
+    """
+    if done.exists():
+        return json.loads(done.read_text())
+    study, start = job.study, time.perf_counter()
+    result = run_pipeline(study.system, study.train, study.test, run_folder, cfg, Console(quiet=True), 0, "study")
+    m, wall = result.metrics, wall_before + time.perf_counter() - start
+    extra = {}
+    if study.validation:
+        scored = evaluate(study.system, study.validation, folder / "validation" / name, m["policy"], cfg.device,
+                          Console(quiet=True), 0)  # fmt: skip
+        extra["validation"] = scored["efficienttrack"]
+    extra["gradient_samples"] = m.get("gradient_samples")
+    p = point(m["interaction_steps"], wall, m["efficienttrack"], **facts, warning=m["warning"], **extra)
+    write_json(done, p)
+    return p
 
 
 def _baseline(job: Job, folder: Path, train: Callable[..., list[Point]], validate: bool = True) -> list[Point]:
@@ -415,6 +472,8 @@ METHODS: dict[str, Method] = {
     "efficienttrack": Method("efficienttrack", "EfficientTrack", run_efficienttrack, LOOPS, check=check_passes,
                              settings=_settings_of("efficienttrack.baselines.openloop", "open_settings"),
                              separate_runs=("closed",)),
+    "efficienttrack-rounds": Method("efficienttrack-rounds", "EfficientTrack (rounds)", run_efficienttrack_rounds,
+                                    ("closed",), check=partial(check_passes, method="efficienttrack-rounds")),
     "sac": Method("sac", "SAC (reduced)", run_sb3, LOOPS, requires=SB3_MODULES,
                   settings=_settings_of("efficienttrack.baselines.settings", "method_settings", "sac")),
     "ppo": Method("ppo", "PPO", run_sb3, LOOPS, requires=SB3_MODULES,

@@ -7,7 +7,8 @@ Study folder layout::
         result.json                written last by the finished job: a rerun skips it
         error.json                 why it failed (a rerun runs it again)
         job.log                    what it printed
-        ...                        the method's own files (EfficientTrack: passes_<p>/, one run folder per pass count)
+        ...                        the method's own files (EfficientTrack: passes_<p>/, one run folder per pass count;
+                                   in rounds: run/, one run folder, and points/round_<k>.json)
     OUT/study.json, study.md, study.csv, study.png   the report (:func:`efficienttrack.study.report.report`)
 
 An ablation's folder has the same layout, its jobs named ``<method>-<variant>-s<seed>``, its ``study_config.json``
