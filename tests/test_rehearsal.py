@@ -102,11 +102,14 @@ def test_the_simulated_machines_faults_stop_a_deployment(tmp_path, refs, fault, 
     assert f"stopped: ref_01: {reason}" in result.output
 
 
-def test_adapter_options_parse_numbers_and_booleans_but_keep_nan_and_inf_as_words():
+def test_adapter_options_are_read_as_set_reads_values_and_keep_nan_and_inf_as_words():
     from efficienttrack.cli.common import parse_options
+    from efficienttrack.core.errors import EfficientTrackError
 
-    parsed = parse_options(["fault=nan", "level=inf", "fault_at=30", "scale=0.5", "armed=true"], "--machine-opt")
-    assert parsed == {"fault": "nan", "level": "inf", "fault_at": 30, "scale": 0.5, "armed": True}
+    parsed = parse_options(["fault=nan", "level=inf", "fault_at=30", "scale=1e-1", "armed=true", "port=can0"], "--machine-opt")
+    assert parsed == {"fault": "nan", "level": "inf", "fault_at": 30, "scale": 0.1, "armed": True, "port": "can0"}
+    with pytest.raises(EfficientTrackError, match=r"--machine-opt 'gains=\[1, 2': the value is not valid YAML"):
+        parse_options(["gains=[1, 2"], "--machine-opt")
 
 
 def test_homed_references_start_and_end_at_home_led_in_and_out_slowly(tmp_path):

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -14,6 +13,7 @@ from rich.console import Console
 
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.fileio import output_lock
+from efficienttrack.core.settings import read_value
 
 TABLE_WIDTH = 132
 """Characters the columns of a metrics table take besides its row labels."""
@@ -118,36 +118,25 @@ def between(value: str) -> str:
 
 
 def parse_options(pairs: list[str] | None, flag: str = "--system-opt") -> dict[str, object]:
-    """Turn repeated ``key=value`` strings into keyword options (numbers and booleans parsed).
+    """Turn repeated ``key=value`` strings into keyword options, each value read as ``--set`` reads one.
 
     Args:
         pairs: the ``key=value`` strings as given on the command line (``None`` when the option was not used).
         flag: the option's name, used in error messages.
 
     Returns:
-        ``{key: value}``, each value an int, finite float or bool where it parses as one, else the string.
+        ``{key: value}``: numbers, booleans and lists where the value reads as one
+        (:func:`~efficienttrack.core.settings.read_value`; ``nan`` and ``inf`` stay words), else the string.
 
     Raises:
-        EfficientTrackError: a string without ``=`` or with an empty key.
+        EfficientTrackError: a string without ``=``, with an empty key, or a value that is not valid YAML.
     """
     options: dict[str, object] = {}
     for pair in pairs or []:
         key, sep, raw = pair.partition("=")
         if not sep or not key:
             raise EfficientTrackError(f"{flag} '{pair}': expected key=value")
-        value: object = raw
-        if raw.lower() in ("true", "false"):
-            value = raw.lower() == "true"
-        else:
-            for cast in (int, float):
-                try:
-                    value = cast(raw)
-                except ValueError:
-                    continue
-                if not math.isfinite(value):  # "nan", "inf" are words here (a fault's name), never numbers
-                    value = raw
-                break
-        options[key] = value
+        options[key] = read_value(raw, f"{flag} '{pair}'")
     return options
 
 

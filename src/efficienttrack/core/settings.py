@@ -348,8 +348,27 @@ def merge(base: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:
     return merged
 
 
+def read_value(raw: str, where: str) -> Any:
+    """A value given on the command line, read as YAML: ``5``, ``1e-4``, ``true``, ``null``, ``[9, 2]``; words stay words.
+
+    The one reader of every ``key=value`` option (``--set``, ``--method-set``, ``--system-opt``, ``--machine-opt``).
+    ``nan`` and ``inf`` are words (a fault's name), never numbers; an empty value is ``""``.
+
+    Args:
+        raw: the text after ``=``.
+        where: the option as given, named in messages (``--set 'model.lr=…'``).
+
+    Raises:
+        EfficientTrackError: the value is not valid YAML.
+    """
+    try:
+        return yaml.load(raw, Loader=ConfigLoader) if raw.strip() else ""
+    except yaml.YAMLError as exc:
+        raise EfficientTrackError(f"{where}: the value is not valid YAML ({' '.join(str(exc).split())})") from exc
+
+
 def parse_override(text: str, option: str = "--set") -> dict[str, Any]:
-    """One ``section.field=value`` override as a nested mapping; the value is read as YAML (``1e-4``, ``null``, ``[9, 2]``).
+    """One ``section.field=value`` override as a nested mapping; the value read by :func:`read_value`.
 
     Args:
         text: e.g. ``model.history=5``.
@@ -365,11 +384,7 @@ def parse_override(text: str, option: str = "--set") -> dict[str, Any]:
     names = path.strip().split(".")
     if not sep or not all(name.strip() for name in names):
         raise EfficientTrackError(f"{option} '{text}': expected section.field=value, e.g. model.history=5")
-    try:
-        value = yaml.load(raw, Loader=ConfigLoader) if raw.strip() else ""
-    except yaml.YAMLError as exc:
-        raise EfficientTrackError(f"{option} '{text}': the value is not valid YAML ({' '.join(str(exc).split())})") from exc
-    override: dict[str, Any] = {names[-1].strip(): value}
+    override: dict[str, Any] = {names[-1].strip(): read_value(raw, f"{option} '{text}'")}
     for name in reversed(names[:-1]):
         override = {name.strip(): override}
     return override
