@@ -164,20 +164,21 @@ def test_step_seconds_and_evaluation_seconds_come_from_short_trainings_after_a_w
 
 @pytest.mark.slow
 def test_a_run_with_a_budget_trains_the_scaled_steps_plans_each_training_and_keeps_the_factors(tmp_path, monkeypatch):
-    monkeypatch.setattr(pipeline, "measure_step_times", lambda cfg, records, held_out, device: StepTimes(0.05, 0.1, 500))
-    # 40 s; round 1's training "takes" 300 × 0.05 + 300 × 0.1 = 45 s, round 2 half of it
-    cfg = replace(TOY_CFG, time_budget=40 / 60, rounds=2)
+    monkeypatch.setattr(pipeline, "measure_step_times", lambda cfg, records, held_out, device: StepTimes(0.15, 0.3, 500))
+    # 40 s; round 1's training "takes" 100 × 0.15 + 100 × 0.3 = 45 s, round 2 half of it
+    cfg = replace(TOY_CFG, time_budget=40 / 60, rounds=2, model=replace(TOY_CFG.model, steps=100),
+                  policy=replace(TOY_CFG.policy, steps=100))  # fmt: skip
     result = run_pipeline(TOY, *toy_split(), tmp_path, cfg, max_plots=0)  # no tracking plots: none is checked here
     scales = result.metrics["time_budget"]["scales"]
     assert 0.05 < scales["model"] < 1 and set(scales) == {"model", "policy", "rounds/2/model", "rounds/2/policy"}
-    assert len(read_scalars(tmp_path / "logs" / "model")["train/loss"][0]) == round(300 * scales["model"])
+    assert len(read_scalars(tmp_path / "logs" / "model")["train/loss"][0]) == round(100 * scales["model"])
     # round 1's policy is planned with how long its model's training took against the 15 s × scale predicted
     model_seconds = json.loads((tmp_path / "stages" / "model.json").read_text())["seconds"]
     policy_plan = json.loads((tmp_path / "stages" / "time_budget_policy.json").read_text())
     assert policy_plan["slower_than_probed"] == pytest.approx(model_seconds / (15 * scales["model"]), rel=1e-3)
-    warm = round(300 * scales["rounds/2/policy"] * TOY_CFG.warm_budget)
+    warm = round(100 * scales["rounds/2/policy"] * TOY_CFG.warm_budget)
     assert len(read_scalars(tmp_path / "rounds" / "2" / "logs" / "policy")["train/loss"][0]) == warm
-    assert result.metrics["config"]["time_budget"] == cfg.time_budget and result.metrics["config"]["model"]["steps"] == 300
+    assert result.metrics["config"]["time_budget"] == cfg.time_budget and result.metrics["config"]["model"]["steps"] == 100
 
     def measured_again(*args):
         raise AssertionError("a rerun measured the step times again")
