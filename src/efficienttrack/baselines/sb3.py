@@ -103,46 +103,29 @@ def train_baseline(
 ) -> list[dict[str, Any]]:
     """Train PPO or SAC with Stable-Baselines3 for ``run.budget`` interaction steps; evaluate it along the way.
 
-    Training runs on the training references (one episode per reference, picked by each environment's seeded
-    generator) with ``settings.n_envs`` environments stepping one batched system. With ``settings.inputs ==
-    "relative"`` the policy sees the standardized relative features of
-    :func:`~efficienttrack.envs.features.pd_pipeline` (statistics from a PD pass over the training references), in
-    training and evaluation alike; the untrained policy is the PD controller (its action mean starts at zero).
-    When the interaction count first reaches a point of ``run.points``, the deterministic policy (the mean action,
-    clipped to [−1, 1]) runs every test reference once (:func:`efficienttrack.envs.evaluate`) and
-    :func:`efficienttrack.data.metrics.compute_metrics` scores it; then every validation reference, when the run has
-    them. ``folder/curve.json`` (``{"method", "loop", "seed", "budget", "system", "settings", "curve": [point, ...]}``)
-    is rewritten atomically after each point. Between rollouts, every ``save_every_seconds``, the training state goes
-    to ``folder/training_state.pt`` (:mod:`.sb3_state`: no pickle); the same run started again in the folder resumes
-    from it, keeping the points measured up to it, with fresh episodes (so not bit-identical to an uninterrupted
-    run). The state is removed once the run has finished; the final model goes to ``folder/model.zip`` (SB3's
-    format, for the user; nothing here loads it). The same seed and settings give the same curve (wall times aside)
-    on one machine when the run is not interrupted.
+    The learner sees what EfficientTrack's networks see (``settings.inputs``, standardized on a PD pass over the
+    training references) and starts as the PD controller. At each of ``run.points`` its deterministic policy is scored
+    on the test (and validation) references through the guarded evaluation every method shares, and
+    ``folder/curve.json`` is rewritten. The training state is saved between rollouts without pickle (:mod:`.sb3_state`),
+    so a killed run resumes, with fresh episodes (not bit-identical to an uninterrupted run); the final model goes to
+    ``folder/model.zip`` for the user.
 
     Args:
         method: ``"ppo"`` or ``"sac"``.
-        run: the run (:func:`~efficienttrack.baselines.curve.training_run`): ``loop`` ``"closed"`` (the policy adjusts
-            the PD reference) or ``"open"`` (the policy sends PWM / 1000 to the plant under ``system``); ``budget``,
-            the steps of all parallel environments summed (with N environments training stops at the first multiple
-            of N that reaches it); ``seed`` (≤ ``MAX_SB3_SEED``) seeds SB3 (Python, numpy, torch, the action space)
-            and the environments (environment i: seed + i); ``folder`` gets ``curve.json`` and ``model.zip`` (created;
-            other files in it are left alone).
+        run: the run (:func:`~efficienttrack.baselines.curve.training_run`); with N environments training stops at the
+            first multiple of N that reaches ``budget``; ``seed`` ≤ ``MAX_SB3_SEED``.
         preset: ``"paper"``, ``"cpu"``, ``"tiny"`` (:data:`~efficienttrack.baselines.settings.PRESETS`) or the method's
             settings.
         progress: a display to show the training steps and the last MAE on, or None for no progress.
         save_every_seconds: wall seconds between saves of the training state (0: at every rollout's start).
 
     Returns:
-        One point per measurement, in order: ``{"interaction_steps": int (the count when measured: the first
-        multiple of N at or after the requested point), "wall_seconds": float (training wall time so far, building
-        the model included, evaluations excluded), "metrics": dict (compute_metrics of the test episodes)}``, and
-        ``"validation"`` (compute_metrics of the validation episodes) when the run has validation references.
+        One point per measurement: ``{"interaction_steps", "wall_seconds" (training so far, evaluations excluded),
+        "metrics"}``, and ``"validation"`` when the run has validation references.
 
     Raises:
-        EfficientTrackError: an unknown method or preset, a run that is no TrainingRun, a seed beyond
-            ``MAX_SB3_SEED``, an output folder that cannot be written or is being written by another process, a
-            training state in the folder from another run, or a problem the environments report (a system spec, a
-            reference outside the limits).
+        EfficientTrackError: an unknown method or preset, a bad run or seed, a folder in use or holding another run's
+            state, or a problem the environments report.
     """
     settings = method_settings(method, preset)
     run = check_training_run(run)

@@ -113,24 +113,15 @@ def train_tdmpc(
 ) -> list[dict[str, Any]]:
     """Train TD-MPC for ``run.budget`` interaction steps on one machine; evaluate it on the test references along the way.
 
-    When the interaction count reaches a point of ``run.points``, the deterministic agent (``settings.evaluate_with``:
-    π's mean action by default, or the planner without noise) runs every test reference once
-    (:func:`efficienttrack.envs.evaluate`) and :func:`efficienttrack.data.metrics.compute_metrics` scores it; then the
-    same agent runs every validation reference, when the run has them (after the test references, so that the
-    planner's generator meets those as without validation).
-    ``folder/curve.json`` (``{"method": "tdmpc", "loop", "seed", "budget", "system", "settings", "curve"}``) is
-    rewritten atomically after each point. Between episodes, every ``save_every_seconds``, the state goes to
-    ``folder/training_state.pt`` (:mod:`.state`: no pickle); the same run started again in the folder resumes from it
-    and continues as the uninterrupted run would; the state is removed once the run has finished. The final model's
-    ``state_dict`` goes to ``folder/model.pt``. The same seed and settings give the same curve (wall times aside) on
-    one machine and device with the same number of torch threads; the global torch generator is left as it was.
+    At each of ``run.points`` the deterministic agent (``settings.evaluate_with``: π's mean action, or the planner
+    without noise) is scored on the test references, then on the validation references (after the test references,
+    so that the planner's generator meets those as it would without validation), and ``folder/curve.json`` is
+    rewritten. The state is saved between episodes without pickle (:mod:`.state`), and a killed run resumes as the
+    uninterrupted run would go on: the same seed and settings give the same curve on one machine, device and thread
+    count. The global torch generator is left as it was; the final ``state_dict`` goes to ``folder/model.pt``.
 
     Args:
-        run: the run (:func:`~efficienttrack.baselines.curve.training_run`): ``loop`` ``"closed"`` (the agent adjusts
-            the PD reference) or ``"open"`` (the agent sends PWM / 1000 to the plant under ``system``); ``seed`` seeds
-            the networks' initialization, the planner's and π's noise, the replay sampling, the seeding phase's random
-            actions and the environment's reference draws; ``folder`` gets ``curve.json`` and ``model.pt`` (created;
-            other files in it are left alone).
+        run: the run (:func:`~efficienttrack.baselines.curve.training_run`); its ``seed`` seeds everything random.
         preset: ``"paper"``, ``"cpu"`` (TD-MPC (reduced)), ``"tiny"``
             (:data:`~efficienttrack.baselines.tdmpc.settings.PRESETS`) or a
             :class:`~efficienttrack.baselines.tdmpc.settings.TDMPCSettings`.
@@ -138,14 +129,12 @@ def train_tdmpc(
         save_every_seconds: wall seconds between saves of the state (0: at every episode's end).
 
     Returns:
-        One point per evaluation, in order: ``{"interaction_steps": int, "wall_seconds": float (training wall time so
-        far, building included, evaluations excluded), "metrics": dict (compute_metrics of the test episodes)}``, and
-        ``"validation"`` (compute_metrics of the validation episodes) when the run has validation references.
+        One point per evaluation: ``{"interaction_steps", "wall_seconds" (training so far, evaluations excluded),
+        "metrics"}``, and ``"validation"`` when the run has validation references.
 
     Raises:
-        EfficientTrackError: an unknown preset, a run that is no TrainingRun, a device that is not available, an output
-            folder that cannot be written or is being written by another process, a training state in the folder from
-            another run, or a problem the environment reports (a system spec, a reference outside the limits).
+        EfficientTrackError: an unknown preset, a bad run, a device that is not available, a folder in use or holding
+            another run's state, or a problem the environment reports.
     """
     settings = tdmpc_settings(preset)
     run = check_training_run(run)
