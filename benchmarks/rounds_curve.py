@@ -5,8 +5,9 @@ interaction steps (I.S.) and its policy's MAE on the run's test references (``me
 ``--scored DIR``, on the references of the evaluation ``RUN/DIR/round_<k>/metrics.json`` (``efficienttrack evaluate``
 of ``RUN/rounds/<k>/policy.pt``). Runs of one group (``--group NAME=RUN,RUN,...``) are seeds of one line: mean ± sample
 std over them where every seed has the round. A committed study file (``--study FILE``, a study's ``results.json``)
-adds each method's mean curve over its seeds, on its validation references (``--study-metric validation``) or its test
-references (``test``). ``--export FILE`` keeps the groups' points (small JSON, for committing); ``--from FILE`` redraws
+adds each method's mean curve over its seeds (± sample std), on its validation references (``--study-metric
+validation``) or its test references (``test``); ``--floor`` draws the ILC oracle's floor (docs/ilc.md).
+``--export FILE`` keeps the groups' points (small JSON, for committing); ``--from FILE`` redraws
 from such a file without the run folders.
 
     python benchmarks/rounds_curve.py --group paper=runs/r40/paper_fs4_s0,runs/r40/paper_fs4_s1 --out rounds.png
@@ -91,6 +92,7 @@ def main() -> None:
     parser.add_argument("--scored", default=None, help="evaluations under each run: DIR/round_<k>/metrics.json")
     parser.add_argument("--study", type=Path, default=None, help="a study's results.json whose curves to draw beside")
     parser.add_argument("--study-metric", choices=("validation", "test"), default="test")
+    parser.add_argument("--floor", type=float, default=None, help="the ILC oracle's floor (°), drawn as a line")
     parser.add_argument("--title", default="MAE against interaction steps")
     parser.add_argument("--out", type=Path, required=True, help="the figure (.png)")
     args = parser.parse_args()
@@ -136,11 +138,17 @@ def main() -> None:
                 continue
             steps = np.array([max(r["interaction_steps"], 1) for r in rows])
             mae = np.array([r["mae_deg"] for r in rows])
+            std = np.array([r["mae_deg_std"] or 0.0 for r in rows])
             name = "EfficientTrack, one round of 1–10 passes" if method == "efficienttrack" else METHODS[method].label
-            ax.plot(steps, mae, "s--" if method == "efficienttrack" else "-", alpha=0.8,
-                    label=f"{name} (study, {args.study_metric}, {rows[-1]['seeds']} seeds)")  # fmt: skip
+            [line] = ax.plot(steps, mae, "s--" if method == "efficienttrack" else "-", alpha=0.8,
+                             label=f"{name} (study, {args.study_metric}, {rows[-1]['seeds']} seeds)")  # fmt: skip
+            ax.fill_between(steps, mae - std, mae + std, color=line.get_color(), alpha=0.15)
             cells = ", ".join(f"{r['interaction_steps']:,} → {r['mae_deg']:.3f}" for r in rows if r["interaction_steps"] > 0)
             print(f"| {name} (study) | {rows[-1]['seeds']} | {cells} |")
+    if args.floor is not None:
+        ax.axhline(
+            args.floor, color="k", ls="-.", lw=1, label=f"floor: the ILC oracle on the test references ({args.floor:.3f}°)"
+        )
     ax.set_xscale("log")
     ax.set_yscale("log")  # PD's line and the learners' tenths of a degree on one axis
     for axis in (ax.yaxis.set_major_formatter, ax.yaxis.set_minor_formatter):
@@ -149,7 +157,7 @@ def main() -> None:
     ax.set_ylabel("MAE (°)")
     ax.set_title(args.title)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="lower left")
     fig.tight_layout()
     args.out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out, dpi=120)
