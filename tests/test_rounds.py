@@ -10,10 +10,11 @@ from efficienttrack.cli import app
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.learn import dynamics, policy
 from efficienttrack.learn.training import read_scalars
+from efficienttrack.study.methods import rounds_within
 from efficienttrack.workflow.config import RunConfig, from_dict, preset
 from efficienttrack.workflow.evaluation import evaluate
 from efficienttrack.workflow.pipeline import run_pipeline
-from efficienttrack.workflow.rounds import rounds_rows, write_rounds
+from efficienttrack.workflow.rounds import round_references, rounds_rows, write_rounds
 from toy_system import TOY, TOY_CFG
 
 
@@ -124,11 +125,38 @@ def test_round_data_new_trains_on_the_deployment_pass_only(tmp_path, refs, monke
     check_two_round_outputs(tmp_path, result, train)
 
 
+def test_a_round_share_deploys_each_round_on_the_next_references_in_turn(tmp_path, refs):
+    train = refs[0]  # four references: a share of a half deploys on two a round, the first two, then the last two
+    small = replace(TOY_CFG, collect=replace(TOY_CFG.collect, passes=1), model=replace(TOY_CFG.model, steps=30),
+                    policy=replace(TOY_CFG.policy, steps=30), rounds=3, round_share=0.5)  # fmt: skip
+    result = run_pipeline(TOY, *refs, tmp_path, small, max_plots=0)
+    steps = [entry["interaction_steps"] for entry in result.metrics["rounds"]]
+    halves = [sum(len(ref.q) - 1 for ref in part) for part in (train[:2], train[2:])]
+    assert steps == [steps[0], steps[0] + halves[0], steps[0] + sum(halves)]
+    for k, part in ((2, train[:2]), (3, train[2:])):
+        deployed = sorted(p.stem for p in (tmp_path / "rounds" / str(k) / "records" / "deploy").glob("*.npz"))
+        assert deployed == sorted(ref.name for ref in part), k
+    assert "deploying the round-1 policy on 2 of the 4 training references" in (tmp_path / "run.log").read_text()
+
+
+def test_round_references_move_on_by_a_window_and_the_study_counts_the_rounds_a_budget_holds(refs):
+    train = refs[0]
+    names = [[ref.name for ref in round_references(train, k, 0.3)] for k in (2, 3, 4)]
+    assert names == [[r.name for r in train[:2]], [r.name for r in train[2:]], [r.name for r in train[:2]]]
+    assert round_references(train, 5, 1.0) == train and len(round_references(train, 2, 0.01)) == 1
+    one_pass = sum(len(ref.q) - 1 for ref in train)
+    assert rounds_within(train, 1.0, one_pass - 1) == 0 and rounds_within(train, 1.0, 3 * one_pass) == 3
+    first_two = sum(len(ref.q) - 1 for ref in train[:2])
+    assert rounds_within(train, 0.5, one_pass + first_two) == 2
+
+
 def test_round_settings_are_validated():
     with pytest.raises(EfficientTrackError, match=r"rounds must be an integer in \[1, 100\]"):
         RunConfig(rounds=0)
     with pytest.raises(EfficientTrackError, match="cfg.yaml: round_data must be one of all, new"):
         from_dict({"round_data": "old"}, "cfg.yaml")
+    with pytest.raises(EfficientTrackError, match=r"round_share must be a finite number in \(0, 1\]"):
+        RunConfig(round_share=1.5)
     for budget in (0, -0.5, float("nan"), "half", True):
         with pytest.raises(EfficientTrackError, match="cfg.yaml: warm_budget must be a finite number > 0"):
             from_dict({"warm_budget": budget}, "cfg.yaml")

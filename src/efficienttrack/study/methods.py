@@ -42,6 +42,7 @@ from efficienttrack.core.fileio import write_json
 from efficienttrack.core.progress import ProgressDisplay
 from efficienttrack.core.settings import merge, parse_override, settings_from_dict
 from efficienttrack.data.metrics import compute_metrics, rounded
+from efficienttrack.data.references import Reference
 from efficienttrack.deploy.runtime import track
 from efficienttrack.envs.core import LOOPS
 from efficienttrack.study.ablations import run_variant
@@ -50,6 +51,7 @@ from efficienttrack.workflow.collect import pass_counts
 from efficienttrack.workflow.config import MAX_ROUNDS, RunConfig
 from efficienttrack.workflow.evaluation import evaluate
 from efficienttrack.workflow.pipeline import run_pipeline
+from efficienttrack.workflow.rounds import round_references
 
 
 @dataclass(frozen=True)
@@ -179,8 +181,8 @@ def run_efficienttrack(job: Job, folder: Path) -> list[Point]:
 def run_efficienttrack_rounds(job: Job, folder: Path) -> list[Point]:
     """EfficientTrack in rounds (the ``fastset`` line): one collection pass, then as many rounds as the budget holds.
 
-    Round k ≥ 2 deploys the latest policy once on the training references and trains model and policy on, warm
-    (:mod:`efficienttrack.workflow.rounds`); every round costs one pass's interaction steps. ``folder/run/`` is the one
+    Round k ≥ 2 deploys the latest policy once on the training references (or ``round_share`` of them) and trains model
+    and policy on, warm (:mod:`efficienttrack.workflow.rounds`). ``folder/run/`` is the one
     run folder, extended round by round (:func:`~efficienttrack.workflow.pipeline.run_pipeline` with ``rounds = k``);
     round k's point, measured on the test and validation references as EfficientTrack's are, is written to
     ``folder/points/round_<k>.json`` and read from there on a rerun. A curve is one run's rounds, so a point chosen
@@ -201,12 +203,30 @@ def run_efficienttrack_rounds(job: Job, folder: Path) -> list[Point]:
     check_passes(study, job.method)
     first = replace(job.run_config, collect=replace(job.run_config.collect, passes=1))
     curve: list[Point] = []
-    for k in range(1, min(job.budget // study.steps_per_pass, MAX_ROUNDS) + 1):
+    for k in range(1, rounds_within(study.train, first.round_share, job.budget) + 1):
         wall = curve[-1]["wall_seconds"] if curve else 0.0
         done = folder / "points" / f"round_{k}.json"
         cfg = replace(first, rounds=k)
         curve.append(_pipeline_point(job, folder, folder / "run", cfg, done, f"round_{k}", wall, round=k))
     return curve
+
+
+def rounds_within(train: Sequence[Reference], share: float, budget: int) -> int:
+    """How many rounds fit in ``budget`` interaction steps: one collection pass, then each round's deployment.
+
+    Args:
+        train: the training references.
+        share: the share of them a later round deploys on (``round_share``).
+        budget: interaction steps.
+
+    Returns:
+        The rounds (at most :data:`~efficienttrack.workflow.config.MAX_ROUNDS`; 0 when not even the pass fits).
+    """
+    steps, k = sum(len(ref.q) - 1 for ref in train), 0
+    while steps <= budget and k < MAX_ROUNDS:
+        k += 1
+        steps += sum(len(ref.q) - 1 for ref in round_references(train, k + 1, share))
+    return k
 
 
 def _pipeline_point(

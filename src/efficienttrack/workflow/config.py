@@ -53,6 +53,10 @@ class RunConfig:
     round_data: str = setting("all", choices=ROUND_DATA)
     """What a later round trains on: ``all`` (every episode recorded so far) or ``new`` (its own deployment
     pass only, as the paper does)."""
+    round_share: float = setting(1.0, gt=0, le=1, before=1.0)
+    """Share of the training references a later round deploys on (at least one; 1: all, the paper's rounds): a window
+    that moves on round by round, so that each reference comes in turn. Smaller rounds are more rounds within the same
+    interaction steps, each deploying the latest policy (SuperTrack collects about 4,096 steps between trainings)."""
     warm_budget: float = setting(0.5, gt=0)
     """Optimizer steps (or epochs) of a later round's trainings, as a share of round 1's: they start from the
     previous round's networks and need fewer."""

@@ -1,11 +1,11 @@
 """The rounds of a run: collect or deploy, train g_θ and π_φ, evaluate; and their table.
 
 Round 1 trains on the collection (Algorithm 1). Round k ≥ 2 deploys π_{k−1} on the training references (one pass, no
-noise, as the paper's real-machine rounds), then trains g_θ and π_φ starting from θ_{k−1} and φ_{k−1} (warm starts,
-with their feature scaling) on every episode recorded so far (``round_data = "all"``) or on the new pass only
-(``"new"``, the paper's choice), ``warm_budget`` × round 1's optimizer steps, as the ``round`` command does
-(:func:`~efficienttrack.workflow.next_round.continued_config`). Round k ≥ 2 lives in ``OUT/rounds/<k>/``, laid out as a
-run folder, with its own ``stages/``::
+noise, as the paper's real-machine rounds; or on a share of them, ``round_share``: :func:`round_references`), then
+trains g_θ and π_φ starting from θ_{k−1} and φ_{k−1} (warm starts, with their feature scaling) on every episode
+recorded so far (``round_data = "all"``) or on the new pass only (``"new"``, the paper's choice), ``warm_budget`` ×
+round 1's optimizer steps, as the ``round`` command does (:func:`~efficienttrack.workflow.next_round.continued_config`).
+Round k ≥ 2 lives in ``OUT/rounds/<k>/``, laid out as a run folder, with its own ``stages/``::
 
     OUT/rounds/<k>/records/deploy/          π_{k−1} on the training references: the round's new data
     OUT/rounds/<k>/model.pt, policy.pt      θ_k, φ_k (configs beside them); checkpoints/, logs/ while training
@@ -17,6 +17,7 @@ The rounds table has the columns of the paper's Table IV: interactions used for 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from functools import partial
 from pathlib import Path
@@ -156,8 +157,10 @@ def run_round(k: int, previous: RoundState, run: Run) -> RoundState:
     cfg, ledger, device = run.cfg, run.ledger, run.device
     deployed: list[EpisodeRecord] = []
     if k > 1:
-        run.log.print(f"round {k}: deploying the round-{k - 1} policy on the {len(run.train_refs)} training references")
-        deployed = evaluate_stage(ledger, k, "deploy", run.system, previous.pi_phi, run.train_refs, device)
+        refs = round_references(run.train_refs, k, cfg.round_share)
+        which = "the" if len(refs) == len(run.train_refs) else f"{len(refs)} of the"
+        run.log.print(f"round {k}: deploying the round-{k - 1} policy on {which} {len(run.train_refs)} training references")
+        deployed = evaluate_stage(ledger, k, "deploy", run.system, previous.pi_phi, refs, device)
     records = [*previous.records, *deployed]
     train_records = deployed if k > 1 and cfg.round_data == "new" else records
     common: dict[str, Any] = {"device": device, "seed": cfg.seed, "held_out": run.held_out}
@@ -180,6 +183,21 @@ def run_round(k: int, previous: RoundState, run: Run) -> RoundState:
         ledger.once(INTERACTIONS, lambda: {"interaction_steps": steps}, k, ("interaction_steps",))
         run.log.print(f"round {k}: test MAE {summary['efficienttrack']['mae_deg']:.3f}° after {steps} interaction steps")
     return RoundState(g_theta, pi_phi, records, steps, test_records, summary, {"model": model_facts, "policy": policy_facts})
+
+
+def round_references(refs: Sequence[Reference], k: int, share: float) -> list[Reference]:
+    """The training references round k ≥ 2 deploys on: ``ceil(share · n)`` of the n, the window after round k − 1's.
+
+    Args:
+        refs: the training references, in order.
+        k: the round, from 2.
+        share: :attr:`~efficienttrack.workflow.config.RunConfig.round_share`.
+
+    Returns:
+        All of them for ``share`` 1; else the next ``ceil(share · n)``, wrapping around.
+    """
+    count = min(len(refs), max(1, math.ceil(share * len(refs) - 1e-9)))
+    return [refs[((k - 2) * count + i) % len(refs)] for i in range(count)]
 
 
 def gradient_samples(facts: dict[str, Any], cfg: TrainingSchedule) -> int | None:
