@@ -3,6 +3,7 @@ import json
 import shutil
 from dataclasses import replace
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -123,6 +124,18 @@ def test_round_data_new_trains_on_the_deployment_pass_only(tmp_path, refs, monke
     train = refs[0]
     assert trained_on == [len(train)] * 4  # round 1: the one collection pass; round 2: its deployment pass, not both
     check_two_round_outputs(tmp_path, result, train)
+
+
+def test_a_round_warmup_ramps_later_rounds_learning_rates_and_leaves_round_1_alone(tmp_path, refs):
+    small = replace(TOY_CFG, collect=replace(TOY_CFG.collect, passes=1), model=replace(TOY_CFG.model, steps=40),
+                    policy=replace(TOY_CFG.policy, steps=40), rounds=2, round_warmup=0.25)  # fmt: skip
+    run_pipeline(TOY, *refs, tmp_path, small, max_plots=0)
+    for part in ("model", "policy"):
+        _, first = read_scalars(tmp_path / "logs" / part)["train/lr"]
+        _, later = read_scalars(tmp_path / "rounds" / "2" / "logs" / part)["train/lr"]  # 20 steps: a ramp of 5
+        lr = getattr(small, part).lr
+        ramped = lr * 0.5 * (1 + np.cos(np.pi * np.arange(20) / 20)) * np.minimum(1, np.arange(1, 21) / 5)
+        assert first[0] == pytest.approx(lr) and later == pytest.approx(ramped, rel=1e-5)
 
 
 def test_a_round_share_deploys_each_round_on_the_next_references_in_turn(tmp_path, refs):

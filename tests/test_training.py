@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from efficienttrack.core.errors import EfficientTrackError
+from efficienttrack.core.settings import plain_form
 from efficienttrack.learn import dynamics, policy, training
 from efficienttrack.learn.settings import MODEL_PRESETS, POLICY_PRESETS, ModelConfig, PolicyConfig
 from efficienttrack.learn.training import LOSS_TAG, LR_TAG, SCALARS_CSV, held_out_subset, read_scalars
@@ -42,6 +43,14 @@ def test_every_step_logs_loss_and_lr_and_held_out_error_at_the_interval(data, tm
     assert mpe[-1] == pytest.approx(dynamics.model_error(result.model, data[1]).mpe_deg, rel=1e-5)
     assert mpe[-1] < mpe[0]
     assert list((tmp_path / "logs").glob("events.out.tfevents.*"))
+
+
+def test_a_warmup_ramps_the_learning_rate_up_over_its_share_of_the_steps_then_the_cosine_takes_over(data, tmp_path):
+    train(dataclasses.replace(CFG, warmup=0.2), data, tmp_path / "logs")  # 30 steps: 6 of ramp
+    _, lr = read_scalars(tmp_path / "logs")[LR_TAG]
+    cosine = CFG.lr * 0.5 * (1 + np.cos(np.pi * np.arange(30) / 30))
+    np.testing.assert_allclose(lr, cosine * np.minimum(1, np.arange(1, 31) / 6), rtol=1e-5)
+    assert "warmup" not in plain_form(CFG)  # a config without one is written as before the field existed
 
 
 def test_default_interval_is_a_tenth_of_the_run_and_always_ends_the_run(data, tmp_path):

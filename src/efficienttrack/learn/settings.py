@@ -59,6 +59,10 @@ class TrainingSchedule:
     """Decay the learning rate to 0 along a cosine over the run (paper: constant)."""
     grad_clip: float | None = setting(1.0, gt=0)
     """Clip the gradient norm to this (None: no clipping)."""
+    warmup: float = setting(0.0, ge=0, le=0.5, before=0.0)
+    """Share of the steps over which the learning rate rises linearly to ``lr`` at the start (0: from the first step).
+    For a warm start: Adam's first steps, with fresh moments, move every weight by about ``lr`` whatever its gradient,
+    which throws a trained network off (``RunConfig.round_warmup``)."""
     save_every: int = setting(200, ge=1, le=MAX_STEPS)
     """Save the training state every this many steps when a checkpoint path is given."""
     eval_every: int | None = setting(None, ge=1, le=MAX_STEPS)

@@ -316,12 +316,17 @@ class TrainLoop:
         return torch.randint(n, (batch,), generator=self.generator)
 
     def set_lr(self, step: int) -> None:
-        """Set the optimizer's learning rate for ``step``: ``cfg.lr``, cosine-decayed to 0 when ``cfg.cosine_decay``.
+        """Set the optimizer's learning rate for ``step``: ``cfg.lr``, cosine-decayed, ramped up over ``cfg.warmup``.
+
+        The cosine decays it to 0 over the run when ``cfg.cosine_decay``; the ramp rises linearly over the first
+        ``cfg.warmup`` share of the steps.
 
         Args:
             step: the optimizer step about to be taken (0-based).
         """
         lr = self.cfg.lr * (0.5 * (1 + math.cos(math.pi * step / self.total)) if self.cfg.cosine_decay else 1.0)
+        ramp = math.ceil(self.cfg.warmup * self.total)
+        lr *= min(1.0, (step + 1) / ramp) if ramp else 1.0
         for group in self.optimizer.param_groups:
             group["lr"] = lr
 

@@ -60,6 +60,9 @@ class RunConfig:
     warm_budget: float = setting(0.5, gt=0)
     """Optimizer steps (or epochs) of a later round's trainings, as a share of round 1's: they start from the
     previous round's networks and need fewer."""
+    round_warmup: float = setting(0.0, ge=0, le=0.5, before=0.0)
+    """Share of a later round's optimizer steps over which each training's learning rate rises linearly to its value
+    (``warmup`` of both sections, in rounds k ≥ 2 only; 0: from the first step, as round 1)."""
     time_budget: float | None = setting(None, gt=0, before=None)
     """Minutes of wall time for the whole run, all rounds (``--time-budget``): every training's optimizer steps are
     scaled down by one factor, from step times measured on this machine when training starts, or, when the minutes

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -168,10 +169,10 @@ def run_round(k: int, previous: RoundState, run: Run) -> RoundState:
     def share(part: str) -> float:  # of round 1's steps, planned when the training is about to begin
         return run.planner.scale(k, part) * (1.0 if k == 1 else cfg.warm_budget)
 
-    g_cfg = _warm(cfg.model.scaled(share("model")), None if previous.g_theta is None else previous.g_theta.cfg)
+    g_cfg = _warm(cfg.model.scaled(share("model")), None if previous.g_theta is None else previous.g_theta.cfg, cfg)
     trainer: partial[Any] = partial(dynamics.train_model, g_cfg, train_records, init=previous.g_theta, **common)
     g_theta, model_facts = train_stage(ledger, k, "model", run.log, trainer, dynamics.save_model, dynamics.load_model, device)
-    pi_cfg = _warm(cfg.policy.scaled(share("policy")), None if previous.pi_phi is None else previous.pi_phi.cfg)
+    pi_cfg = _warm(cfg.policy.scaled(share("policy")), None if previous.pi_phi is None else previous.pi_phi.cfg, cfg)
     trainer = partial(policy.train_policy, pi_cfg, g_theta, train_records, init=previous.pi_phi, **common)
     pi_phi, policy_facts = train_stage(ledger, k, "policy", run.log, trainer, policy.save_policy, policy.load_policy, device)
     test_records = evaluate_stage(ledger, k, "efficienttrack", run.system, pi_phi, run.test_refs, device)
@@ -215,9 +216,15 @@ def add_samples(*counts: int | None) -> int | None:
     return None if any(c is None for c in counts) else sum(c for c in counts if c is not None)
 
 
-def _warm(config: ConfigT, previous: ConfigT | None) -> ConfigT:
-    """``config``'s schedule with the sizes of the network it continues (:func:`continued_config`); round 1's as it is."""
-    return config if previous is None else continued_config(config, previous)
+def _warm(config: ConfigT, previous: ConfigT | None, run: RunConfig) -> ConfigT:
+    """A later round's ``config``: the sizes of the network it continues (:func:`continued_config`), ``round_warmup``.
+
+    Round 1's (``previous`` None) is ``config`` as it is.
+    """
+    if previous is None:
+        return config
+    warm = continued_config(config, previous)
+    return replace(warm, warmup=run.round_warmup) if run.round_warmup else warm
 
 
 def rounds_rows(pd: dict[str, Any], rounds: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
