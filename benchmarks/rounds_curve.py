@@ -92,10 +92,17 @@ def main() -> None:
     parser.add_argument("--scored", default=None, help="evaluations under each run: DIR/round_<k>/metrics.json")
     parser.add_argument("--study", type=Path, default=None, help="a study's results.json whose curves to draw beside")
     parser.add_argument("--study-metric", choices=("validation", "test"), default="test")
-    parser.add_argument("--floor", type=float, default=None, help="the ILC oracle's floor (°), drawn as a line")
+    parser.add_argument("--floor", action="append", default=[], help="[PLANT=]MAE: the ILC oracle's floor (°), a line")
     parser.add_argument("--title", default="MAE against interaction steps")
     parser.add_argument("--out", type=Path, required=True, help="the figure (.png)")
     args = parser.parse_args()
+    floors = []
+    for floor in args.floor:
+        plant, _, value = floor.rpartition("=")
+        try:
+            floors.append((plant, float(value)))
+        except ValueError:
+            parser.error(f"--floor '{floor}': expected [PLANT=]MAE, e.g. xe75=0.337")
     if bool(args.group) == (args.source is not None):
         parser.error("give --group (run folders) or --from (an --export file), not both")
     if args.source is not None:
@@ -145,10 +152,9 @@ def main() -> None:
             ax.fill_between(steps, mae - std, mae + std, color=line.get_color(), alpha=0.15)
             cells = ", ".join(f"{r['interaction_steps']:,} → {r['mae_deg']:.3f}" for r in rows if r["interaction_steps"] > 0)
             print(f"| {name} (study) | {rows[-1]['seeds']} | {cells} |")
-    if args.floor is not None:
-        ax.axhline(
-            args.floor, color="k", ls="-.", lw=1, label=f"floor: the ILC oracle on the test references ({args.floor:.3f}°)"
-        )
+    for i, (plant, mae) in enumerate(floors):
+        label = f"floor{f' ({plant})' if plant else ''}: the ILC oracle on the test references ({mae:.3f}°)"
+        ax.axhline(mae, color="k", ls=("-.", (0, (1, 3)))[i % 2], lw=1, label=label)
     ax.set_xscale("log")
     ax.set_yscale("log")  # PD's line and the learners' tenths of a degree on one axis
     for axis in (ax.yaxis.set_major_formatter, ax.yaxis.set_minor_formatter):

@@ -141,7 +141,7 @@ def test_rounds_curve_draws_rounds_beside_a_committed_study(tmp_path, run):
     assert "| SuperTrack (reduced) (study) | 5 |" in out and (tmp_path / "f.png").stat().st_size > 0
     for name in ("s0", "s1"):
         shutil.rmtree(tmp_path / name)  # the exported points redraw the same without the run folders
-    code, again, err = run("rounds_curve.py", "--from", kept, "--study", str(study), "--out", figure)
+    code, again, err = run("rounds_curve.py", "--from", kept, "--study", str(study), "--floor", "xe75=0.337", "--out", figure)
     assert code == 0 and again.split("\nfigure:")[0] == out.split("\nfigure:")[0], err[-2000:]
     assert json.loads(Path(kept).read_text())["command"].startswith("python benchmarks/rounds_curve.py --group")
     runs = ",".join([rounds_run("s0", [0.5, 0.4, 0.3], [0.9, 0.8]), rounds_run("s1", [0.7, 0.4])])
@@ -149,7 +149,8 @@ def test_rounds_curve_draws_rounds_beside_a_committed_study(tmp_path, run):
                          str(tmp_path / "g.png"))  # fmt: skip
     assert "| s0 | 1 | 15,738 → 0.900, 31,476 → 0.800 |" in out  # the evaluated rounds only
     for bad, says in [(["--group", "s0"], "expected NAME=RUN"), (["--group", f"x={tmp_path}"], "no metrics.json"),
-                      (["--from", str(tmp_path / "f.png")], "not an --export file")]:  # fmt: skip
+                      (["--from", str(tmp_path / "f.png")], "not an --export file"),
+                      (["--from", kept, "--floor", "xe75=low"], "expected [PLANT=]MAE")]:  # fmt: skip
         code, out, err = run("rounds_curve.py", *bad, "--out", str(tmp_path / "h.png"))
         assert code == 2 and says in err and "Traceback" not in err
 
