@@ -182,11 +182,10 @@ def run_efficienttrack_rounds(job: Job, folder: Path) -> list[Point]:
     """EfficientTrack in rounds (the ``fastset`` line): one collection pass, then as many rounds as the budget holds.
 
     Round k ≥ 2 deploys the latest policy once on the training references (or ``round_share`` of them) and trains model
-    and policy on, warm (:mod:`efficienttrack.workflow.rounds`). ``folder/run/`` is the one
-    run folder, extended round by round (:func:`~efficienttrack.workflow.pipeline.run_pipeline` with ``rounds = k``);
-    round k's point, measured on the test and validation references as EfficientTrack's are, is written to
-    ``folder/points/round_<k>.json`` and read from there on a rerun. A curve is one run's rounds, so a point chosen
-    on it cost only the steps up to it.
+    and policy on, warm (:mod:`efficienttrack.workflow.rounds`). ``folder/run/`` is the one run folder, extended round
+    by round (:func:`~efficienttrack.workflow.pipeline.run_pipeline` with ``rounds = k``); round k's point, measured on
+    the test and validation references as EfficientTrack's are, is written to ``folder/points/round_<k>.json`` and read
+    from there on a rerun. A curve is one run's rounds, so a point chosen on it cost only the steps up to it.
 
     Args:
         job: the job (closed loop).
