@@ -126,22 +126,10 @@ def test_round_data_new_trains_on_the_deployment_pass_only(tmp_path, refs, monke
     check_two_round_outputs(tmp_path, result, train)
 
 
-def test_a_round_warmup_ramps_later_rounds_learning_rates_and_leaves_round_1_alone(tmp_path, refs):
-    small = replace(TOY_CFG, collect=replace(TOY_CFG.collect, passes=1), model=replace(TOY_CFG.model, steps=40),
-                    policy=replace(TOY_CFG.policy, steps=40), rounds=2, round_warmup=0.25)  # fmt: skip
-    run_pipeline(TOY, *refs, tmp_path, small, max_plots=0)
-    for part in ("model", "policy"):
-        _, first = read_scalars(tmp_path / "logs" / part)["train/lr"]
-        _, later = read_scalars(tmp_path / "rounds" / "2" / "logs" / part)["train/lr"]  # 20 steps: a ramp of 5
-        lr = getattr(small, part).lr
-        ramped = lr * 0.5 * (1 + np.cos(np.pi * np.arange(20) / 20)) * np.minimum(1, np.arange(1, 21) / 5)
-        assert first[0] == pytest.approx(lr) and later == pytest.approx(ramped, rel=1e-5)
-
-
-def test_a_round_share_deploys_each_round_on_the_next_references_in_turn(tmp_path, refs):
+def test_smaller_rounds_deploy_on_the_next_references_in_turn_and_a_warmup_ramps_their_learning_rates(tmp_path, refs):
     train = refs[0]  # four references: a share of a half deploys on two a round, the first two, then the last two
-    small = replace(TOY_CFG, collect=replace(TOY_CFG.collect, passes=1), model=replace(TOY_CFG.model, steps=30),
-                    policy=replace(TOY_CFG.policy, steps=30), rounds=3, round_share=0.5)  # fmt: skip
+    small = replace(TOY_CFG, collect=replace(TOY_CFG.collect, passes=1), model=replace(TOY_CFG.model, steps=40),
+                    policy=replace(TOY_CFG.policy, steps=40), rounds=3, round_share=0.5, round_warmup=0.25)  # fmt: skip
     result = run_pipeline(TOY, *refs, tmp_path, small, max_plots=0)
     steps = [entry["interaction_steps"] for entry in result.metrics["rounds"]]
     halves = [sum(len(ref.q) - 1 for ref in part) for part in (train[:2], train[2:])]
@@ -150,6 +138,12 @@ def test_a_round_share_deploys_each_round_on_the_next_references_in_turn(tmp_pat
         deployed = sorted(p.stem for p in (tmp_path / "rounds" / str(k) / "records" / "deploy").glob("*.npz"))
         assert deployed == sorted(ref.name for ref in part), k
     assert "deploying the round-1 policy on 2 of the 4 training references" in (tmp_path / "run.log").read_text()
+    for part in ("model", "policy"):  # round 1 at the full rate from its first step; round 2 ramped over a quarter
+        _, first = read_scalars(tmp_path / "logs" / part)["train/lr"]
+        _, later = read_scalars(tmp_path / "rounds" / "2" / "logs" / part)["train/lr"]  # 20 steps: a ramp of 5
+        lr = getattr(small, part).lr
+        ramped = lr * 0.5 * (1 + np.cos(np.pi * np.arange(20) / 20)) * np.minimum(1, np.arange(1, 21) / 5)
+        assert first[0] == pytest.approx(lr) and later == pytest.approx(ramped, rel=1e-5)
 
 
 def test_round_references_move_on_by_a_window_and_the_study_counts_the_rounds_a_budget_holds(refs):
