@@ -260,17 +260,19 @@ def test_bad_inputs_name_the_problem(tmp_path, short):
         TrackingEnv("closed", refs=[outside])
 
 
-def test_the_package_does_not_import_gymnasium_and_make_imports_the_registration(tmp_path, short):
+def test_the_package_imports_no_gymnasium_and_registers_the_ids_when_gymnasium_is_imported(tmp_path, short):
     save_references(short, tmp_path / "refs")
     code = (
         "import sys, efficienttrack\n"
         "print('gymnasium' in sys.modules)\n"
         "import gymnasium\n"
-        "env = gymnasium.make('efficienttrack.envs:EfficientTrack/ClosedLoop-v0', refs=sys.argv[1])\n"
-        "print(env.reset(seed=0)[0].shape, gymnasium.make('EfficientTrack/OpenLoop-v0', refs=sys.argv[1]).spec.id)\n"
+        "print(gymnasium.make('EfficientTrack/ClosedLoop-v0', refs=sys.argv[1]).reset(seed=0)[0].shape)\n"
     )
     out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "refs")], capture_output=True, text=True)
-    assert out.stdout.splitlines() == ["False", "(332,) EfficientTrack/OpenLoop-v0"], out.stderr
+    assert out.stdout.splitlines() == ["False", "(332,)"], out.stderr
+    code = "import sys; sys.modules['gymnasium'] = None; import efficienttrack; print(efficienttrack.__version__)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0 and out.stdout.strip() == efficienttrack.__version__, out.stderr  # without Gymnasium
 
 
 def test_the_vector_env_takes_one_reference_per_sub_environment(short):

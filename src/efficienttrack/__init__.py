@@ -6,14 +6,17 @@ name ``efficienttrack.study`` is its package), with what they take (``SystemSpec
 records). They are imported on first use, so ``import efficienttrack`` stays light: the torch-free runtime imports
 the package without torch.
 
-The Gymnasium environments ``EfficientTrack/ClosedLoop-v0`` and ``EfficientTrack/OpenLoop-v0`` are registered by
-``import efficienttrack.envs`` (Gymnasium 1.x has no plugin entry point; a module-qualified id,
-``"efficienttrack.envs:EfficientTrack/ClosedLoop-v0"``, makes ``gymnasium.make`` import it), so importing this package
-imports no Gymnasium.
+The Gymnasium environments ``EfficientTrack/ClosedLoop-v0`` and ``EfficientTrack/OpenLoop-v0`` are registered when
+Gymnasium is imported, before or after this package, which imports none itself (Gymnasium 1.x has no plugin entry
+point: :class:`_RegisterWithGymnasium` does it). ``import efficienttrack.envs`` registers them too.
 """
 
+import importlib.abc
+import importlib.util
 import inspect
+import sys
 from importlib import import_module
+from types import ModuleType
 from typing import Any
 
 from efficienttrack.core.errors import missing_extra
@@ -71,3 +74,29 @@ def __getattr__(name: str) -> Any:
 def __dir__() -> list[str]:
     """The module's names, the lazily imported API included."""
     return sorted({*globals(), *API})
+
+
+class _RegisterWithGymnasium(importlib.abc.MetaPathFinder):
+    """Registers the environments the moment Gymnasium's own import finishes (then leaves ``sys.meta_path``)."""
+
+    def find_spec(self, name: str, path: Any, target: Any = None) -> Any:
+        """Gymnasium's spec, its loader made to register the environments after it runs; None for any other module."""
+        if name != "gymnasium":
+            return None
+        sys.meta_path.remove(self)
+        spec = importlib.util.find_spec(name)
+        if spec is not None and spec.loader is not None:
+            load = spec.loader.exec_module
+
+            def load_and_register(module: ModuleType) -> None:
+                load(module)
+                import_module("efficienttrack.envs")  # registers on import
+
+            spec.loader.exec_module = load_and_register  # type: ignore[method-assign]
+        return spec
+
+
+if sys.modules.get("gymnasium") is not None:
+    import_module("efficienttrack.envs")
+elif importlib.util.find_spec("gymnasium") is not None:
+    sys.meta_path.insert(0, _RegisterWithGymnasium())

@@ -1,10 +1,9 @@
 """Gymnasium environments over any system: the closed loop (adjust the PD reference) and the open loop (send PWM).
 
-Importing this package registers :data:`CLOSED_LOOP_ID` and :data:`OPEN_LOOP_ID` (Gymnasium 1.x's convention:
-``import efficienttrack.envs``, or ``gymnasium.make("efficienttrack.envs:EfficientTrack/ClosedLoop-v0")``, which
-imports it), so ``gymnasium.make(CLOSED_LOOP_ID, system="xe75", refs=DIR)`` and
+Importing this package registers :data:`CLOSED_LOOP_ID` and :data:`OPEN_LOOP_ID` (``import efficienttrack`` has it
+imported once Gymnasium is), so ``gymnasium.make(CLOSED_LOOP_ID, system="xe75", refs=DIR)`` and
 ``gymnasium.make_vec(CLOSED_LOOP_ID, num_envs=16, ...)`` (the native :class:`TrackingVectorEnv`, one batched system
-call per step) work. ``import efficienttrack`` alone does not import Gymnasium. The observation,
+call per step) work. The observation,
 action and reward are defined in :mod:`efficienttrack.envs.core` and tabled in ``docs/envs.md``; :func:`evaluate`
 runs a trained agent on held-out references as records that :func:`efficienttrack.data.metrics.compute_metrics` scores.
 
