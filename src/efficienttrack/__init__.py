@@ -96,7 +96,15 @@ class _RegisterWithGymnasium(importlib.abc.MetaPathFinder):
         return spec
 
 
+def _gymnasium_installed() -> bool:
+    """Whether Gymnasium can be imported here, found without importing it."""
+    try:
+        return importlib.util.find_spec("gymnasium") is not None
+    except ImportError:  # an import hook that refuses it, as on an install without it
+        return False
+
+
 if sys.modules.get("gymnasium") is not None:
     import_module("efficienttrack.envs")
-elif importlib.util.find_spec("gymnasium") is not None:
+elif _gymnasium_installed():
     sys.meta_path.insert(0, _RegisterWithGymnasium())
