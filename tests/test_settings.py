@@ -200,6 +200,7 @@ def test_every_methods_settings_go_through_the_one_validator(method):
 def test_config_show_of_a_method_without_settings_or_with_run_options_is_refused():
     refused(invoke("config", "show", "--method", "pd"), "--method pd: has no settings; methods with settings: efficienttrack")
     refused(invoke("config", "show", "--method", "dqn"), "--method dqn: unknown")
+    refused(invoke("config", "show", "--method", "efficienttrack-rounds"), "takes the run's settings: efficienttrack config")
     refused(invoke("config", "show", "--method", "sac", "--set", "seed=1"), "takes no --config or --set")
 
 

@@ -42,6 +42,9 @@ def show_command(
             raise EfficientTrackError("config show --method: takes no --config or --set (study --method-set changes it)")
         if method not in settable():
             known = ", ".join(settable())
+            if method == "efficienttrack-rounds":  # the closed loop's pipeline: the run's settings, changed by --set
+                raise EfficientTrackError(f"--method {method}: takes the run's settings: efficienttrack config show "
+                                          f"--preset {preset_name} lists them, study --set changes them")  # fmt: skip
             raise EfficientTrackError(f"--method {method}: " + ("has no settings" if method in METHODS else "unknown") +
                                       f"; methods with settings: {known}")  # fmt: skip
         typer.echo(f"# {method} settings of the study's preset {preset_name} (study --method-set {method}.FIELD=VALUE)")
