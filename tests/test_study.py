@@ -592,6 +592,7 @@ def test_method_set_changes_a_methods_settings_and_the_table_names_the_change(re
     [
         (["nope.x=1"], ["pd"], "--method-set nope.x=1: unknown method, choose from efficienttrack, sac"),
         (["pd.kp=1"], ["pd"], "--method-set pd.kp=1: pd has no settings to change"),
+        (["efficienttrack-rounds.rounds=2"], ["pd"], "has no settings to change \\(it runs the closed loop's settings: --set"),
         (["ilc.trails=1"], ["ilc"], r"--method-set ilc.trails=1: unknown ILCSettings field\(s\) trails"),
         (["ilc.trials=0"], ["ilc"], "--method-set ilc.trials=0: trials must be an integer ≥ 1, got 0"),
         (["ilc.trials=2", "ilc.gain=0.5"], ["ilc"], "--method-set ilc.gain=0.5: gain must be a list of 4 finite numbers > 0"),

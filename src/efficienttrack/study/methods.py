@@ -357,7 +357,9 @@ def check_method_settings(study: Study, jobs: Sequence[Job]) -> None:
         if method not in METHODS:
             raise EfficientTrackError(f"--method-set {changes[0]}: unknown method, choose from {', '.join(settable())}")
         if method not in settable():
-            raise EfficientTrackError(f"--method-set {changes[0]}: {method} has no settings to change")
+            runs = " (it runs the closed loop's settings: --set, e.g. --set round_share=0.5)"
+            raise EfficientTrackError(f"--method-set {changes[0]}: {method} has no settings to change"
+                                      + (runs if method == "efficienttrack-rounds" else ""))  # fmt: skip
         if method == "efficienttrack" and not any(job.settings_changes for job in jobs if job.method == method):
             raise EfficientTrackError(
                 f"--method-set {changes[0]}: changes open-loop EfficientTrack, and no job runs it; the closed loop's "
