@@ -334,3 +334,15 @@ def test_config_show_runs_without_torch():
 def test_the_baselines_and_the_open_loop_keep_the_loss_they_were_measured_with(method, preset_name):
     assert PolicyConfig().imagined_share == 0.5  # the closed loop's default
     assert preset_settings(method, preset_name).policy.imagined_share == 0.0  # SuperTrack's loss; the open loop's
+
+
+def test_settings_that_train_before_they_could_fail_refuse_a_device_this_machine_lacks():
+    import torch
+
+    from efficienttrack.baselines.openloop import OpenLoopSettings
+
+    if torch.cuda.is_available():
+        pytest.skip("CUDA is available here: 'cuda' is a device this machine has")
+    for cls in (SuperTrackSettings, OpenLoopSettings):
+        with pytest.raises(EfficientTrackError, match=f"^{cls.__name__}.device must be auto or cpu \\(CUDA is not avail"):
+            cls(device="cuda")

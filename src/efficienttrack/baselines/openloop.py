@@ -41,7 +41,7 @@ from efficienttrack.data.dataset import Sequences
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.envs.core import open_system
 from efficienttrack.learn.dynamics import NORM_SAMPLES, PlantModel, train_model
-from efficienttrack.learn.nets import resolve_device
+from efficienttrack.learn.nets import check_device_here, resolve_device
 from efficienttrack.learn.policy import PWMPolicy, train_policy
 from efficienttrack.learn.settings import MAX_STEPS, ModelConfig, PolicyConfig
 from efficienttrack.workflow.collect import MAX_PASSES, CollectConfig, pass_counts, run_pass
@@ -75,12 +75,7 @@ class OpenLoopSettings:
         """Check the fields (:func:`~efficienttrack.core.settings.check_fields`), the noise mix (CollectConfig), the device."""
         check_fields(self)
         CollectConfig(sigma_max=self.sigma_max, noise_ratio=self.noise_ratio)
-        try:
-            resolve_device(self.device)
-        except EfficientTrackError:  # the name matched DEVICE: CUDA is not here
-            raise EfficientTrackError(
-                f"OpenLoopSettings.device must be auto or cpu (CUDA is not available on this machine), got {self.device!r}"
-            ) from None
+        check_device_here("OpenLoopSettings", self.device)
 
 
 OPEN_PRESETS: dict[str, OpenLoopSettings] = {

@@ -100,6 +100,24 @@ def resolve_device(device: str | torch.device = "auto") -> torch.device:
     return resolved
 
 
+def check_device_here(owner: str, device: str) -> None:
+    """Refuse a settings' ``device`` this machine lacks, naming the field (a name :data:`DEVICE` admits, checked before).
+
+    Args:
+        owner: the settings class, named in the message.
+        device: its ``device`` field.
+
+    Raises:
+        EfficientTrackError: CUDA is asked for and not available.
+    """
+    try:
+        resolve_device(device)
+    except EfficientTrackError:
+        raise EfficientTrackError(
+            f"{owner}.device must be auto or cpu (CUDA is not available on this machine), got {device!r}"
+        ) from None
+
+
 def check_size(owner: str, name: str, value: Any, low: int, high: int) -> None:
     """Check that a config's size field ``owner.name`` is an integer in [``low``, ``high``].
 

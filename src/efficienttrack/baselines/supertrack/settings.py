@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.settings import DEVICE, canonical_preset, check_fields, setting
-from efficienttrack.learn.nets import resolve_device
+from efficienttrack.learn.nets import check_device_here
 from efficienttrack.learn.settings import MAX_STEPS, ModelConfig, PolicyConfig
 
 
@@ -50,12 +50,7 @@ class SuperTrackSettings:
     def __post_init__(self) -> None:
         """Check the fields (:func:`~efficienttrack.core.settings.check_fields`), then that the device is on this machine."""
         check_fields(self)
-        try:
-            resolve_device(self.device)
-        except EfficientTrackError:  # the name matched DEVICE: CUDA is not here
-            raise EfficientTrackError(
-                f"SuperTrackSettings.device must be auto or cpu (CUDA is not available on this machine), got {self.device!r}"
-            ) from None
+        check_device_here("SuperTrackSettings", self.device)
 
     def noise(self, loop: str) -> float:
         """The exploration σ of ``loop`` (``"closed"`` or ``"open"``), in action units.
