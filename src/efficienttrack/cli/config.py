@@ -42,7 +42,7 @@ def show_command(
             raise EfficientTrackError("config show --method: takes no --config or --set (study --method-set changes it)")
         if method not in settable():
             known = ", ".join(settable())
-            if method == "efficienttrack-rounds":  # the closed loop's pipeline: the run's settings, changed by --set
+            if method in METHODS and METHODS[method].run_settings:
                 raise EfficientTrackError(f"--method {method}: takes the run's settings: efficienttrack config show "
                                           f"--preset {preset_name} lists them, study --set changes them")  # fmt: skip
             raise EfficientTrackError(f"--method {method}: " + ("has no settings" if method in METHODS else "unknown") +

@@ -71,6 +71,7 @@ class Method:
             ``--method-set`` changes, its module imported only when called; None: no settings (``pd``).
         separate_runs: the loops where each point of its curve is a run of its own (EfficientTrack's pass counts), so
             that a point chosen among them cost the steps of them all; elsewhere a curve is one run's checkpoints.
+        run_settings: its closed loop trains with the run's settings, which the study's ``--set`` changes.
     """
 
     name: str
@@ -82,6 +83,7 @@ class Method:
     check: Callable[[Study], None] | None = None
     settings: Callable[[str], Any] | None = None
     separate_runs: tuple[str, ...] = ()
+    run_settings: bool = False
 
     def available(self) -> bool:
         """Whether every module in ``requires`` can be imported here (checked without importing them)."""
@@ -359,7 +361,7 @@ def check_method_settings(study: Study, jobs: Sequence[Job]) -> None:
         if method not in settable():
             runs = " (it runs the closed loop's settings: --set, e.g. --set round_share=0.5)"
             raise EfficientTrackError(f"--method-set {changes[0]}: {method} has no settings to change"
-                                      + (runs if method == "efficienttrack-rounds" else ""))  # fmt: skip
+                                      + (runs if METHODS[method].run_settings else ""))  # fmt: skip
         if method == "efficienttrack" and not any(job.settings_changes for job in jobs if job.method == method):
             raise EfficientTrackError(
                 f"--method-set {changes[0]}: changes open-loop EfficientTrack, and no job runs it; the closed loop's "
@@ -492,9 +494,10 @@ METHODS: dict[str, Method] = {
     "pd": Method("pd", "PD", run_pd, ("closed",), seeded=False),
     "efficienttrack": Method("efficienttrack", "EfficientTrack", run_efficienttrack, LOOPS, check=check_passes,
                              settings=_settings_of("efficienttrack.baselines.openloop", "open_settings"),
-                             separate_runs=("closed",)),
+                             separate_runs=("closed",), run_settings=True),
     "efficienttrack-rounds": Method("efficienttrack-rounds", "EfficientTrack (rounds)", run_efficienttrack_rounds,
-                                    ("closed",), check=partial(check_passes, method="efficienttrack-rounds")),
+                                    ("closed",), check=partial(check_passes, method="efficienttrack-rounds"),
+                                    run_settings=True),
     "sac": Method("sac", "SAC (reduced)", run_sb3, LOOPS, requires=SB3_MODULES,
                   settings=_settings_of("efficienttrack.baselines.settings", "method_settings", "sac")),
     "ppo": Method("ppo", "PPO", run_sb3, LOOPS, requires=SB3_MODULES,
