@@ -26,6 +26,33 @@ def one_thread():
             os.environ[name] = value
 
 
+def pytest_collection_modifyitems(items):
+    """Tests marked ``early`` run first: each takes 20 s or more alone, and a parallel run that reaches one last ends on
+    one worker while the other waits."""
+    items.sort(key=lambda item: item.get_closest_marker("early") is None)
+
+
+@pytest.fixture(autouse=True, scope="session")
+def one_click_command():
+    """Typer builds the click command anew from the app at every ``CliRunner().invoke`` (about 65 ms, some 400 times a
+    run of the suite): the tests build it once per app. Click commands keep no state between invocations."""
+    import typer.main
+    import typer.testing
+
+    build = typer.testing._get_command
+    built = {}
+    typer.testing._get_command = lambda app: built.get(id(app)) or built.setdefault(id(app), build(app))
+    yield
+    typer.testing._get_command = build
+
+
+@pytest.fixture
+def no_error_plot(monkeypatch):
+    """For tests of other things: ``evaluate`` draws tracking_error.png whatever ``--plots`` says (0.6 s), which
+    test_pipeline checks."""
+    monkeypatch.setattr("efficienttrack.workflow.plots.plot_tracking_error", lambda runs, path: None)
+
+
 @pytest.fixture
 def interrupt_at(monkeypatch):
     """``interrupt_at(count)``: the baseline runs that follow are killed (KeyboardInterrupt) when they would measure a
