@@ -453,6 +453,22 @@ def good(tmp_path_factory) -> dict[str, Path]:
     }
 
 
+@pytest.fixture(scope="module")
+def cases_root(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("cases")
+
+
+@pytest.fixture
+def case_dir(cases_root, monkeypatch) -> Path:
+    """A fresh folder for one case of a sweep, made the working directory (a command's default paths land there), and
+    the output checks' probe files not fsynced: pytest's numbered ``tmp_path`` (~5 ms) and the probe's fsync (~6 ms on
+    a disk) were most of a case's time. A full disk has its own test (test_a_disk_full_at_the_final_write_...)."""
+    folder = Path(tempfile.mkdtemp(dir=cases_root))
+    monkeypatch.chdir(folder)
+    monkeypatch.setattr(os, "fsync", lambda fd: None)
+    return folder
+
+
 @functools.cache
 def click_command():
     """The click command typer builds from ``cli.app`` on every call (half a case's time), built once."""
@@ -477,13 +493,12 @@ def one_line_error(code: int | str | None, err: str) -> str:
 
 
 @pytest.mark.parametrize(("command", "slot", "variant"), CASES)
-def test_every_command_refuses_a_bad_file_in_one_line(command, slot, variant, good, tmp_path, monkeypatch, capsys):
-    monkeypatch.chdir(tmp_path)  # a command's default paths land here
-    (tmp_path / "bad").mkdir()
-    bad = BAD[SLOTS[slot]][variant](tmp_path / "bad", good)
+def test_every_command_refuses_a_bad_file_in_one_line(command, slot, variant, good, case_dir, monkeypatch, capsys):
+    (case_dir / "bad").mkdir()
+    bad = BAD[SLOTS[slot]][variant](case_dir / "bad", good)
     if bad.name.endswith(".state.pt"):  # a damaged training state beside the checkpoint given
         bad = bad.with_name(bad.name.removesuffix(".state.pt") + ".pt")
-    paths = {**good, **{slot_: tmp_path / "out" / name for slot_, name in OUTPUTS.items()}, slot: bad}
+    paths = {**good, **{slot_: case_dir / "out" / name for slot_, name in OUTPUTS.items()}, slot: bad}
     argv = [arg.format(**paths) for arg in COMMANDS[command].split()]
     line = one_line_error(*run_main(argv, monkeypatch, capsys))
     assert bad.name in line or str(bad.parent) in line, line  # the error is about the bad input, and names it
@@ -590,9 +605,8 @@ def test_the_writers_are_found():
 
 
 @pytest.mark.parametrize("command", WRITERS)
-def test_every_writer_refuses_an_output_another_process_is_writing(command, good, tmp_path, monkeypatch, capsys):
-    monkeypatch.chdir(tmp_path)
-    paths = {**good, **{slot: tmp_path / "out" / name for slot, name in OUTPUTS.items()}}
+def test_every_writer_refuses_an_output_another_process_is_writing(command, good, case_dir, monkeypatch, capsys):
+    paths = {**good, **{slot: case_dir / "out" / name for slot, name in OUTPUTS.items()}}
     argv = [arg.format(**paths) for arg in COMMANDS[command].split()]
     slot = next(slot for slot in ("out_folder", "out_pt", "out_json") if f"{{{slot}}}" in COMMANDS[command])
     with output_lock(paths[slot], folder=slot == "out_folder"):
@@ -601,9 +615,8 @@ def test_every_writer_refuses_an_output_another_process_is_writing(command, good
 
 
 @pytest.mark.parametrize(("command", "option", "value"), [pytest.param(*case, id=" ".join(case)) for case in OPTIONS])
-def test_every_command_refuses_a_bad_option_value_in_one_line(command, option, value, good, tmp_path, monkeypatch, capsys):
-    monkeypatch.chdir(tmp_path)
-    paths = {**good, **{slot: tmp_path / "out" / name for slot, name in OUTPUTS.items()}}
+def test_every_command_refuses_a_bad_option_value_in_one_line(command, option, value, good, case_dir, monkeypatch, capsys):
+    paths = {**good, **{slot: case_dir / "out" / name for slot, name in OUTPUTS.items()}}
     argv = [*(arg.format(**paths) for arg in COMMANDS[command].split()), option, value]
     line = one_line_error(*run_main(argv, monkeypatch, capsys))
     assert option in line or value.split("=")[0] in line, line

@@ -87,7 +87,7 @@ def finite(metrics):
     return all(math.isfinite(metrics[key]) for key in METRIC_KEYS if key != "per_joint_mae_deg")
 
 
-QUICK_RUNS = [("ppo", [1, 64, 256], [4, 64, 256]), ("sac", [1, 60, 200], [1, 60, 200])]
+QUICK_RUNS = [("ppo", [1, 64, 132], [4, 64, 132]), ("sac", [1, 60, 100], [1, 60, 100])]
 """(method, eval_at, the interaction counts measured): PPO's quick preset steps 4 environments at a time."""
 
 
@@ -102,7 +102,7 @@ def test_quick_preset_trains_on_the_closed_loop(refs, tmp_path, method, eval_at,
     assert walls == sorted(walls) and walls[0] >= 0
     samples = [p["gradient_samples"] for p in curve]  # none before the first update (PPO: a rollout; SAC: 50 steps)
     assert samples == sorted(samples) and samples[0] == 0 and samples[-1] > 0
-    if method == "ppo":  # the first rollout, 4 environments × 32 steps, and its 2 epochs, before the point at 256
+    if method == "ppo":  # the first rollout, 4 environments × 32 steps, and its 2 epochs, before the point at 132
         assert samples == [0, 0, 2 * 128]
     written = json.loads((tmp_path / "curve.json").read_text())
     assert (written["method"], written["loop"], written["seed"]) == (method, "closed", 0)

@@ -79,7 +79,7 @@ def synthetic_records(params, episodes=6, steps=240, seed=0):
 
 @pytest.mark.slow
 def test_calibrate_recovers_a_known_simulator():
-    records = synthetic_records(TRUE)
+    records = synthetic_records(TRUE, episodes=12, steps=100)  # short episodes: the last stage simulates them whole
     start = TRUE.replace(
         delay=(4, 4, 4, 4),
         tau=(0.1, 0.1, 0.1, 0.1),
@@ -89,7 +89,7 @@ def test_calibrate_recovers_a_known_simulator():
         v_max_neg=(0.3, 0.3, 0.8, 0.3),
     )
     config = FitConfig(
-        delays=(3, 4), open_horizon=10, closed_horizon=30, max_windows=60, max_episodes=4, max_nfev=10, max_ref_jitter=0.05
+        delays=(3, 4), open_horizon=10, closed_horizon=20, max_windows=60, max_episodes=4, max_nfev=10, max_ref_jitter=0.05
     )
     windows = make_windows(pad(records), 10, stride=20)
     before = window_error(rollout_windows(start, windows), windows)
@@ -265,7 +265,8 @@ def test_open_loop_error_of_a_plant_without_history_starts_at_rest():
 
 def test_cli_fidelity_and_calibrate(tmp_path):
     logs = tmp_path / "logs"
-    for i, record in enumerate(synthetic_records(TRUE, episodes=2, steps=100, seed=3)):
+    # 70 steps: room for the calibration's 60-step closed-loop windows (the fit's cost grows with the steps)
+    for i, record in enumerate(synthetic_records(TRUE, episodes=2, steps=70, seed=3)):
         record.save(logs / f"ep{i}.npz")
     preset = save_params(TRUE, tmp_path / "true.json")
     runner = CliRunner()
@@ -289,7 +290,7 @@ def test_cli_fidelity_and_calibrate(tmp_path):
     report = json.loads(out.output.strip().splitlines()[-1])
     np.testing.assert_allclose(report["closed_loop"]["ratio"], 1.0, atol=1e-3)
     assert len(list((tmp_path / "plots").glob("*.png"))) == 1
-    calm = synthetic_records(TRUE, episodes=1, steps=100, seed=3)[0]
+    calm = synthetic_records(TRUE, episodes=1, steps=70, seed=3)[0]
     calm = EpisodeRecord(**{**calm.__dict__, "q_ref": calm.q_des.copy()})  # jitter 0; the others jitter ~0.02 rad
     calm.save(logs / "calm.npz")
     fid = ["sim", "fidelity", "--logs", str(logs), "--system-opt", f"params_file={preset}"]

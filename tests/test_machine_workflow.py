@@ -11,7 +11,7 @@ import pytest
 
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.data.records import load_records
-from efficienttrack.data.references import Reference, save_references
+from efficienttrack.data.references import Reference, load_references, save_references
 from efficienttrack.deploy.machine import SimulatedMachine
 from efficienttrack.systems.limits import DEFAULT_LIMITS
 from efficienttrack.systems.protocol import BatchedSystem
@@ -133,7 +133,11 @@ def test_collect_on_a_users_machine_adapter_runs_in_real_time_and_needs_arm_and_
 def test_from_first_collection_to_a_second_round_on_the_simulated_machine(tmp_path):
     """docs/your-machine.md's rehearsal: collect → train-model → train-policy → deploy --shadow → deploy → round, on one
     simulated machine through --machine, which stays where each episode left it and approaches every start."""
-    assert invoke("refs", "generate", "--n", "2", "--seed", "5", "--out", tmp_path / "refs").exit_code == 0
+    assert invoke("refs", "generate", "--n", "1", "--seed", "5", "--out", tmp_path / "gen").exit_code == 0
+    # two 3 s pieces of the cycle, one after the other: every step is a tick of the loop, and so is every step of the
+    # approaches, which take the longer the farther apart the starts are (0.1 rad/s)
+    [cycle] = load_references(tmp_path / "gen")
+    save_references([Reference(f"ref_0{k + 1}", cycle.q[60 * k : 60 * (k + 1)]) for k in (0, 1)], tmp_path / "refs")
     (tmp_path / "limits.yaml").write_text("{}")
     machine = ("--machine", "efficienttrack.deploy.machine:simulated", "--machine-opt", f"name={tmp_path}",
                "--limits", tmp_path / "limits.yaml", "--arm", "--fast")  # fmt: skip

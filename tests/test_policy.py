@@ -34,7 +34,9 @@ def model(lag_model):
 
 @pytest.fixture(scope="module")
 def trained(model):
-    return train_policy(POLICY_PRESETS["tiny"], model, lag_records(), device="cpu", progress=False)
+    """The quick preset (imagined deployments on, the default) at half its steps: 100 steps leave 0.53-0.55 of the
+    predicted and 0.23-0.25 of the true tracking error at seeds 0-2 (200 steps: 0.52-0.53 and 0.22-0.23)."""
+    return train_policy(dataclasses.replace(POLICY_PRESETS["tiny"], steps=100), model, lag_records(), "cpu", progress=False)
 
 
 def track_lag_system(policy, records):
@@ -91,7 +93,8 @@ def test_a_rollout_split_in_two_at_its_histories_is_the_rollout_in_one(model):
 
 @pytest.mark.parametrize("share", [1.0, 0.5])
 def test_a_policy_trained_after_a_burn_in_cuts_the_true_tracking_error(model, share):
-    cfg = dataclasses.replace(POLICY_PRESETS["tiny"], burn_in=6, burn_in_share=share, imagined_share=0.0)
+    # 60 steps: 0.23-0.27 of the lagging loop's error at seeds 0-2, as 200 steps (0.20-0.24)
+    cfg = dataclasses.replace(POLICY_PRESETS["tiny"], burn_in=6, burn_in_share=share, imagined_share=0.0, steps=60)
     assert plain_form(cfg)["burn_in"] == 6 and "burn_in" not in plain_form(POLICY_PRESETS["tiny"])  # old folders resume
     trained = train_policy(cfg, model, lag_records(), device="cpu", progress=False)
     test = lag_records(n=4, seed=1, sigma=0.0)
@@ -100,10 +103,10 @@ def test_a_policy_trained_after_a_burn_in_cuts_the_true_tracking_error(model, sh
     assert trained.windows == sum(len(r.q) - 6 for r in lag_records())  # B steps still within each episode
 
 
-def test_a_policy_trained_on_imagined_deployments_cuts_the_true_tracking_error(model):
+def test_a_policy_trained_on_imagined_deployments_cuts_the_true_tracking_error(trained):
     cfg = POLICY_PRESETS["tiny"]
     assert cfg.imagined_share == 0.5 and plain_form(cfg)["imagined_share"] == 0.5  # the default, in every preset
-    trained = train_policy(cfg, model, lag_records(), device="cpu", progress=False)
+    assert trained.policy.cfg.imagined_share == 0.5  # the module's policy: trained on imagined deployments
     test = lag_records(n=4, seed=1, sigma=0.0)
     pd_mae, policy_mae = track_lag_system(None, test), track_lag_system(trained.policy, test)
     assert policy_mae < 0.45 * pd_mae, (pd_mae, policy_mae)

@@ -8,11 +8,13 @@ import sys
 from pathlib import Path
 
 import pytest
+from typer.testing import CliRunner
+
+from efficienttrack.cli import app
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 PLUG_IN = ROOT / "docs" / "your-system.md"
-CONSOLE_SCRIPT = Path(sys.executable).parent / "efficienttrack"
 
 
 def plug_in_example() -> tuple[str, list[str]]:
@@ -32,17 +34,26 @@ def test_the_example_uses_the_console_script_and_the_plug_in():
     assert any("mymachines:make" in line for line in lines)
 
 
-@pytest.mark.skipif(not CONSOLE_SCRIPT.exists(), reason=f"console script not installed at {CONSOLE_SCRIPT}")
+@pytest.fixture
+def user_folder(monkeypatch, tmp_path):
+    """``tmp_path`` as the working folder of a user's console script or script, in-process: not on ``sys.path`` (so the
+    plug-in is found only because specs look there first), and no user module is left imported afterwards."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if p not in ("", ".")])
+    yield tmp_path
+    sys.modules.pop("mymachines", None)
+
+
 @pytest.mark.slow
-def test_plug_in_example_runs_as_written(tmp_path):
+def test_plug_in_example_runs_as_written(user_folder):
+    """The ``efficienttrack`` command lines through the console script's app, in-process (a subprocess each cost
+    seconds of imports; test_wheel runs the installed console script)."""
     module, lines = plug_in_example()
-    (tmp_path / "mymachines.py").write_text(module)
-    env = {**os.environ, "PYTHONPATH": str(ROOT / "src"), "COLUMNS": "160"}
+    (user_folder / "mymachines.py").write_text(module)
     for line in lines:
-        argv = shlex.split(line)
-        done = subprocess.run([str(CONSOLE_SCRIPT), *argv[1:]], cwd=tmp_path, env=env, capture_output=True, text=True)
-        assert done.returncode == 0, f"{PLUG_IN.name} command failed: {line}\n{done.stdout}\n{done.stderr}"
-    assert "EfficientTrack" in done.stdout and (tmp_path / "runs" / "mine" / "metrics.json").is_file()
+        done = CliRunner().invoke(app, shlex.split(line)[1:], env={"COLUMNS": "160"})
+        assert done.exit_code == 0, f"{PLUG_IN.name} command failed: {line}\n{done.output}\n{done.exception!r}"
+    assert "EfficientTrack" in done.output and (user_folder / "runs" / "mine" / "metrics.json").is_file()
 
 
 def python_quick_start() -> str:
@@ -53,13 +64,12 @@ def python_quick_start() -> str:
 
 
 @pytest.mark.slow
-def test_the_python_quick_start_runs_as_written_and_beats_pd(tmp_path):
-    env = {**os.environ, "PYTHONPATH": str(ROOT / "src"), "COLUMNS": "160"}
-    done = subprocess.run([sys.executable, "-c", python_quick_start()], cwd=tmp_path, env=env, capture_output=True, text=True)
-    assert done.returncode == 0, f"README quick start failed:\n{done.stdout}\n{done.stderr}"
-    pd_mae, et_mae = (float(x) for x in done.stdout.strip().splitlines()[-1].split())
+def test_the_python_quick_start_runs_as_written_and_beats_pd(user_folder, capsys):
+    """Executed in-process in a fresh namespace (a subprocess cost seconds of imports)."""
+    exec(python_quick_start(), {"__name__": "__main__"})
+    pd_mae, et_mae = (float(x) for x in capsys.readouterr().out.strip().splitlines()[-1].split())
     assert et_mae < pd_mae
-    assert (tmp_path / "runs" / "python" / "policy.pt").is_file()
+    assert (user_folder / "runs" / "python" / "policy.pt").is_file()
 
 
 def test_the_top_level_api_names_resolve_and_stay_lazy():

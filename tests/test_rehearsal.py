@@ -8,7 +8,7 @@ import pytest
 
 from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.data.records import load_records
-from efficienttrack.data.references import Reference
+from efficienttrack.data.references import Reference, load_references, save_references
 from efficienttrack.deploy.deployment import APPROACH_SPEED, approach_path, run_episode
 from efficienttrack.deploy.loop import NotAtStart
 from efficienttrack.deploy.machine import SimulatedClock, simulated
@@ -19,7 +19,11 @@ SIMULATED = "efficienttrack.deploy.machine:simulated"
 
 @pytest.fixture
 def refs(tmp_path):
-    assert invoke("refs", "generate", "--n", "8", "--seed", "3", "--out", tmp_path / "refs").exit_code == 0
+    """Three 3 s pieces of a generated cycle, one after the other: every step is a tick of the loop, and so is every step
+    of the approaches, which take the longer the farther apart the starts are (0.1 rad/s)."""
+    assert invoke("refs", "generate", "--n", "1", "--seed", "3", "--out", tmp_path / "gen").exit_code == 0
+    [cycle] = load_references(tmp_path / "gen")
+    save_references([Reference(f"ref_0{k + 1}", cycle.q[60 * k : 60 * (k + 1)]) for k in range(3)], tmp_path / "refs")
     (tmp_path / "lim.json").write_text("{}")
     return tmp_path / "refs"
 
@@ -63,17 +67,17 @@ def test_an_approach_goes_the_short_way_round_at_its_speed_then_holds():
 def test_collect_on_the_simulated_machine_approaches_every_start_and_runs_every_episode(tmp_path, refs):
     result = invoke("collect", "--refs", refs, "--out", tmp_path / "c", *machine_args(tmp_path, "collect"), "--passes", "2")
     assert result.exit_code == 0, result.output
-    assert "collected 16 episodes" in result.output
+    assert "collected 6 episodes" in result.output
     assert "the machine stands" in result.output and "approaching it through the loop (try 1 of 3" in result.output
     for k in (0, 1):
         logs = tmp_path / "c" / "logs" / f"pass_{k:03d}"
-        assert sorted(p.name for p in logs.glob("*.jsonl")) == [f"ref_{i:02d}.jsonl" for i in range(1, 9)]
+        assert sorted(p.name for p in logs.glob("*.jsonl")) == [f"ref_{i:02d}.jsonl" for i in range(1, 4)]
         approaches = sorted(p.name for p in (logs / "approach").glob("*.jsonl"))
         assert approaches, "the machine never had to move to a start"
         for path in (logs / "approach").glob("*.jsonl"):
             assert json.loads(path.read_text().splitlines()[-1])["reason"] == "done"
     records = load_records(tmp_path / "c", recursive=True)
-    assert len(records) == 16 and all(not r.meta["name"].endswith("(approach)") for r in records)
+    assert len(records) == 6 and all(not r.meta["name"].endswith("(approach)") for r in records)
 
 
 def test_without_an_approach_an_episode_away_from_its_start_stops_and_leaves_no_empty_log(tmp_path, refs):
@@ -96,7 +100,9 @@ def test_the_simulated_machines_faults_stop_a_deployment(tmp_path, refs, fault, 
     one = tmp_path / "one"
     one.mkdir()
     (one / "ref_01.npy").write_bytes((refs / "ref_01.npy").read_bytes())
-    options = (f"fault={fault}", "fault_at=30", "fault_episode=3")  # opened: a refused start, the approach, the episode
+    # opened: a refused start (the machine stands 0.2 rad away, a short approach), the approach, the episode
+    start = ",".join(map(str, np.load(one / "ref_01.npy")[0] + [0.2, 0, 0, 0]))
+    options = (f"start={start}", f"fault={fault}", "fault_at=30", "fault_episode=3")
     result = invoke("deploy", "--refs", one, "--out", tmp_path / "d", *machine_args(tmp_path, f"fault-{fault}", *options))
     assert result.exit_code == 1, result.output
     assert f"stopped: ref_01: {reason}" in result.output

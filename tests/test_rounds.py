@@ -28,41 +28,72 @@ def refs(toy_refs):
 def two_rounds(tmp_path_factory, refs, toy_run):
     """A two-round toy run: a copy of the session's one-round run (conftest.py) extended by a second round.
 
-    Seeded, it is what a fresh two-round run gives, wall times aside: round 1 is not trained again (a fresh two-round
-    run is checked in test_round_data_new_trains_on_the_deployment_pass_only). Tests that run in it copy it.
+    Seeded, it is what a fresh two-round run gives, wall times aside: round 1 is not trained again (fresh runs of more
+    rounds are the ``small_rounds`` fixture's). Tests that run in it copy it.
     """
     out = tmp_path_factory.mktemp("rounds") / "run"
     shutil.copytree(toy_run[0], out)
     return out, run_pipeline(TOY, *refs, out, replace(TOY_CFG, rounds=2), max_plots=0)  # tracking plots: test_pipeline's
 
 
-def check_two_round_outputs(out, result, train):
-    """Assert what a finished two-round run reports and writes.
+@pytest.fixture(scope="module")
+def small_rounds(tmp_path_factory, refs):
+    """A fresh three-round run, small, with every round setting changed: ``(folder, RunResult, trained_on)``.
+
+    One collection pass and short trainings (nothing here depends on how well it tracks); later rounds train on their
+    deployment alone (``round_data: new``), deploy on half the training references each (``round_share``) and ramp their
+    learning rates (``round_warmup``). ``trained_on``: the episodes each training (model, then policy; round 1, 2, 3)
+    is given.
+    """
+    trained_on = []
+
+    def counting(train, records_at):
+        def wrapper(*args, **kwargs):
+            trained_on.append(len(args[records_at]))
+            return train(*args, **kwargs)
+
+        return wrapper
+
+    small = replace(TOY_CFG, collect=replace(TOY_CFG.collect, passes=1), model=replace(TOY_CFG.model, steps=40),
+                    policy=replace(TOY_CFG.policy, steps=40), rounds=3, round_data="new", round_share=0.5,
+                    round_warmup=0.25)  # fmt: skip
+    out = tmp_path_factory.mktemp("small_rounds")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(dynamics, "train_model", counting(dynamics.train_model, 1))  # (cfg, records, …)
+        patch.setattr(policy, "train_policy", counting(policy.train_policy, 2))  # (cfg, g_theta, records, …)
+        result = run_pipeline(TOY, *refs, out, small, max_plots=0)
+    return out, result, trained_on
+
+
+def check_round_outputs(out, result, deployments):
+    """Assert what a finished run of several rounds reports and writes.
 
     Args:
         out: the run folder.
         result: its ``RunResult``.
-        train: its training references.
+        deployments: the training references that rounds 2, 3, … deployed on, one list a round.
     """
     rounds = result.metrics["rounds"]
-    assert [entry["round"] for entry in rounds] == [1, 2]
-    deployed = sum(len(ref.q) - 1 for ref in train)  # one pass over the training references, no noise
-    assert rounds[1]["interaction_steps"] == rounds[0]["interaction_steps"] + deployed
-    assert result.metrics["interaction_steps"] == rounds[1]["interaction_steps"]
-    assert result.metrics["efficienttrack"] == rounds[1]["efficienttrack"]
-    assert result.metrics["policy"] == str(out / "rounds" / "2" / "policy.pt")
+    last = len(deployments) + 1
+    assert [entry["round"] for entry in rounds] == list(range(1, last + 1))
+    for k, deployed in enumerate(deployments, start=2):  # one pass over the round's references, no noise
+        assert rounds[k - 1]["interaction_steps"] == rounds[k - 2]["interaction_steps"] + sum(len(r.q) - 1 for r in deployed)
+        recorded = sorted(p.stem for p in (out / "rounds" / str(k) / "records" / "deploy").glob("*.npz"))
+        assert recorded == sorted(ref.name for ref in deployed), k
+    assert result.metrics["interaction_steps"] == rounds[-1]["interaction_steps"]
+    assert result.metrics["efficienttrack"] == rounds[-1]["efficienttrack"]
+    assert result.metrics["policy"] == str(out / "rounds" / str(last) / "policy.pt")
     assert json.loads((out / "metrics.json").read_text())["rounds"] == rounds
-    assert len(list((out / "rounds" / "2" / "records" / "deploy").glob("*.npz"))) == len(train)
     assert (out / "plots" / "rounds.png").is_file()
     table = list(csv.DictReader((out / "rounds.csv").open()))
-    assert [row["method"] for row in table] == ["PD", "Round 1", "Round 2"] and table[0]["interaction_steps"] == ""
-    assert "| Round 2 |" in (out / "rounds.md").read_text()
+    assert [row["method"] for row in table] == ["PD", *(f"Round {k}" for k in range(1, last + 1))]
+    assert table[0]["interaction_steps"] == "" and f"| Round {last} |" in (out / "rounds.md").read_text()
 
 
 @pytest.mark.slow
 def test_rounds_add_a_deployment_pass_and_report_every_round(two_rounds, refs, toy_run):
     out, result = two_rounds
-    check_two_round_outputs(out, result, refs[0])
+    check_round_outputs(out, result, [refs[0]])
     assert result.metrics["rounds"][0]["efficienttrack"] == toy_run[1].metrics["efficienttrack"]  # round 1 as it was
 
 
@@ -94,54 +125,29 @@ def test_rerun_resumes_every_round(two_rounds, refs, tmp_path):
 
 
 @pytest.mark.slow
-def test_more_rounds_extend_a_finished_run(two_rounds, refs, tmp_path):
-    out, result = two_rounds
-    extended = tmp_path / "extended"
-    shutil.copytree(out, extended)
-    three = run_pipeline(TOY, *refs, extended, replace(TOY_CFG, rounds=3), max_plots=0)
-    assert three.metrics["rounds"][:2] == result.metrics["rounds"] and three.metrics["rounds"][2]["round"] == 3
-    assert set(three.skipped) >= {"collect", "model", "policy"}
+def test_more_rounds_extend_a_finished_run(two_rounds, toy_run):
+    # two_rounds extended the finished one-round toy_run by a round; small_rounds trains a third round on a second
+    result = two_rounds[1]
+    assert result.metrics["rounds"][:1] == toy_run[1].metrics["rounds"] and result.metrics["rounds"][1]["round"] == 2
+    assert set(result.skipped) >= {"collect", "model", "policy", "evaluate_pd", "evaluate_efficienttrack"}
 
 
-def test_round_data_new_trains_on_the_deployment_pass_only(tmp_path, refs, monkeypatch):
-    trained_on = []  # the episodes each training (model, then policy; round 1, then round 2) is given
-
-    def counting(train, records_at):
-        def wrapper(*args, **kwargs):
-            trained_on.append(len(args[records_at]))
-            return train(*args, **kwargs)
-
-        return wrapper
-
-    monkeypatch.setattr(dynamics, "train_model", counting(dynamics.train_model, 1))  # (cfg, records, …)
-    monkeypatch.setattr(policy, "train_policy", counting(policy.train_policy, 2))  # (cfg, g_theta, records, …)
-    # a fresh two-round run, small: one collection pass and short trainings (nothing here depends on how well it tracks)
-    small = replace(TOY_CFG, collect=replace(TOY_CFG.collect, passes=1), model=replace(TOY_CFG.model, steps=30),
-                    policy=replace(TOY_CFG.policy, steps=30))  # fmt: skip
-    result = run_pipeline(TOY, *refs, tmp_path, replace(small, rounds=2, round_data="new"), max_plots=0)
-    all_data = result.metrics["config"]["round_data"]
-    assert all_data == "new" and len(result.metrics["rounds"]) == 2
-    train = refs[0]
-    assert trained_on == [len(train)] * 4  # round 1: the one collection pass; round 2: its deployment pass, not both
-    check_two_round_outputs(tmp_path, result, train)
+def test_round_data_new_trains_on_the_deployment_pass_only(small_rounds, refs):
+    _, result, trained_on = small_rounds
+    assert result.metrics["config"]["round_data"] == "new"
+    # round 1: the one collection pass; rounds 2 and 3: their deployment on two references, not what came before
+    assert trained_on == [len(refs[0])] * 2 + [2] * 4
 
 
-def test_smaller_rounds_deploy_on_the_next_references_in_turn_and_a_warmup_ramps_their_learning_rates(tmp_path, refs):
+def test_smaller_rounds_deploy_on_the_next_references_in_turn_and_a_warmup_ramps_their_learning_rates(small_rounds, refs):
+    out, result, _ = small_rounds
     train = refs[0]  # four references: a share of a half deploys on two a round, the first two, then the last two
-    small = replace(TOY_CFG, collect=replace(TOY_CFG.collect, passes=1), model=replace(TOY_CFG.model, steps=40),
-                    policy=replace(TOY_CFG.policy, steps=40), rounds=3, round_share=0.5, round_warmup=0.25)  # fmt: skip
-    result = run_pipeline(TOY, *refs, tmp_path, small, max_plots=0)
-    steps = [entry["interaction_steps"] for entry in result.metrics["rounds"]]
-    halves = [sum(len(ref.q) - 1 for ref in part) for part in (train[:2], train[2:])]
-    assert steps == [steps[0], steps[0] + halves[0], steps[0] + sum(halves)]
-    for k, part in ((2, train[:2]), (3, train[2:])):
-        deployed = sorted(p.stem for p in (tmp_path / "rounds" / str(k) / "records" / "deploy").glob("*.npz"))
-        assert deployed == sorted(ref.name for ref in part), k
-    assert "deploying the round-1 policy on 2 of the 4 training references" in (tmp_path / "run.log").read_text()
+    check_round_outputs(out, result, [train[:2], train[2:]])
+    assert "deploying the round-1 policy on 2 of the 4 training references" in (out / "run.log").read_text()
     for part in ("model", "policy"):  # round 1 at the full rate from its first step; round 2 ramped over a quarter
-        _, first = read_scalars(tmp_path / "logs" / part)["train/lr"]
-        _, later = read_scalars(tmp_path / "rounds" / "2" / "logs" / part)["train/lr"]  # 20 steps: a ramp of 5
-        lr = getattr(small, part).lr
+        _, first = read_scalars(out / "logs" / part)["train/lr"]
+        _, later = read_scalars(out / "rounds" / "2" / "logs" / part)["train/lr"]  # 20 steps: a ramp of 5
+        lr = getattr(TOY_CFG, part).lr
         ramped = lr * 0.5 * (1 + np.cos(np.pi * np.arange(20) / 20)) * np.minimum(1, np.arange(1, 21) / 5)
         assert first[0] == pytest.approx(lr) and later == pytest.approx(ramped, rel=1e-5)
 

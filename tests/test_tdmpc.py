@@ -183,10 +183,10 @@ def test_open_loop_trains_and_evaluates_with_the_planner(refs, tmp_path):
     assert [p["interaction_steps"] for p in curve] == [30] and finite(curve[0]["metrics"])
 
 
-@pytest.mark.parametrize("evaluate_with", ["policy", "plan"])
-def test_same_seed_same_curve(refs, tmp_path, evaluate_with):
+def test_same_seed_same_curve(refs, tmp_path):
+    """Evaluated with the policy; with the planner, test_validation_leaves_the_planners_test_curve_alone."""
     train, test = refs
-    settings = replace(TINY, evaluate_with=evaluate_with)
+    settings = replace(TINY, evaluate_with="policy")
     state = torch.get_rng_state()
 
     def metrics(seed, name):
@@ -201,18 +201,22 @@ def test_same_seed_same_curve(refs, tmp_path, evaluate_with):
 
 
 def test_validation_leaves_the_planners_test_curve_alone(refs, tmp_path):
+    """Also the planner's same seed, same curve (test_same_seed_same_curve evaluates with the policy)."""
     train, test = refs
     settings = replace(TINY, evaluate_with="plan")  # an agent with a state: its generator
     validation = [Reference("val", generate_references(1, seed=5)[0].q[:25])]
+    state = torch.get_rng_state()
 
-    def curve(name, validation_refs):
+    def curve(name, validation_refs, seed=3):
         return train_tdmpc(
-            training_run("closed", SystemSpec(), train, test, 30, 3, tmp_path / name, [1, 30], validation_refs), settings
+            training_run("closed", SystemSpec(), train, test, 30, seed, tmp_path / name, [1, 30], validation_refs), settings
         )
 
     plain, validated = curve("plain", ()), curve("validated", validation)
     assert [p["metrics"] for p in validated] == [p["metrics"] for p in plain]
     assert all(p["validation"]["episodes"] == 1 and finite(p["validation"]) for p in validated)
+    assert curve("other", (), seed=4)[-1]["metrics"] != plain[-1]["metrics"]
+    assert torch.equal(torch.get_rng_state(), state)  # the global generator is left alone
 
 
 def test_an_interrupted_run_resumes_as_if_uninterrupted(refs, tmp_path, monkeypatch, interrupt_at):
@@ -220,7 +224,7 @@ def test_an_interrupted_run_resumes_as_if_uninterrupted(refs, tmp_path, monkeypa
     test = refs[1]
 
     def run(folder, seed=3):
-        spec = training_run("closed", SystemSpec(), train, test, 120, seed, folder, [25, 50, 120])
+        spec = training_run("closed", SystemSpec(), train, test, 70, seed, folder, [25, 50, 70])
         return train_tdmpc(spec, TINY, save_every_seconds=0)
 
     uninterrupted = run(tmp_path / "a")
@@ -234,7 +238,7 @@ def test_an_interrupted_run_resumes_as_if_uninterrupted(refs, tmp_path, monkeypa
         run(tmp_path / "b", seed=4)
     resumed = run(tmp_path / "b")
     assert resumed[0] == before[0]  # kept as measured (its wall time too), not measured again
-    assert [p["metrics"] for p in resumed] == [p["metrics"] for p in uninterrupted]  # 8 episodes drawn after the state
+    assert [p["metrics"] for p in resumed] == [p["metrics"] for p in uninterrupted]  # 3 episodes drawn after the state
     assert not (tmp_path / "b" / STATE_FILE).exists()
 
 

@@ -164,21 +164,22 @@ def test_step_seconds_and_evaluation_seconds_come_from_short_trainings_after_a_w
 
 @pytest.mark.slow
 def test_a_run_with_a_budget_trains_the_scaled_steps_plans_each_training_and_keeps_the_factors(tmp_path, monkeypatch):
-    monkeypatch.setattr(pipeline, "measure_step_times", lambda cfg, records, held_out, device: StepTimes(0.15, 0.3, 500))
-    # 40 s; round 1's training "takes" 100 × 0.15 + 100 × 0.3 = 45 s, round 2 half of it
-    cfg = replace(TOY_CFG, time_budget=40 / 60, rounds=2, model=replace(TOY_CFG.model, steps=100),
-                  policy=replace(TOY_CFG.policy, steps=100))  # fmt: skip
+    monkeypatch.setattr(pipeline, "measure_step_times", lambda cfg, records, held_out, device: StepTimes(0.3, 1.2, 500))
+    # 40 s; round 1's training "takes" 50 × 0.3 + 25 × 1.2 = 45 s, round 2 half of it. The toy's steps are far faster
+    # than that, so the policies are given the minutes to spare (up to 3 ×): few steps keep the run short.
+    cfg = replace(TOY_CFG, time_budget=40 / 60, rounds=2, collect=replace(TOY_CFG.collect, passes=1),
+                  model=replace(TOY_CFG.model, steps=50), policy=replace(TOY_CFG.policy, steps=25))  # fmt: skip
     result = run_pipeline(TOY, *toy_split(), tmp_path, cfg, max_plots=0)  # no tracking plots: none is checked here
     scales = result.metrics["time_budget"]["scales"]
     assert 0.05 < scales["model"] < 1 and set(scales) == {"model", "policy", "rounds/2/model", "rounds/2/policy"}
-    assert len(read_scalars(tmp_path / "logs" / "model")["train/loss"][0]) == round(100 * scales["model"])
+    assert len(read_scalars(tmp_path / "logs" / "model")["train/loss"][0]) == round(50 * scales["model"])
     # round 1's policy is planned with how long its model's training took against the 15 s × scale predicted
     model_seconds = json.loads((tmp_path / "stages" / "model.json").read_text())["seconds"]
     policy_plan = json.loads((tmp_path / "stages" / "time_budget_policy.json").read_text())
     assert policy_plan["slower_than_probed"] == pytest.approx(model_seconds / (15 * scales["model"]), rel=1e-3)
-    warm = round(100 * scales["rounds/2/policy"] * TOY_CFG.warm_budget)
+    warm = round(25 * scales["rounds/2/policy"] * TOY_CFG.warm_budget)
     assert len(read_scalars(tmp_path / "rounds" / "2" / "logs" / "policy")["train/loss"][0]) == warm
-    assert result.metrics["config"]["time_budget"] == cfg.time_budget and result.metrics["config"]["model"]["steps"] == 100
+    assert result.metrics["config"]["time_budget"] == cfg.time_budget and result.metrics["config"]["model"]["steps"] == 50
 
     def measured_again(*args):
         raise AssertionError("a rerun measured the step times again")
@@ -201,13 +202,17 @@ def test_a_config_without_a_budget_serializes_as_before_the_field_existed():
     assert from_dict(CFG.to_dict()) == CFG and from_dict(TOY_CFG.to_dict()) == TOY_CFG
 
 
+TOY_TIMES = StepTimes(300 / TOY_CFG.model.steps, 600 / TOY_CFG.policy.steps, 500)
+"""Step times at which TOY_CFG's round 1 trains its model in 300 s and its policy in 600 s."""
+
+
 def _stage(folder, name):
     return json.loads((folder / "stages" / f"{name}.json").read_text())
 
 
 def test_a_run_killed_in_its_model_training_and_rerun_ends_within_its_minutes(tmp_path, monkeypatch):
     clock = _run_clock(monkeypatch)
-    monkeypatch.setattr(pipeline, "measure_step_times", lambda *args: StepTimes(1.0, 2.0, 500))  # 300 + 600 s a round
+    monkeypatch.setattr(pipeline, "measure_step_times", lambda *args: TOY_TIMES)  # 300 + 600 s a round
     cfg = replace(TOY_CFG, time_budget=2, rounds=1)  # 120 s; collection and PD take no time on this clock
     train_model = dynamics.train_model
 
@@ -227,7 +232,7 @@ def test_a_run_killed_in_its_model_training_and_rerun_ends_within_its_minutes(tm
         return train_model(*args, **kwargs)
 
     def policy_training(policy_cfg, *args, **kwargs):  # takes its steps at the probes' step time, then the test ends
-        clock.now += policy_cfg.steps * 2.0
+        clock.now += policy_cfg.steps * TOY_TIMES.policy
         raise KeyboardInterrupt
 
     def measured_again(*args):
@@ -248,7 +253,7 @@ def test_a_run_killed_in_its_model_training_and_rerun_ends_within_its_minutes(tm
 
 def test_a_rerun_plans_with_what_the_collection_and_the_evaluation_took_before_the_kill(tmp_path, monkeypatch):
     clock = _run_clock(monkeypatch)
-    monkeypatch.setattr(pipeline, "measure_step_times", lambda *args: StepTimes(1.0, 2.0, 500))
+    monkeypatch.setattr(pipeline, "measure_step_times", lambda *args: TOY_TIMES)
     cfg = replace(TOY_CFG, time_budget=3, rounds=2)  # 180 s
     collect, track_and_save, kills = pipeline.collect, stages.track_and_save, [KeyboardInterrupt]
 

@@ -118,10 +118,11 @@ TOY_CFG = replace(
     TINY,
     device="cpu",
     collect=replace(TINY.collect, passes=6),
-    model=replace(TINY.model, steps=300),
-    policy=replace(TINY.policy, steps=300),
+    model=replace(TINY.model, steps=100),
+    policy=replace(TINY.policy, steps=100),
 )
-"""The tiny preset with a little more data and training: ~5 s on one core."""
+"""The tiny preset with more data and short trainings: ~3 s on one core. Its policy leaves under 0.3 × PD's tracking
+error (the toy runs check 0.5 ×) at every seed tried; 300 steps each reached 0.23 × in twice the time."""
 
 
 def toy_split() -> tuple[list[Reference], list[Reference]]:
