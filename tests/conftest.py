@@ -1,3 +1,4 @@
+import functools
 import os
 
 import pytest
@@ -40,8 +41,7 @@ def one_click_command():
     import typer.testing
 
     build = typer.testing._get_command
-    built = {}
-    typer.testing._get_command = lambda app: built.get(id(app)) or built.setdefault(id(app), build(app))
+    typer.testing._get_command = functools.cache(build)
     yield
     typer.testing._get_command = build
 
