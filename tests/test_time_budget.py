@@ -90,7 +90,7 @@ def test_each_training_is_planned_for_what_is_left_at_the_step_times_the_finishe
     second = planner.scale(1, "policy")  # round 1's policy (10 s) and two half rounds (20 s) in what is left
     assert second == pytest.approx((30 - 10 * first) * (1 - RESERVE) / 30)
     plan = json.loads((tmp_path / "stages" / "time_budget_policy.json").read_text())
-    assert plan["slower_than_probed"] == pytest.approx(1) and plan["scale"] == second
+    assert plan["slower_than_probed"] == pytest.approx({"model": 1, "policy": 1}) and plan["scale"] == second
     _train(ledger, clock, 1, "policy", 10 * second)
     for k, part, unscaled in ((2, "model", 20), (2, "policy", 15), (3, "model", 10)):
         left = 30 - clock.now
@@ -110,8 +110,19 @@ def test_a_training_slower_than_probed_cuts_the_next_ones(tmp_path, monkeypatch)
     _train(ledger, clock, 1, "model", 2 * 10 * first)  # the machine got twice as slow after the probes
     second = planner.scale(1, "policy")
     facts = json.loads((tmp_path / "stages" / "time_budget_policy.json").read_text())
-    assert facts["slower_than_probed"] == pytest.approx(2)
+    assert facts["slower_than_probed"] == pytest.approx({"model": 2, "policy": 2})  # the policy has not trained yet
     assert second == pytest.approx((30 - 20 * first) * (1 - RESERVE) / (2 * 30)) and second < first
+
+
+def test_each_network_is_planned_at_its_own_trainings_slowness_once_it_has_trained(tmp_path, monkeypatch):
+    planner, ledger, clock = _planning(tmp_path, monkeypatch, minutes=1)  # 57 s for 40 s of training
+    _train(ledger, clock, 1, "model", 10 * planner.scale(1, "model"))  # as probed
+    _train(ledger, clock, 1, "policy", 1.5 * 10 * planner.scale(1, "policy"))  # the policy's steps ran 1.5 × the probe
+    scale = planner.scale(2, "model")  # two models of 5 s as probed, two policies of 5 s × 1.5
+    plan = json.loads((tmp_path / "rounds" / "2" / "stages" / "time_budget_model.json").read_text())
+    assert plan["slower_than_probed"] == pytest.approx({"model": 1, "policy": 1.5})
+    assert scale == pytest.approx(min(1, (60 - clock.now) * (1 - RESERVE) / (2 * 5 + 2 * 5 * 1.5)))
+    assert "the model's trainings took 1.00 ×, the policy's 1.50 × the estimate" in (tmp_path / "run.log").read_text()
 
 
 def test_a_one_round_run_keeps_the_margin_in_its_policy_plan_the_last_one(tmp_path, monkeypatch):
@@ -176,7 +187,8 @@ def test_a_run_with_a_budget_trains_the_scaled_steps_plans_each_training_and_kee
     # round 1's policy is planned with how long its model's training took against the 15 s × scale predicted
     model_seconds = json.loads((tmp_path / "stages" / "model.json").read_text())["seconds"]
     policy_plan = json.loads((tmp_path / "stages" / "time_budget_policy.json").read_text())
-    assert policy_plan["slower_than_probed"] == pytest.approx(model_seconds / (15 * scales["model"]), rel=1e-3)
+    ratio = model_seconds / (15 * scales["model"])
+    assert policy_plan["slower_than_probed"] == pytest.approx({"model": ratio, "policy": ratio}, rel=1e-3)
     warm = round(25 * scales["rounds/2/policy"] * TOY_CFG.warm_budget)
     assert len(read_scalars(tmp_path / "rounds" / "2" / "logs" / "policy")["train/loss"][0]) == warm
     assert result.metrics["config"]["time_budget"] == cfg.time_budget and result.metrics["config"]["model"]["steps"] == 50
@@ -246,7 +258,8 @@ def test_a_run_killed_in_its_model_training_and_rerun_ends_within_its_minutes(tm
     assert _stage(tmp_path, "time_budget_model") == first  # the model's plan is kept: it trained those steps
     assert _stage(tmp_path, "model")["seconds"] == pytest.approx(38)  # 30 s before the kill and 8 s after it
     plan = _stage(tmp_path, "time_budget_policy")
-    assert plan["slower_than_probed"] == pytest.approx(1) and plan["seconds_left"] == pytest.approx(120 - 38)
+    assert plan["slower_than_probed"] == pytest.approx({"model": 1, "policy": 1})
+    assert plan["seconds_left"] == pytest.approx(120 - 38)
     assert plan["scale"] == pytest.approx((120 - 38) * (1 - RESERVE) / (600 * (1 + LAST_PLAN_MARGIN)))
     assert clock.now <= 120  # both invocations together: the run ends within its 2 minutes
 
