@@ -1,8 +1,10 @@
 import functools
 import os
+from pathlib import Path
 
 import pytest
 import torch
+from matplotlib.figure import Figure
 
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
@@ -46,11 +48,36 @@ def one_click_command():
     typer.testing._get_command = build
 
 
-@pytest.fixture
-def no_error_plot(monkeypatch):
-    """For tests of other things: ``evaluate`` draws tracking_error.png whatever ``--plots`` says (0.6 s), which
-    test_pipeline checks."""
-    monkeypatch.setattr("efficienttrack.workflow.plots.plot_tracking_error", lambda runs, path: None)
+UNRENDERED = b"figure built, not rendered: tests/conftest.py"
+"""What a figure's file holds in a test not marked ``figures``: it names where it came from, and is no PNG."""
+SAVEFIG = Figure.savefig
+
+
+def _unrendered(figure, target, *args, **kwargs):
+    if hasattr(target, "write"):
+        target.write(UNRENDERED)
+    else:
+        Path(target).write_bytes(UNRENDERED)
+
+
+@pytest.fixture(autouse=True, scope="session")
+def unrendered_figures():
+    """Figures are built, but rendered to PNG only in tests marked ``figures``, which check what they show.
+
+    Every run and evaluation draws its figures whatever ``--plots`` says, and rendering is about a quarter of the time
+    of the tests that train; the tests of other things check that the figures' files are written, not their pixels.
+    Session-wide, so that the runs shared by a module's tests are not rendered either.
+    """
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(Figure, "savefig", _unrendered)
+        yield
+
+
+@pytest.fixture(autouse=True)
+def rendered_when_marked(request, monkeypatch):
+    """Tests marked ``figures`` render their figures (:func:`unrendered_figures`)."""
+    if request.node.get_closest_marker("figures"):
+        monkeypatch.setattr(Figure, "savefig", SAVEFIG)
 
 
 @pytest.fixture

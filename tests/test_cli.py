@@ -121,7 +121,6 @@ def test_convert_force(two_sets, tmp_path):
     refused(invoke("convert", out, "--out", out, "--force"), "holds the input")
 
 
-@pytest.mark.usefixtures("no_error_plot")
 def test_evaluate_force(tmp_path):
     refs = sine_refs([30, 30, 30], seed=1)
     save_references(refs, tmp_path / "refs3")

@@ -222,7 +222,6 @@ def flaky() -> FlakySystem:
     return FlakySystem(batched=False)
 
 
-@pytest.mark.usefixtures("no_error_plot")
 def test_evaluate_keeps_the_finished_episodes_of_a_failing_system_and_resumes(tmp_path, monkeypatch):
     save_references(sine_refs([20, 20, 20, 20], seed=3), tmp_path / "refs")
     args = ["evaluate", "--system", "test_outputs:flaky", "--refs", tmp_path / "refs", "--plots", "0"]
@@ -247,7 +246,6 @@ def test_evaluate_keeps_the_finished_episodes_of_a_failing_system_and_resumes(tm
     assert resumed["pd"] == fresh["pd"] and resumed["pd"]["episodes"] == 4
 
 
-@pytest.mark.usefixtures("no_error_plot")
 def test_an_interrupted_evaluation_resumes_only_with_the_same_references(tmp_path, monkeypatch):
     refs = sine_refs([20, 20, 20], seed=3)
     save_references(refs, tmp_path / "refs3")

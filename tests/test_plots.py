@@ -5,6 +5,8 @@ from efficienttrack.data.metrics import adjustment, per_joint_mae, tracking_erro
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.workflow import plots
 
+pytestmark = pytest.mark.figures
+
 
 def episode(steps, offset_deg, adjust_deg=0.0, seed=0):
     """A record lagging its desired positions by a constant offset; q_ref = q_des + adjust."""

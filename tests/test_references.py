@@ -233,11 +233,13 @@ def test_empty_damaged_and_oversized_reference_files(tmp_path):
 # --- plot and CLI ------------------------------------------------------------------------------------
 
 
+@pytest.mark.figures
 def test_plot_references_writes_png(tmp_path, generated):
     path = plot_references(generated[:5], tmp_path / "figs" / "refs.png")
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+@pytest.mark.figures
 def test_cli_refs_generate_and_plot(tmp_path):
     runner = CliRunner()
     result = runner.invoke(app, ["refs", "generate", "--n", "3", "--seed", "2", "--out", str(tmp_path)])

@@ -198,7 +198,7 @@ def test_study_writes_table_json_and_figure(finished):
     header = (out / "study.csv").read_text().splitlines()[0].split(",")
     assert header[:4] == ["method", "loop", "seeds", "interaction_steps"]
     assert {f"{m}_std" for m in TABLE_METRICS} <= set(header)
-    assert (out / "study.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (out / "study.png").is_file()
 
 
 @pytest.mark.slow
@@ -215,6 +215,7 @@ def test_rerun_skips_finished_jobs_and_refuses_another_study(finished, refs):
 
 
 @pytest.mark.slow
+@pytest.mark.figures
 def test_report_is_rebuilt_from_the_folders(finished, tmp_path):
     out = tmp_path / "copy"
     shutil.copytree(finished[0], out)
@@ -232,6 +233,7 @@ def test_report_is_rebuilt_from_the_folders(finished, tmp_path):
     (out / "jobs" / "pd-closed-s1" / "result.json").write_text('{"method": "pd", "lo')  # truncated by a crash
     rebuilt = report(out)
     assert all(path.is_file() for path in rebuilt.paths)
+    assert (out / "study.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     et = rebuilt.entries[1]
     mae0 = seed0["curve"][0]["metrics"]["mae_deg"]
     assert et["seeds"] == [0, 1] and et["mae_deg"] == pytest.approx(mae0 + 0.5)

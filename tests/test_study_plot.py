@@ -14,6 +14,8 @@ from efficienttrack.study.report import combine, report
 from efficienttrack.study.summary import mean_curve, summarize
 from efficienttrack.study.tables import equal_interaction_table, markdown_table
 
+pytestmark = pytest.mark.figures  # study-plot's work is the figure
+
 PAPER = {"system": "paper", "plant": None, "pd": None, "options": {}}
 
 

@@ -46,7 +46,6 @@ def test_deploy_arms_a_policy_worse_than_pd_only_when_told_and_warns_in_shadow(d
         assert f"warning: {policy}: it tracks worse" in result.stderr
 
 
-@pytest.mark.usefixtures("no_error_plot")
 def test_the_verdict_travels_with_the_policy_into_copies_and_exports(deploy_inputs, tmp_path):  # noqa: F811
     refs, policy = deploy_inputs
     evaluated = invoke("evaluate", "--refs", refs, "--policy", policy, "--out", tmp_path / "eval", "--plots", "0")
@@ -67,7 +66,6 @@ def test_the_verdict_travels_with_the_policy_into_copies_and_exports(deploy_inpu
     assert not (tmp_path / "armed").exists()
 
 
-@pytest.mark.usefixtures("no_error_plot")
 def test_a_policy_config_that_cannot_be_written_is_a_warning_after_the_evaluation(deploy_inputs, tmp_path, monkeypatch):  # noqa: F811
     from efficienttrack.core.errors import EfficientTrackError
     from efficienttrack.workflow import evaluation as evaluation_module

@@ -2,16 +2,16 @@
 
 Almost all of a run's time is training, and a training step's cost depends on the machine (it varied by 30 % between
 days on one 2-core machine) and on what else runs on it. So the run measures it: after the collection and the PD
-evaluation it times short trainings of each network (:func:`measure_step_times`). Before every training, :class:`Planner`
-scales its steps by the factor ≤ 1 that fits it, every training after it and the deployments and evaluations left into
-the time left (:func:`fit`), at the step times corrected by how long the finished trainings took against the prediction
-(a short probe can run a third faster than the minutes of training after it), each network's by its own trainings once
-it has trained: in three 15-minute runs the policy's took 1.10–1.31 × their probe, the model's 0.88–1.15 ×. Minutes to spare go to the policy's
-trainings, up to :data:`MAX_POLICY_SCALE` × their steps; the model's never train more than configured. The time spent
-and what each stage took come from the run's :class:`~efficienttrack.workflow.ledger.Ledger`, so a killed and rerun run
-plans from what is actually left. Each factor is kept as a stage: a resumed training trains the steps its checkpoint
-was made for. The budget is a target, not a guarantee: work that starts beside the run after the last plan slows its
-steps.
+evaluation it times short trainings of each network (:func:`measure_step_times`). Before every training,
+:class:`Planner` scales its steps by the factor ≤ 1 that fits it, every training after it and the deployments and
+evaluations left into the time left (:func:`fit`), at the step times corrected by how long the finished trainings took
+against the prediction (a short probe can run a third faster than the minutes of training after it), each network's by
+its own trainings once it has trained: in three 15-minute runs the policy's took 1.10–1.31 × their probe, the model's
+0.88–1.15 ×. Minutes to spare go to the policy's trainings, up to :data:`MAX_POLICY_SCALE` × their steps; the model's
+never train more than configured. The time spent and what each stage took come from the run's
+:class:`~efficienttrack.workflow.ledger.Ledger`, so a killed and rerun run plans from what is actually left. Each
+factor is kept as a stage: a resumed training trains the steps its checkpoint was made for. The budget is a target, not
+a guarantee: work that starts beside the run after the last plan slows its steps.
 """
 
 from __future__ import annotations
