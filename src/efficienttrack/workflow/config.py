@@ -133,7 +133,7 @@ def preset(name: str) -> RunConfig:
     return PRESETS[name]
 
 
-def from_dict(data: Any, source: str = "config") -> RunConfig:
+def from_dict(data: Any, source: str = "config", stored: bool = False) -> RunConfig:
     """Build a RunConfig from a plain mapping (:meth:`RunConfig.to_dict`'s form), every field checked.
 
     Args:
@@ -141,6 +141,8 @@ def from_dict(data: Any, source: str = "config") -> RunConfig:
             "round_data": str, "warm_budget": float, "time_budget": float or None}``; missing fields keep their
             defaults (the ``cpu`` preset). ``collect.seed``, when given, must equal ``seed``: it follows it.
         source: how to name the data in errors (the file, the override).
+        stored: ``data`` is a :meth:`RunConfig.to_dict` the package wrote: a field added later that it lacks takes
+            its ``before`` value (:func:`~efficienttrack.core.settings.settings_from_dict`), not today's default.
 
     Returns:
         The config.
@@ -149,7 +151,7 @@ def from_dict(data: Any, source: str = "config") -> RunConfig:
         EfficientTrackError: an unknown field, a wrong type or a value out of its bounds (naming ``source`` and the
             field), or a ``collect.seed`` other than ``seed``.
     """
-    cfg = settings_from_dict(RunConfig, data, source)
+    cfg = settings_from_dict(RunConfig, data, source, stored=stored)
     given = data.get("collect", {}).get("seed", cfg.seed) if isinstance(data.get("collect"), dict) else cfg.seed
     if given != cfg.seed:
         raise EfficientTrackError(
@@ -173,7 +175,8 @@ def amend(cfg: RunConfig, changes: dict[str, Any], source: str) -> RunConfig:
     """
     base = cfg.to_dict()
     del base["collect"]["seed"]  # derived from seed: a change of seed alone must carry it along
-    return from_dict(merge(base, {name: value for name, value in changes.items() if name != "provenance"}), source)
+    changes = {name: value for name, value in changes.items() if name != "provenance"}
+    return from_dict(merge(base, changes), source, stored=True)  # to_dict leaves out a field at its ``before`` value
 
 
 def load_config(path: str | Path, base: RunConfig | None = None) -> RunConfig:
