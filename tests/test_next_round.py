@@ -15,6 +15,7 @@ from efficienttrack.deploy.runtime import track
 from efficienttrack.learn.dynamics import load_model, model_error, save_model, train_model
 from efficienttrack.learn.policy import load_policy, save_policy, train_policy
 from efficienttrack.learn.settings import MODEL_PRESETS, POLICY_PRESETS
+from efficienttrack.learn.training import read_scalars
 from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.workflow.collect import CollectConfig, collect
 from efficienttrack.workflow.next_round import ROUND_JSON, continued_config, next_round
@@ -175,7 +176,8 @@ def test_round_on_a_toy_system_lowers_its_tracking_error(tmp_path):
 
 def test_interrupted_round_resumes(model, policy, records, tmp_path):
     out = tmp_path / "round"
-    schedules = dataclasses.replace(MODEL_PRESETS["tiny"], steps=40), dataclasses.replace(POLICY_PRESETS["tiny"], steps=40)
+    ramped = {"steps": 40, "warmup": 0.1}  # the command's: a later round's learning rates ramp up (round_warmup)
+    schedules = dataclasses.replace(MODEL_PRESETS["tiny"], **ramped), dataclasses.replace(POLICY_PRESETS["tiny"], **ramped)
     next_round(model, policy, records, (), *schedules, device="cpu", progress=False, out_dir=out)
     finished = load_policy(out / "policy.pt")
     (out / ROUND_JSON).unlink()
@@ -191,7 +193,9 @@ def test_interrupted_round_resumes(model, policy, records, tmp_path):
     assert_same_state(load_policy(out / "policy.pt"), finished, atol=0)
 
 
-def test_round_trains_the_warm_budget_of_the_preset_by_default(model, policy, records, tmp_path):
+def test_round_trains_the_warm_budget_of_the_preset_with_its_learning_rates_ramped_by_default(
+    model, policy, records, tmp_path
+):
     save_records(records, tmp_path / "data")
     save_model(model, tmp_path / "m.pt")
     save_policy(policy, tmp_path / "p.pt")
@@ -201,5 +205,12 @@ def test_round_trains_the_warm_budget_of_the_preset_by_default(model, policy, re
     report = json.loads((tmp_path / "r" / ROUND_JSON).read_text())
     assert report["model_steps"] == round(0.1 * MODEL_PRESETS["tiny"].steps)
     assert report["policy_steps"] == round(0.1 * POLICY_PRESETS["tiny"].steps)
+    for part, preset in (("model", MODEL_PRESETS["tiny"]), ("policy", POLICY_PRESETS["tiny"])):  # as `run`'s later rounds
+        _, lr = read_scalars(tmp_path / "r" / f"{part}.logs")["train/lr"]
+        ramp = 0.1 * report[f"{part}_steps"]  # round_warmup 0.1
+        assert lr[0] == pytest.approx(preset.lr / ramp, rel=0.05) and max(lr) == pytest.approx(preset.lr, rel=0.05)
+    flat = invoke(*args, "--out", tmp_path / "flat", "--preset", "tiny", "--warm-budget", "0.1", "--set", "round_warmup=0")
+    assert flat.exit_code == 0, flat.output
+    assert read_scalars(tmp_path / "flat" / "model.logs")["train/lr"][1][0] == pytest.approx(MODEL_PRESETS["tiny"].lr)
     refused = invoke(*args, "--out", tmp_path / "r0", "--warm-budget", "0")
     assert "--warm-budget 0.0: warm_budget must be a finite number > 0" in str(refused.exception)  # one line in main()

@@ -232,13 +232,13 @@ def test_set_reaches_train_policy(data, tmp_path, monkeypatch):
 
 def test_a_value_at_a_fields_earlier_default_survives_the_overrides_and_options_after_it(tmp_path, monkeypatch):
     # a setting written back as its earlier default (``before``) by to_dict was read back as today's default
-    cfg = apply_overrides(PRESETS["tiny"], ["policy.imagined_share=0", "rounds=4"])
-    assert (cfg.policy.imagined_share, cfg.rounds) == (0, 4)
+    cfg = apply_overrides(PRESETS["tiny"], ["policy.imagined_share=0", "round_warmup=0", "rounds=4"])
+    assert (cfg.policy.imagined_share, cfg.round_warmup, cfg.rounds) == (0, 0, 4)
     calls = []
     monkeypatch.setattr(pipeline, "demo", lambda out, cfg, console, max_plots: calls.append(cfg))
-    given = ("--set", "policy.imagined_share=0", "--seed", "3", "--rounds", "2")
+    given = ("--set", "policy.imagined_share=0", "--set", "round_warmup=0", "--seed", "3", "--rounds", "2")
     assert invoke("demo", "--out", tmp_path / "d", "--preset", "tiny", *given).exit_code == 0
-    assert (calls[0].policy.imagined_share, calls[0].seed, calls[0].rounds) == (0, 3, 2)
+    assert (calls[0].policy.imagined_share, calls[0].round_warmup, calls[0].seed, calls[0].rounds) == (0, 0, 3, 2)
 
 
 def test_set_reaches_round(data, tmp_path, monkeypatch):

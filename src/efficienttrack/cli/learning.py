@@ -251,10 +251,13 @@ def round_command(
     """One round of continual learning: model and policy of round k from round k−1's and the newly recorded episodes.
 
     Both start from the given checkpoints (warm start): their sizes, the settings' schedules scaled by
-    ``warm_budget``. Prints and writes OUT/round.json: the model's 20-step error
-    on the new episodes (and on --held-out) before and after, and the tracking error recorded and model-predicted.
+    ``warm_budget``, the learning rates ramped over ``round_warmup`` of the steps. Prints and writes OUT/round.json: the
+    model's 20-step error on the new episodes (and on --held-out) before and after, and the tracking error recorded and
+    model-predicted.
     An interrupted round resumes (rerun the same command); a finished one is refused without --force.
     """
+    import dataclasses
+
     from efficienttrack.learn.dynamics import load_model
     from efficienttrack.learn.policy import load_policy
     from efficienttrack.workflow.next_round import ROUND_JSON, ROUND_OUTPUTS, next_round
@@ -263,8 +266,9 @@ def round_command(
     _set_threads(threads)
     settings = _settings(preset_name, config, overrides, seed=seed, device=device, warm_budget=warm_budget)
     seed, device = settings.seed, settings.device
-    model_schedule = _schedule(settings.model, steps_model, settings.warm_budget)
-    policy_schedule = _schedule(settings.policy, steps_policy, settings.warm_budget)
+    ramp = {"warmup": settings.round_warmup} if settings.round_warmup else {}  # as a later round of `run --rounds`
+    model_schedule = dataclasses.replace(_schedule(settings.model, steps_model, settings.warm_budget), **ramp)
+    policy_schedule = dataclasses.replace(_schedule(settings.policy, steps_policy, settings.warm_budget), **ramp)
     g_theta, _ = _warm_start("--model", model, load_model, model_schedule, device)
     pi_phi, _ = _warm_start("--policy", policy, load_policy, policy_schedule, device)
     new, old = load_records(data, recursive), load_records(old_data, recursive) if old_data else []
