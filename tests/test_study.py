@@ -266,6 +266,13 @@ def test_the_table_gives_the_final_point_and_the_best_on_test_apart_with_the_pap
     published = "| *paper, Table I* | closed |  | *176,720* | *2.454* | *–* | *–* | *0.32* | *0.46* | *0.23* | *0.670* | "
     published += "*0.590* |"
     assert published in paper
+    variant = {**entry, "settings_changes": ["efficienttrack.policy.k_smooth=2"]}
+    both = markdown_table([entry, variant], {}, paper=True).split("\n\n")[1].splitlines()  # the first table's rows
+    assert [line.split(" | ")[0] for line in both[2:]] == [
+        "| EfficientTrack",
+        "| EfficientTrack (policy.k_smooth=2)",
+        "| *paper, Table I*",
+    ]  # once, under the method's last variant
     assert paper_row("pd", "open")["mae_deg"] == 2.73 and paper_row("ilc", "closed") is None
     assert is_paper_system({"system": "paper", "plant": None, "pd": None, "options": {}})
     assert is_paper_system({"system": None, "plant": "paper", "pd": "paper", "options": {}})

@@ -65,19 +65,21 @@ def _rows(
     Args:
         entries: :func:`~efficienttrack.study.summary.summarize`'s entries.
         points: an entry's points that the row reports, one per seed (its "final", say).
-        paper: put the paper's Table I row, in italics, under each row that has one.
+        paper: put the paper's Table I row, in italics, under the last row of each method and loop that has one
+            (once under a method's variants).
         more: an entry's cells after the :data:`FIELDS` (empty ones in the paper's row).
 
     Returns:
         The rows' lines: method, loop, seeds, then the mean ± std over seeds of each of :data:`FIELDS` at the points.
     """
     lines = []
-    for e in entries:
+    last = {(e["method"], e["loop"]): i for i, e in enumerate(entries)}
+    for i, e in enumerate(entries):
         chosen = points(e)
         extra = more(e)
         values = [cell(*point_stats(chosen, field), COLUMNS[field][1]) for field in FIELDS]
         lines.append(_row([method_label(e), e["loop"], str(len(e["seeds"])), *values, *extra]))
-        published = paper_row(e["method"], e["loop"]) if paper else None
+        published = paper_row(e["method"], e["loop"]) if paper and last[e["method"], e["loop"]] == i else None
         if published is not None:
             theirs = ["–" if published.get(field) is None else f"{published[field]:{COLUMNS[field][1]}}" for field in FIELDS]
             lines.append(_row(["*paper, Table I*", e["loop"], "", *(f"*{v}*" for v in theirs), *([""] * len(extra))]))
