@@ -64,7 +64,7 @@ class RunConfig:
     """Share of a later round's optimizer steps over which each training's learning rate rises linearly to its value
     (``warmup`` of both sections, in rounds k ≥ 2 only; 0: from the first step, as round 1, and as folders made before
     2026-11-29 resume). A warm start's fresh Adam steps otherwise throw the trained networks off (one paper-simulator
-    seed diverged); 0.1 lowered round 4's validation MAE in seven runs of eight on three plants and the fastset's Round
+    seed diverged); 0.1 lowered round 4's validation MAE in eight runs of nine on three plants and the fastset's Round
     3 on three seeds (docs/comparison.md)."""
     time_budget: float | None = setting(None, gt=0, before=None)
     """Minutes of wall time for the whole run, all rounds (``--time-budget``): every training's optimizer steps are
