@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import errno
-import functools
 import inspect
 import json
 import math
@@ -28,7 +27,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-import typer
 
 from efficienttrack import cli
 from efficienttrack.core.errors import EfficientTrackError
@@ -46,6 +44,7 @@ from efficienttrack.systems.limits import GuardLimits
 from efficienttrack.systems.pd import PD_PRESETS
 from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.workflow.collect import CollectConfig, collect
+from test_cli import click_command
 from test_records import make_record
 from test_rosbag import references, states, write_bag
 from toy_system import LagSystem, sine_refs
@@ -467,12 +466,6 @@ def case_dir(cases_root, monkeypatch) -> Path:
     monkeypatch.chdir(folder)
     monkeypatch.setattr(os, "fsync", lambda fd: None)
     return folder
-
-
-@functools.cache
-def click_command():
-    """The click command typer builds from ``cli.app`` on every call (half a case's time), built once."""
-    return typer.main.get_command(cli.app)
 
 
 def run_main(argv: list[str], monkeypatch, capsys) -> tuple[int | str | None, str]:

@@ -6,15 +6,13 @@ out) and parsed by the command line itself, without running: a renamed or remove
 here. What they do is tested elsewhere (the rehearsal of docs/your-machine.md runs whole in ``test_machine_workflow``).
 """
 
-import functools
 import re
 import shlex
 from pathlib import Path
 
 import pytest
-import typer.main
 
-from efficienttrack.cli import app
+from test_cli import click_command
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = sorted([ROOT / "README.md", *(ROOT / "docs").glob("*.md")])
@@ -39,12 +37,6 @@ def documented_commands(path: Path) -> list[str]:
     return commands
 
 
-@functools.cache
-def click_group():
-    """The click group typer builds from ``app`` (about 65 ms a build), built once for every case."""
-    return typer.main.get_command(app)
-
-
 CASES = [(path, command) for path in DOCS for command in documented_commands(path)]
 
 
@@ -54,7 +46,7 @@ def test_the_docs_show_commands_to_check():
 
 @pytest.mark.parametrize(("path", "command"), CASES, ids=[f"{p.name}:{i}" for i, (p, _) in enumerate(CASES)])
 def test_a_documented_command_parses(path, command):
-    group = click_group()
+    group = click_command()
     args = shlex.split(command)[1:]
     context = group.make_context("efficienttrack", list(args), resilient_parsing=True)
     name, sub, rest = group.resolve_command(context, args)
