@@ -158,7 +158,7 @@ def test_config_show_prints_a_file_that_config_reads_back(name, tmp_path):
     (tmp_path / "shown.yaml").write_text(result.output)
     expected = apply_overrides(PRESETS[name], ["model.hidden=17", "seed=5"])
     assert load_config(tmp_path / "shown.yaml", PRESETS["cpu"]) == expected
-    assert from_dict(expected.to_dict()) == expected
+    assert from_dict(expected.to_dict(), stored=True) == expected
 
 
 def test_config_show_refuses_an_unknown_preset():
@@ -239,6 +239,17 @@ def test_a_value_at_a_fields_earlier_default_survives_the_overrides_and_options_
     given = ("--set", "policy.imagined_share=0", "--set", "round_warmup=0", "--seed", "3", "--rounds", "2")
     assert invoke("demo", "--out", tmp_path / "d", "--preset", "tiny", *given).exit_code == 0
     assert (calls[0].policy.imagined_share, calls[0].round_warmup, calls[0].seed, calls[0].rounds) == (0, 0, 3, 2)
+
+
+def test_a_runs_config_json_given_as_config_is_that_runs_settings_not_todays_defaults(tmp_path):
+    # a run folder's config.json leaves out a field at its earlier default; read as a file of changes it took today's
+    made_before = RunConfig(round_warmup=0.0, collect=CollectConfig(sigma_max=0.05, noise_rho=0.0))
+    stored = made_before.to_dict()
+    assert "round_warmup" not in stored and "noise_rho" not in stored["collect"]
+    (tmp_path / "config.json").write_text(json.dumps({**stored, "provenance": {"version": "0.1.0"}}))
+    assert load_config(tmp_path / "config.json", PRESETS["fastset"]) == made_before
+    (tmp_path / "changes.json").write_text(json.dumps({"model": {"history": 3}}))  # a file of changes: on the base
+    assert load_config(tmp_path / "changes.json", PRESETS["fastset"]).rounds == PRESETS["fastset"].rounds
 
 
 def test_set_reaches_round(data, tmp_path, monkeypatch):

@@ -186,8 +186,9 @@ def load_config(path: str | Path, base: RunConfig | None = None) -> RunConfig:
     """Read a RunConfig from YAML or ``.json`` (:func:`~efficienttrack.core.configfile.read_mapping_file`), field by field.
 
     Args:
-        path: the file; component sections (``collect``, ``model``, ``policy``) may list only some fields; a
-            ``provenance`` entry (a run's ``config.json`` has one) is ignored.
+        path: the file; component sections (``collect``, ``model``, ``policy``) may list only some fields. A file
+            with a ``provenance`` entry is a run's ``config.json``: the whole tree as the package wrote it, read as
+            that run's settings (a field added since, which it lacks, takes what the code did then, not ``base``).
         base: where fields not given come from (the ``cpu`` preset when None).
 
     Returns:
@@ -200,6 +201,8 @@ def load_config(path: str | Path, base: RunConfig | None = None) -> RunConfig:
     data = read_mapping_file(path)
     if not isinstance(data, dict):
         raise EfficientTrackError(f"{path}: expected a mapping of fields")
+    if "provenance" in data:
+        return from_dict({name: value for name, value in data.items() if name != "provenance"}, str(path), stored=True)
     return amend(base or PRESETS["cpu"], data, str(path))
 
 
