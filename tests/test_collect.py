@@ -10,7 +10,7 @@ from efficienttrack.data.references import Reference, save_references
 from efficienttrack.deploy.episodes import Guard
 from efficienttrack.systems.protocol import BatchedSystem
 from efficienttrack.systems.spec import load_system
-from efficienttrack.workflow.collect import CollectConfig, collect, episode_noise
+from efficienttrack.workflow.collect import CollectConfig, autoregress, collect, episode_noise
 from toy_system import make, sine_refs
 
 
@@ -58,7 +58,7 @@ def test_noisy_references_stay_within_the_joint_limits_and_the_clamps_are_counte
 
 
 def test_noise_distribution_is_clipped_gaussian():
-    cfg = CollectConfig(sigma_max=0.05, seed=1)
+    cfg = CollectConfig(sigma_max=0.05, noise_rho=0.0, seed=1)
     sigma, d = episode_noise(cfg, pass_index=2, ref_index=5, steps=20000)
     assert 0 < sigma <= 0.05
     assert np.all(np.abs(d) <= sigma)
@@ -70,7 +70,7 @@ def test_noise_distribution_is_clipped_gaussian():
 
 
 def test_correlated_noise_keeps_the_level_and_the_clip_and_rho_0_is_the_white_noise_unchanged():
-    white = CollectConfig(sigma_max=0.05, seed=1)
+    white = CollectConfig(sigma_max=0.05, noise_rho=0.0, seed=1)
     sigma, d = episode_noise(white, pass_index=2, ref_index=5, steps=20000)
     rng = np.random.default_rng([1, 2, 5])  # the paper's formula, drawn as before the option existed
     assert sigma == rng.uniform(0.0, 0.05)
@@ -83,8 +83,16 @@ def test_correlated_noise_keeps_the_level_and_the_clip_and_rho_0_is_the_white_no
     assert abs(np.corrcoef(d[1:, 0], d[:-1, 0])[0, 1]) < 0.03
 
 
+def test_the_noise_filter_is_scipys_ar1_in_numpy_alone():
+    from scipy.signal import lfilter
+
+    e = np.random.default_rng(0).normal(size=(600, 4))  # blocks of 256: two whole and a part
+    for rho in (0.0, 0.5, 0.9, 0.99):
+        assert np.allclose(autoregress(e, rho), lfilter([1.0], [1.0, -rho], e, axis=0), rtol=1e-12, atol=1e-12)
+
+
 def test_a_collection_folder_from_before_noise_rho_resumes_and_a_correlated_one_is_told_apart(tmp_path, refs):
-    cfg = CollectConfig(passes=2, seed=4)
+    cfg = CollectConfig(noise_rho=0.0, passes=2, seed=4)
     first = collect(BatchedSystem(make()), refs, cfg, out=tmp_path, progress=False)
     manifest = json.loads((tmp_path / "collect.json").read_text())
     assert "noise_rho" not in manifest["config"]  # the form of the folders made before the field existed
@@ -93,12 +101,17 @@ def test_a_collection_folder_from_before_noise_rho_resumes_and_a_correlated_one_
     with pytest.raises(EfficientTrackError, match=r"collect\.json: this folder holds a collection with other settings"):
         collect(BatchedSystem(make()), refs, replace(cfg, noise_rho=0.5), out=tmp_path, progress=False)
     assert CollectConfig(noise_rho=0.5).to_dict()["noise_rho"] == 0.5
-    # a run's settings likewise: run folders from before the field still match theirs, a correlated one reads back
-    from efficienttrack.workflow.config import RunConfig, amend
+    # a run's settings likewise: a run folder from before the field reads back as white noise, today's as correlated
+    from efficienttrack.workflow.config import PRESETS, RunConfig, amend, from_dict
 
-    assert "noise_rho" not in RunConfig().to_dict()["collect"]
-    slow = amend(RunConfig(), {"collect": {"noise_rho": 0.9}}, "--set")
-    assert slow.collect.noise_rho == 0.9 and amend(RunConfig(), slow.to_dict(), "config.json") == slow
+    before = RunConfig().to_dict()
+    del before["collect"]["noise_rho"]
+    assert from_dict(before, "config.json", stored=True).collect.noise_rho == 0.0
+    assert RunConfig().collect.noise_rho == 0.9 and from_dict(RunConfig().to_dict(), stored=True) == RunConfig()
+    white = amend(RunConfig(), {"collect": {"noise_rho": 0}}, "--set")
+    assert white.collect.noise_rho == 0.0 and amend(white, {"seed": 3}, "--seed").collect.noise_rho == 0.0
+    # the paper preset keeps the paper's noise: σ_max 0.05, white
+    assert (PRESETS["paper"].collect.sigma_max, PRESETS["paper"].collect.noise_rho) == (0.05, 0.0)
 
 
 @pytest.mark.parametrize("rho", [-0.1, 1.0, float("nan")])

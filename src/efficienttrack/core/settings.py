@@ -136,7 +136,7 @@ def setting(
     return field(default=default, default_factory=default_factory, metadata=metadata)
 
 
-def plain_form(settings: Any) -> dict[str, Any]:
+def plain_form(settings: Any, every_field: bool = False) -> dict[str, Any]:
     """A settings tree as plain JSON/YAML data (tuples become lists), a field added later left out at its ``before`` value.
 
     This is the form a folder's identity is compared in and checkpoints store: a field added later does not change the
@@ -144,6 +144,8 @@ def plain_form(settings: Any) -> dict[str, Any]:
 
     Args:
         settings: a settings dataclass (nested sections are converted the same way).
+        every_field: keep the fields at their ``before`` value too: a file to read back as a file of settings, which
+            takes a field it lacks from today's defaults.
 
     Returns:
         field name → value.
@@ -151,10 +153,10 @@ def plain_form(settings: Any) -> dict[str, Any]:
     data: dict[str, Any] = {}
     for spec in fields(settings):
         value = getattr(settings, spec.name)
-        if spec.metadata.get("before", MISSING) is not MISSING and value == spec.metadata["before"]:
+        if not every_field and spec.metadata.get("before", MISSING) is not MISSING and value == spec.metadata["before"]:
             continue
         if is_dataclass(value):
-            data[spec.name] = plain_form(value)
+            data[spec.name] = plain_form(value, every_field)
         elif isinstance(value, tuple):
             data[spec.name] = list(value)
         else:

@@ -83,7 +83,9 @@ class RunConfig:
         return plain_form(self)
 
     def save(self, path: str | Path) -> Path:
-        """Write the config atomically, as YAML or JSON.
+        """Write the config atomically, as YAML or JSON, every field.
+
+        The file reads back as these settings (:func:`load_config`) whatever the defaults are when it is read.
 
         Args:
             path: destination; ``.yaml``/``.yml`` gives YAML, anything else JSON.
@@ -92,14 +94,15 @@ class RunConfig:
             The path written.
         """
         path = Path(path)
+        data = plain_form(self, every_field=True)
         if path.suffix in (".yaml", ".yml"):
-            return atomic_write(path, lambda f: yaml.safe_dump(self.to_dict(), f, sort_keys=False), mode="w")
-        return write_json(path, self.to_dict())
+            return atomic_write(path, lambda f: yaml.safe_dump(data, f, sort_keys=False), mode="w")
+        return write_json(path, data)
 
 
 PRESETS: dict[str, RunConfig] = {
     "paper": RunConfig(
-        collect=CollectConfig(sigma_max=0.05, noise_ratio=(9, 2), passes=10),
+        collect=CollectConfig(sigma_max=0.05, noise_ratio=(9, 2), noise_rho=0.0, passes=10),
         model=MODEL_PRESETS["paper"],
         policy=POLICY_PRESETS["paper"],
     ),
