@@ -266,11 +266,10 @@ def autoregress(e: np.ndarray, rho: float, block: int = 256) -> np.ndarray:
     x = np.empty(e.shape, dtype=np.float64)
     carry = np.zeros(e.shape[1:])
     for start in range(0, len(e), block):
-        m = min(block, len(e) - start)
-        x[start : start + m] = np.tensordot(weights[:m, :m], e[start : start + m], axes=1) + np.multiply.outer(
-            decay[:m], carry
-        )
-        carry = x[start + m - 1]
+        chunk = slice(start, min(start + block, len(e)))
+        m = chunk.stop - start
+        x[chunk] = np.tensordot(weights[:m, :m], e[chunk], axes=1) + np.multiply.outer(decay[:m], carry)
+        carry = x[chunk.stop - 1]
     return x
 
 
