@@ -38,7 +38,7 @@ def test_noise_clipped_sigma_bounded_and_clean_passes_exact(refs):
 
 def test_a_noise_level_beyond_the_adjustment_bound_is_refused_before_anything_moves():
     system = load_system("xe75")
-    with pytest.raises(EfficientTrackError, match=r"sigma_max: 1 rad exceeds .* 0\.15 rad \(boom"):
+    with pytest.raises(EfficientTrackError, match=r"sigma_max: 1 rad exceeds .* 0\.15 rad \(boom.*--set collect\.sigma_max="):
         collect(system, sine_refs([20]), CollectConfig(sigma_max=1.0), progress=False)
 
 

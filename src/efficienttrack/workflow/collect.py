@@ -462,7 +462,8 @@ def check_noise_level(sigma_max: float, limits: GuardLimits) -> None:
         raise EfficientTrackError(
             f"collect.sigma_max: {sigma_max:g} rad exceeds the machine's adjustment bound of {bound[joint]:g} rad "
             f"({JOINT_NAMES[joint]}; max_adjust {', '.join(f'{b:g}' for b in bound)} rad): the noise is an adjustment of "
-            "the reference, and the guard allows no more; lower --sigma-max or widen max_adjust with --limits"
+            "the reference, and the guard allows no more; lower it (collect --sigma-max, or --set collect.sigma_max=... on "
+            "the commands that train) or widen max_adjust with --limits"
         )
 
 
