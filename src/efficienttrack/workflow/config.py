@@ -69,7 +69,7 @@ class RunConfig:
     time_budget: float | None = setting(None, gt=0, before=None)
     """Minutes of wall time for the whole run, all rounds (``--time-budget``): every training's optimizer steps are
     scaled down by one factor, from step times measured on this machine when training starts, or, when the minutes
-    leave room, the policy's up to three times (:mod:`efficienttrack.workflow.time_budget`); None: the configured
+    leave room, the policy's up to 1.5 times (:mod:`efficienttrack.workflow.time_budget`); None: the configured
     steps."""
 
     def __post_init__(self) -> None:
@@ -122,7 +122,7 @@ PRESETS: dict[str, RunConfig] = {
 
 
 DEMO = PRESETS["cpu"]
-"""Settings of ``efficienttrack demo`` on the built-in ``xe75`` (≈ 7 min on 2 CPU cores): the ``cpu`` preset."""
+"""Settings of ``efficienttrack demo`` on the built-in ``xe75`` (≈ 10 min on 2 CPU cores): the ``cpu`` preset."""
 
 
 def preset(name: str) -> RunConfig:
