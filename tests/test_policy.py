@@ -91,6 +91,33 @@ def test_a_rollout_split_in_two_at_its_histories_is_the_rollout_in_one(model):
     torch.testing.assert_close(torch.cat([first.a, second.a], 1), whole.a)
 
 
+def test_a_truncated_rollout_predicts_the_same_and_credits_an_action_with_k_steps_at_most(model):
+    torch.manual_seed(0)
+    policy = AdjustmentPolicy(POLICY_PRESETS["tiny"])
+    torch.nn.init.normal_(policy.pi_phi.body[-1].weight, std=0.1)
+    obs_hist = (torch.randn(3, 4, 8) * 0.1).requires_grad_(True)
+    qref_hist, q_star = torch.randn(3, 4, 4) * 0.1, torch.randn(3, 12, 4) * 0.1
+    whole = policy_rollout(model, policy, obs_hist, qref_hist, q_star, steps=9)
+    cut = policy_rollout(model, policy, obs_hist, qref_hist, q_star, steps=9, truncate=3)
+    torch.testing.assert_close(cut.q_hat, whole.q_hat)  # the same predictions: only the gradient is cut
+    torch.testing.assert_close(cut.a, whole.a)
+
+    def reach(rollout, step):
+        return torch.autograd.grad(rollout.q_hat[:, step].sum(), obs_hist, retain_graph=True)[0].abs().sum().item()
+
+    assert reach(cut, 2) > 0 and reach(whole, 3) > 0 and reach(whole, 8) > 0
+    assert reach(cut, 3) == 0 and reach(cut, 8) == 0  # past the first cut the start gets no gradient
+
+
+def test_a_policy_trained_with_truncated_backpropagation_cuts_the_true_tracking_error(model):
+    cfg = dataclasses.replace(POLICY_PRESETS["tiny"], truncate=2, steps=60)
+    assert plain_form(cfg)["truncate"] == 2 and "truncate" not in plain_form(POLICY_PRESETS["tiny"])  # old folders resume
+    trained = train_policy(cfg, model, lag_records(), device="cpu", progress=False)
+    test = lag_records(n=4, seed=1, sigma=0.0)
+    pd_mae, policy_mae = track_lag_system(None, test), track_lag_system(trained.policy, test)
+    assert policy_mae < 0.45 * pd_mae, (pd_mae, policy_mae)
+
+
 @pytest.mark.parametrize("share", [1.0, 0.5])
 def test_a_policy_trained_after_a_burn_in_cuts_the_true_tracking_error(model, share):
     # 60 steps: 0.23-0.27 of the lagging loop's error at seeds 0-2, as 200 steps (0.20-0.24)

@@ -19,6 +19,7 @@ in rad² (the paper's units, for which γ = 0.98 and k_smooth = 1.0 are tuned). 
    within the episode; with ``burn_in_share`` below 1, the rest of each batch are recorded windows from any step.
 5. With ``imagined_share`` > 0, that share of each batch are imagined deployments carried across optimizer steps
    (truncated backpropagation through whole episodes, :class:`ImaginedDeployments`); the rest are recorded windows.
+6. With ``truncate`` K > 0, the gradient through the predicted histories is cut every K steps of the rollout.
 
 The open loop (:class:`PWMPolicy` through a :class:`~efficienttrack.learn.dynamics.PlantModel`): the policy outputs the
 command u_t / 1000 = π_φ(o_H, u_H, q*_F) ∈ (−1, 1)⁴ (tanh × 1: PWM within ±1000), the model is driven by it, and the
@@ -258,6 +259,7 @@ def policy_rollout(
     qref_hist: torch.Tensor,
     qdes_future: torch.Tensor,
     steps: int,
+    truncate: int = 0,
 ) -> PolicyRollout:
     """Roll g_θ ``steps`` steps under π_φ: a_i = π_φ(o_H, q^r_H, q*_F), q^r_{i+1} = q*_{i+1} + a_i, ô_{i+1} = g_θ(…).
 
@@ -271,6 +273,8 @@ def policy_rollout(
         qref_hist: (B, h', 4) rad, recorded ``q^r_H`` at t.
         qdes_future: (B, F', 4) rad, ``q*_{t+1} … q*_{t+F'}`` with F' ≥ :func:`desired_length` (policy, steps).
         steps: H, rollout length.
+        truncate: K > 0 cuts the gradient through the histories before steps K, 2K, …: a loss term then reaches back
+            through the model's predictions to the actions of at most K steps before (0: through the whole rollout).
 
     Returns:
         Predicted positions, adjustments and references.
@@ -284,6 +288,8 @@ def policy_rollout(
     F = seen_lengths(cfg).future
     q_hat, actions, refs = [], [], []
     for i in range(steps):
+        if truncate and i and i % truncate == 0:
+            obs_hist, qref_hist = obs_hist.detach(), qref_hist.detach()
         q_star_F = qdes_future[:, i : i + F]
         a_i = pi_phi(obs_hist, qref_hist, q_star_F) if pi_phi is not None else torch.zeros_like(q_star_F[:, 0])
         q_r = drive(g_theta.channel, a_i, q_star_F[:, 0])
@@ -500,7 +506,7 @@ def train_policy(
             obs_hist, qref_hist = torch.cat([obs_hist, plain.obs_hist]), torch.cat([qref_hist, plain.qref_hist])
             q_star = torch.cat([q_star, plain.qdes_future])
         # rollout: H steps of g_θ under π_φ, q^r_{i+1} = q*_{i+1} + a_i, q*_F sliding along q*_{t+1..t+H−1+F}
-        q_hat, a, _, end_obs, end_qref = policy_rollout(g_theta, pi_phi, obs_hist, qref_hist, q_star, steps=H)
+        q_hat, a, _, end_obs, end_qref = policy_rollout(g_theta, pi_phi, obs_hist, qref_hist, q_star, H, cfg.truncate)
         if imagined is not None:
             imagined.advance(end_obs, end_qref)
         L_track, L_reg = policy_loss(q_hat, a, q_star[:, :H], cfg.gamma)
