@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 import torch
@@ -50,9 +51,9 @@ def main() -> None:
         norms.append(float(norm))
         return norm
 
-    policy_module.nn.utils.clip_grad_norm_ = recording_clip  # the trainer's own clipping call, which returns the norm
-    result = train_policy(cfg, load_model(args.model), load_records(args.data, recursive=True), device="cpu",
-                          seed=args.seed, progress=False)  # fmt: skip
+    model, records = load_model(args.model), load_records(args.data, recursive=True)
+    with mock.patch.object(policy_module.nn.utils, "clip_grad_norm_", recording_clip):  # the trainer's clip: the norm
+        result = train_policy(cfg, model, records, device="cpu", seed=args.seed, progress=False)
     series = np.stack([np.asarray(norms), result.losses])
     print(f"{args.model}, truncate {cfg.truncate}, {result.steps} steps in {result.seconds:.0f} s")
     print("steps        grad norm: median     p90      max   loss: median      max")

@@ -44,6 +44,7 @@ HELP_ONLY = {
     "baseline_throughput.py": "--steps",
     "model_vs_simulator.py": "--policy",
     "openloop_smoothness.py": "--k",
+    "policy_gradients.py": "--set",
     "oracle_floor.py": "--system",
     "precision.py": "--held-speed",
     "rounds.py": "--presets",
