@@ -13,6 +13,7 @@ from efficienttrack.data.windows import initial_history, push_observation, push_
 from efficienttrack.learn.policy import (
     AdjustmentPolicy,
     ImaginedDeployments,
+    cap_row_gradients,
     load_policy,
     path_roughness,
     policy_rollout,
@@ -91,7 +92,7 @@ def test_a_rollout_split_in_two_at_its_histories_is_the_rollout_in_one(model):
     torch.testing.assert_close(torch.cat([first.a, second.a], 1), whole.a)
 
 
-def test_a_truncated_rollout_predicts_the_same_and_credits_an_action_with_k_steps_at_most(model):
+def test_a_cut_rollout_predicts_the_same_and_a_truncated_one_credits_an_action_with_k_steps_at_most(model):
     torch.manual_seed(0)
     policy = AdjustmentPolicy(POLICY_PRESETS["tiny"])
     torch.nn.init.normal_(policy.pi_phi.body[-1].weight, std=0.1)
@@ -99,8 +100,10 @@ def test_a_truncated_rollout_predicts_the_same_and_credits_an_action_with_k_step
     qref_hist, q_star = torch.randn(3, 4, 4) * 0.1, torch.randn(3, 12, 4) * 0.1
     whole = policy_rollout(model, policy, obs_hist, qref_hist, q_star, steps=9)
     cut = policy_rollout(model, policy, obs_hist, qref_hist, q_star, steps=9, truncate=3)
-    torch.testing.assert_close(cut.q_hat, whole.q_hat)  # the same predictions: only the gradient is cut
-    torch.testing.assert_close(cut.a, whole.a)
+    capped = policy_rollout(model, policy, obs_hist, qref_hist, q_star, steps=9, row_cap=2.0)
+    for other in (cut, capped):  # the same predictions: only the gradient is cut
+        torch.testing.assert_close(other.q_hat, whole.q_hat)
+        torch.testing.assert_close(other.a, whole.a)
 
     def reach(rollout, step):
         return torch.autograd.grad(rollout.q_hat[:, step].sum(), obs_hist, retain_graph=True)[0].abs().sum().item()
@@ -109,9 +112,24 @@ def test_a_truncated_rollout_predicts_the_same_and_credits_an_action_with_k_step
     assert reach(cut, 3) == 0 and reach(cut, 8) == 0  # past the first cut the start gets no gradient
 
 
-def test_a_policy_trained_with_truncated_backpropagation_cuts_the_true_tracking_error(model):
-    cfg = dataclasses.replace(POLICY_PRESETS["tiny"], truncate=2, steps=60)
-    assert plain_form(cfg)["truncate"] == 2 and "truncate" not in plain_form(POLICY_PRESETS["tiny"])  # old folders resume
+def test_a_row_gradient_cap_passes_values_and_cuts_only_the_rows_above_its_share_of_the_median():
+    x = torch.zeros(5, 2, requires_grad=True)
+    weights = torch.tensor([[1.0, 0.0], [0.0, 2.0], [3.0, 0.0], [0.0, 4.0], [300.0, 400.0]])  # row norms 1, 2, 3, 4, 500
+    capped = cap_row_gradients(x, 2.0)
+    assert torch.equal(capped, x)
+    (capped * weights).sum().backward()
+    norms = x.grad.norm(dim=1)
+    torch.testing.assert_close(norms, torch.tensor([1.0, 2.0, 3.0, 4.0, 6.0]))  # 2 × the median 3: only the last is cut
+    torch.testing.assert_close(x.grad[4] / norms[4], torch.tensor([0.6, 0.8]))  # its direction kept
+    y = torch.zeros(3, 2, requires_grad=True)
+    (cap_row_gradients(y, 2.0) * torch.tensor([[0.0, 0.0], [0.0, 0.0], [5.0, 0.0]])).sum().backward()
+    assert y.grad[2, 0] == 5.0  # a median of zero cuts nothing
+
+
+@pytest.mark.parametrize("field, value", [("truncate", 2), ("row_cap", 3.0)])
+def test_a_policy_trained_with_its_rollout_gradient_cut_cuts_the_true_tracking_error(model, field, value):
+    cfg = dataclasses.replace(POLICY_PRESETS["tiny"], steps=60, **{field: value})
+    assert plain_form(cfg)[field] == value and field not in plain_form(POLICY_PRESETS["tiny"])  # old folders resume
     trained = train_policy(cfg, model, lag_records(), device="cpu", progress=False)
     test = lag_records(n=4, seed=1, sigma=0.0)
     pd_mae, policy_mae = track_lag_system(None, test), track_lag_system(trained.policy, test)

@@ -19,7 +19,8 @@ in rad² (the paper's units, for which γ = 0.98 and k_smooth = 1.0 are tuned). 
    within the episode; with ``burn_in_share`` below 1, the rest of each batch are recorded windows from any step.
 5. With ``imagined_share`` > 0, that share of each batch are imagined deployments carried across optimizer steps
    (truncated backpropagation through whole episodes, :class:`ImaginedDeployments`); the rest are recorded windows.
-6. With ``truncate`` K > 0, the gradient through the predicted histories is cut every K steps of the rollout.
+6. With ``truncate`` K > 0, the gradient through the predicted histories is cut every K steps of the rollout; with
+   ``row_cap`` τ > 0, each window's gradient through them is cut to τ × the batch's median at every step.
 
 The open loop (:class:`PWMPolicy` through a :class:`~efficienttrack.learn.dynamics.PlantModel`): the policy outputs the
 command u_t / 1000 = π_φ(o_H, u_H, q*_F) ∈ (−1, 1)⁴ (tanh × 1: PWM within ±1000), the model is driven by it, and the
@@ -252,6 +253,36 @@ def drive(channel: str, a: torch.Tensor, q_next: torch.Tensor) -> torch.Tensor:
     return a if channel == "u" else q_next + a
 
 
+class _RowGradientCap(torch.autograd.Function):
+    """Identity forward; backward, each row's gradient scaled down to at most ``cap`` × the batch's median row norm."""
+
+    @staticmethod
+    def forward(ctx: torch.autograd.function.FunctionCtx, x: torch.Tensor, cap: float) -> torch.Tensor:
+        ctx.cap = cap  # type: ignore[attr-defined]
+        return x.view_as(x)
+
+    @staticmethod
+    def backward(ctx: torch.autograd.function.FunctionCtx, grad: torch.Tensor) -> tuple[torch.Tensor, None]:
+        norm = grad.flatten(1).norm(dim=1)
+        median = norm.median()
+        limit = ctx.cap * median if median > 0 else torch.inf  # type: ignore[attr-defined]
+        scale = torch.where(norm > limit, limit / norm.clamp_min(torch.finfo(norm.dtype).tiny), 1.0)
+        return grad * scale.view(-1, *(1,) * (grad.dim() - 1)), None
+
+
+def cap_row_gradients(x: torch.Tensor, cap: float) -> torch.Tensor:
+    """``x`` unchanged; in the backward pass each row's gradient is cut to at most ``cap`` × the median row's norm.
+
+    Args:
+        x: (B, …), one row per window.
+        cap: τ > 0, the largest ratio of a row's gradient norm to the batch's median row norm that passes unchanged.
+
+    Returns:
+        ``x``, the same values.
+    """
+    return _RowGradientCap.apply(x, cap)
+
+
 def policy_rollout(
     g_theta: ClosedLoopModel,
     pi_phi: AdjustmentPolicy | None,
@@ -260,6 +291,7 @@ def policy_rollout(
     qdes_future: torch.Tensor,
     steps: int,
     truncate: int = 0,
+    row_cap: float = 0.0,
 ) -> PolicyRollout:
     """Roll g_θ ``steps`` steps under π_φ: a_i = π_φ(o_H, q^r_H, q*_F), q^r_{i+1} = q*_{i+1} + a_i, ô_{i+1} = g_θ(…).
 
@@ -275,6 +307,8 @@ def policy_rollout(
         steps: H, rollout length.
         truncate: K > 0 cuts the gradient through the histories before steps K, 2K, …: a loss term then reaches back
             through the model's predictions to the actions of at most K steps before (0: through the whole rollout).
+        row_cap: τ > 0 cuts, at every step, each window's gradient through the prediction and the reference that enter
+            the histories to at most τ × the batch's median (:func:`cap_row_gradients`; 0: never).
 
     Returns:
         Predicted positions, adjustments and references.
@@ -294,7 +328,13 @@ def policy_rollout(
         a_i = pi_phi(obs_hist, qref_hist, q_star_F) if pi_phi is not None else torch.zeros_like(q_star_F[:, 0])
         q_r = drive(g_theta.channel, a_i, q_star_F[:, 0])
         o_hat = g_theta(obs_hist, qref_hist, q_r)
-        obs_hist, qref_hist = push(obs_hist, o_hat), push(qref_hist, q_r)
+        if row_cap and torch.is_grad_enabled():  # the loss's own terms stay whole: only what later steps send back is cut
+            obs_hist, qref_hist = (
+                push(obs_hist, cap_row_gradients(o_hat, row_cap)),
+                push(qref_hist, cap_row_gradients(q_r, row_cap)),
+            )
+        else:
+            obs_hist, qref_hist = push(obs_hist, o_hat), push(qref_hist, q_r)
         q_hat.append(o_hat[:, :4])
         actions.append(a_i)
         refs.append(q_r)
@@ -506,7 +546,8 @@ def train_policy(
             obs_hist, qref_hist = torch.cat([obs_hist, plain.obs_hist]), torch.cat([qref_hist, plain.qref_hist])
             q_star = torch.cat([q_star, plain.qdes_future])
         # rollout: H steps of g_θ under π_φ, q^r_{i+1} = q*_{i+1} + a_i, q*_F sliding along q*_{t+1..t+H−1+F}
-        q_hat, a, _, end_obs, end_qref = policy_rollout(g_theta, pi_phi, obs_hist, qref_hist, q_star, H, cfg.truncate)
+        q_hat, a, _, end_obs, end_qref = policy_rollout(g_theta, pi_phi, obs_hist, qref_hist, q_star, H, cfg.truncate,
+                                                        cfg.row_cap)  # fmt: skip
         if imagined is not None:
             imagined.advance(end_obs, end_qref)
         L_track, L_reg = policy_loss(q_hat, a, q_star[:, :H], cfg.gamma)
