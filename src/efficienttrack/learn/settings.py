@@ -226,9 +226,9 @@ class PolicyConfig(TrainingSchedule):
     row_cap: float = setting(0.0, ge=0, before=0.0)
     """τ: at every step of the rollout, cut each window's gradient through the predicted state and the reference that
     later steps see to at most τ times the batch's median window (0: never, the paper's). Through a model trained ten
-    times longer the gradient's mass sits in a few windows whose imagined closed loop the policy destabilizes (the top
-    1 % carried up to 78 % of it); the cap tames those and leaves the others their whole horizon, where ``truncate``
-    cuts every window's."""
+    times longer the gradient's mass sits in a few windows (under the preset's policy, the top 1 % carry 55 % of it,
+    ``benchmarks/policy_gradients.py --policy``); the cap tames those and leaves the others their whole horizon, where
+    ``truncate`` cuts every window's."""
 
     def __post_init__(self) -> None:
         """Check the fields, then a horizon that ``k_path`` can use and at most one of ``burn_in`` and ``imagined_share``."""
