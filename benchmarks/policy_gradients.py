@@ -78,7 +78,7 @@ def main() -> None:
     with mock.patch.object(policy_module.nn.utils, "clip_grad_norm_", recording_clip):  # the trainer's clip: the norm
         result = train_policy(cfg, model, records, device="cpu", seed=args.seed, progress=False)
     series = np.stack([np.asarray(norms), result.losses])
-    print(f"{args.model}, truncate {cfg.truncate}, {result.steps} steps in {result.seconds:.0f} s")
+    print(f"{args.model}, truncate {cfg.truncate}, row_cap {cfg.row_cap:g}, {result.steps} steps in {result.seconds:.0f} s")
     print("steps        grad norm: median     p90      max   loss: median      max")
     tenth = max(1, len(norms) // 10)
     for start in range(0, len(norms), tenth):
