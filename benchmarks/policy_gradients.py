@@ -13,7 +13,7 @@ windows (median, percentiles, the share of the sum carried by the top 1 %), with
 settings say (``policy.truncate``, ``policy.row_cap``). A few windows carrying most of it is what an explosion looks
 like.
 
-Run (docs/comparison.md, "Truncated backpropagation"):
+Run (docs/comparison.md, "Exploding gradients through a better model"):
   R=runs/noise/paper/slow_s0
   .venv/bin/python benchmarks/policy_gradients.py --model $R/model.pt --data $R/records/train --steps 1000
   .venv/bin/python benchmarks/policy_gradients.py --model runs/pol/paper/x10_s0/model.pt --data $R/records/train \

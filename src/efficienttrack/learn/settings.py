@@ -221,14 +221,17 @@ class PolicyConfig(TrainingSchedule):
     still runs over all h steps (0: never, the paper's). Through a model trained ten times longer the whole rollout's
     gradient explodes (norms 10–100 times the preset model's, spikes to 50) and the policy tracked worse; cut every 5
     steps it tracked 30 % better than through the preset's model, on the paper's simulator. Not the default: through
-    the xe75's preset model, K = 5 tracked more than twice as badly (docs/comparison.md, "Truncated backpropagation")."""
+    the xe75's preset model, K = 5 tracked more than twice as badly; ``row_cap`` does not (docs/comparison.md,
+    "Exploding gradients through a better model")."""
 
     row_cap: float = setting(0.0, ge=0, before=0.0)
     """τ: at every step of the rollout, cut each window's gradient through the predicted state and the reference that
     later steps see to at most τ times the batch's median window (0: never, the paper's). Through a model trained ten
     times longer the gradient's mass sits in a few windows (under the preset's policy, the top 1 % carry 55 % of it,
     ``benchmarks/policy_gradients.py --policy``); the cap tames those and leaves the others their whole horizon, where
-    ``truncate`` cuts every window's."""
+    ``truncate`` cuts every window's. At 10, the policy through that model tracked a third better than through the
+    preset's on the paper's simulator (as well on the xe75). Not the default yet: one or two seeds a plant
+    (docs/comparison.md, "Exploding gradients through a better model")."""
 
     def __post_init__(self) -> None:
         """Check the fields, then a horizon that ``k_path`` can use and at most one of ``burn_in`` and ``imagined_share``."""
