@@ -108,7 +108,7 @@ def test_a_cut_rollout_predicts_the_same_and_a_truncated_one_credits_an_action_w
     def reach(rollout, step):
         return torch.autograd.grad(rollout.q_hat[:, step].sum(), obs_hist, retain_graph=True)[0].abs().sum().item()
 
-    assert reach(cut, 2) > 0 and reach(whole, 3) > 0 and reach(whole, 8) > 0
+    assert reach(cut, 2) > 0 and reach(whole, 3) > 0 and reach(whole, 8) > 0 and reach(capped, 8) > 0
     assert reach(cut, 3) == 0 and reach(cut, 8) == 0  # past the first cut the start gets no gradient
 
 

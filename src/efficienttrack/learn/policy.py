@@ -265,7 +265,7 @@ class _RowGradientCap(torch.autograd.Function):
     def backward(ctx: torch.autograd.function.FunctionCtx, grad: torch.Tensor) -> tuple[torch.Tensor, None]:
         norm = grad.flatten(1).norm(dim=1)
         median = norm.median()
-        limit = ctx.cap * median if median > 0 else torch.inf  # type: ignore[attr-defined]
+        limit = torch.where(median > 0, ctx.cap * median, torch.inf)  # type: ignore[attr-defined]  # no sync on a GPU
         scale = torch.where(norm > limit, limit / norm.clamp_min(torch.finfo(norm.dtype).tiny), 1.0)
         return grad * scale.view(-1, *(1,) * (grad.dim() - 1)), None
 
