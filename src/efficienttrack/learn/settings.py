@@ -230,8 +230,8 @@ class PolicyConfig(TrainingSchedule):
     times longer the gradient's mass sits in a few windows (under the preset's policy, the top 1 % carry 55 % of it,
     ``benchmarks/policy_gradients.py --policy``); the cap tames those and leaves the others their whole horizon, where
     ``truncate`` cuts every window's. At 10, the policy through that model tracked a third better than through the
-    preset's on the paper's simulator (as well on the xe75). Not the default yet: one or two seeds a plant
-    (docs/comparison.md, "Exploding gradients through a better model")."""
+    preset's on the paper's simulator (as well on the xe75); through the preset's models 1–3 % better on three plants
+    (7 runs of 9). Not the default yet (docs/comparison.md, "Exploding gradients through a better model")."""
 
     def __post_init__(self) -> None:
         """Check the fields, then a horizon that ``k_path`` can use and at most one of ``burn_in`` and ``imagined_share``."""
