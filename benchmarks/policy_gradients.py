@@ -9,7 +9,8 @@ value and the loss's median and largest value, and, with ``--out``, writes both 
 
 With ``--policy`` it trains nothing: from ``--windows`` recorded windows it rolls that policy through the model as the
 training does and prints how the gradient of each window's loss with respect to its first reference spreads over the
-windows (median, percentiles, the share of the sum carried by the top 1 %), with the rollout uncut and cut as the
+windows (median, percentiles, the share of the sum carried by the top 1 %); the reference is moved by shifting the
+first desired position, which the policy sees and the reference follows, with the rollout uncut and cut as the
 settings say (``policy.truncate``, ``policy.row_cap``). A few windows carrying most of it is what an explosion looks
 like.
 
@@ -76,7 +77,7 @@ def main() -> None:
 
     model, records = load_model(args.model), load_records(args.data, recursive=True)
     with mock.patch.object(policy_module.nn.utils, "clip_grad_norm_", recording_clip):  # the trainer's clip: the norm
-        result = train_policy(cfg, model, records, device="cpu", seed=args.seed, progress=False)
+        result = train_policy(cfg, model, records, device="cpu", seed=args.seed)
     series = np.stack([np.asarray(norms), result.losses])
     print(f"{args.model}, truncate {cfg.truncate}, row_cap {cfg.row_cap:g}, {result.steps} steps in {result.seconds:.0f} s")
     print("steps        grad norm: median     p90      max   loss: median      max")

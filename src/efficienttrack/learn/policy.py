@@ -320,6 +320,8 @@ def policy_rollout(
     if qdes_future.shape[1] < needed:
         raise EfficientTrackError(f"policy_rollout: needs {needed} future desired positions, got {qdes_future.shape[1]}")
     F = seen_lengths(cfg).future
+    capped = row_cap and torch.is_grad_enabled()  # the loss's own terms stay whole: only what later steps send back is cut
+    enter = (lambda x: cap_row_gradients(x, row_cap)) if capped else (lambda x: x)
     q_hat, actions, refs = [], [], []
     for i in range(steps):
         if truncate and i and i % truncate == 0:
@@ -328,13 +330,7 @@ def policy_rollout(
         a_i = pi_phi(obs_hist, qref_hist, q_star_F) if pi_phi is not None else torch.zeros_like(q_star_F[:, 0])
         q_r = drive(g_theta.channel, a_i, q_star_F[:, 0])
         o_hat = g_theta(obs_hist, qref_hist, q_r)
-        if row_cap and torch.is_grad_enabled():  # the loss's own terms stay whole: only what later steps send back is cut
-            obs_hist, qref_hist = (
-                push(obs_hist, cap_row_gradients(o_hat, row_cap)),
-                push(qref_hist, cap_row_gradients(q_r, row_cap)),
-            )
-        else:
-            obs_hist, qref_hist = push(obs_hist, o_hat), push(qref_hist, q_r)
+        obs_hist, qref_hist = push(obs_hist, enter(o_hat)), push(qref_hist, enter(q_r))
         q_hat.append(o_hat[:, :4])
         actions.append(a_i)
         refs.append(q_r)
