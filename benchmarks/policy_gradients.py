@@ -14,13 +14,15 @@ first desired position, which the policy sees and the reference follows, with th
 settings say (``policy.truncate``, ``policy.row_cap``). A few windows carrying most of it is what an explosion looks
 like.
 
-Run (docs/comparison.md, "Exploding gradients through a better model"):
+Run (docs/comparison.md, "Exploding gradients through a better model"; the preset caps the gradient since
+2026-11-29, ``--set policy.row_cap=0`` is the uncut rollout):
   R=runs/noise/paper/slow_s0
-  .venv/bin/python benchmarks/policy_gradients.py --model $R/model.pt --data $R/records/train --steps 1000
+  .venv/bin/python benchmarks/policy_gradients.py --model $R/model.pt --data $R/records/train --steps 1000 \
+      --set policy.row_cap=0
   .venv/bin/python benchmarks/policy_gradients.py --model runs/pol/paper/x10_s0/model.pt --data $R/records/train \
-      --steps 1000                                    # and --set policy.truncate=5; 2-4 min each on one thread
+      --steps 1000 --set policy.row_cap=0       # and --set policy.truncate=5, or the cap; 2-4 min each on one thread
   .venv/bin/python benchmarks/policy_gradients.py --model runs/pol/paper/x10_s0/model.pt --data $R/records/train \
-      --policy runs/noise/paper/slow_pol2x_s0/policy.pt --set policy.truncate=5    # seconds
+      --policy runs/noise/paper/slow_pol2x_s0/policy.pt --set policy.row_cap=0 --set policy.truncate=5    # seconds
 """
 
 from __future__ import annotations

@@ -128,8 +128,8 @@ def test_a_row_gradient_cap_passes_values_and_cuts_only_the_rows_above_its_share
 
 @pytest.mark.parametrize("field, value", [("truncate", 2), ("row_cap", 3.0)])
 def test_a_policy_trained_with_its_rollout_gradient_cut_cuts_the_true_tracking_error(model, field, value):
-    cfg = dataclasses.replace(POLICY_PRESETS["tiny"], steps=60, **{field: value})
-    assert plain_form(cfg)[field] == value and field not in plain_form(POLICY_PRESETS["tiny"])  # old folders resume
+    cfg = dataclasses.replace(POLICY_PRESETS["tiny"], steps=60, **({"row_cap": 0.0} | {field: value}))  # each cut alone
+    assert plain_form(cfg)[field] == value
     trained = train_policy(cfg, model, lag_records(), device="cpu", progress=False)
     test = lag_records(n=4, seed=1, sigma=0.0)
     pd_mae, policy_mae = track_lag_system(None, test), track_lag_system(trained.policy, test)
@@ -159,11 +159,14 @@ def test_a_policy_trained_on_imagined_deployments_cuts_the_true_tracking_error(t
         dataclasses.replace(cfg, burn_in=2)
 
 
-def test_a_policy_from_before_imagined_deployments_reads_back_as_trained_without_them(tmp_path):
-    paper_way = dataclasses.replace(POLICY_PRESETS["tiny"], imagined_share=0.0)
-    assert "imagined_share" not in plain_form(paper_way)  # stored as a checkpoint from before the field was
+def test_a_policy_from_before_imagined_deployments_and_the_cap_reads_back_as_trained_without_them(tmp_path):
+    assert all(cfg.row_cap == 10.0 for cfg in POLICY_PRESETS.values())  # the cap: the default, in every preset
+    assert "truncate" not in plain_form(POLICY_PRESETS["tiny"])  # the cut: off, as before it was a setting
+    paper_way = dataclasses.replace(POLICY_PRESETS["tiny"], imagined_share=0.0, row_cap=0.0)
+    assert not {"imagined_share", "row_cap"} & set(plain_form(paper_way))  # stored as from before the fields were
     save_policy(AdjustmentPolicy(paper_way), tmp_path / "policy.pt")
-    assert load_policy(tmp_path / "policy.pt", device="cpu").cfg.imagined_share == 0.0  # not today's default, 0.5
+    loaded = load_policy(tmp_path / "policy.pt", device="cpu").cfg
+    assert (loaded.imagined_share, loaded.row_cap) == (0.0, 0.0)  # not today's defaults, 0.5 and 10
 
 
 def test_imagined_deployments_go_on_from_the_model_and_restart_at_an_episode_start(model):

@@ -47,11 +47,12 @@ RESERVE = 0.05
 """Share of the budget kept for what the estimate leaves out (model errors, saving, the report's plots): with 3 %, a
 15-minute run beside two training jobs took 15.3 minutes."""
 MAX_POLICY_SCALE = 1.5
-"""Most share of its configured steps a policy's training takes when the budget leaves room. The policy's training
-limits the tracking, the model's does not: three times the model's steps gave a worse policy (docs/comparison.md,
-"Training length"), while 2.7–2.8 times the policy's 1,500 steps of before 2026-11-29, with 20 minutes, tracked 5 %
-better on the validation references of the xe75 and the paper's simulator (docs/rounds.md). Not tuned: 4,500 steps,
-1.5 times today's 3,000, is the most measured."""
+"""Most share of its configured steps a policy's training takes when the budget leaves room. 2.7–2.8 times the
+policy's 1,500 steps of before 2026-11-29, with 20 minutes, tracked 5 % better on the validation references of the xe75
+and the paper's simulator (docs/rounds.md). Not tuned: 4,500 steps, 1.5 times today's 3,000, is the most measured. The
+models keep their steps, as three times the model's steps gave a worse policy (docs/comparison.md, "Training
+length"); with the policy's gradient capped (``policy.row_cap``, the default since 2026-11-29) they gave a better one
+on two plants of three, so minutes to spare may pay more on the model: not measured through a budget yet."""
 LAST_PLAN_MARGIN = 0.15
 """Extra share of its time that the last training's plan keeps free: nothing corrects it afterwards. On a 2-core
 machine a later round's trainings took 0.95–1.15 × what the plan before them predicted (10 plans in five 15-minute

@@ -26,13 +26,14 @@ class SuperTrackSettings:
     per iteration (``steps``); horizon 8: SuperTrack's world-model window; history 5 as our closed loop's ``cpu``."""
     policy: PolicyConfig = setting(
         default_factory=lambda: PolicyConfig(
-            horizon=20, steps=100, batch_size=128, lr=1e-3, cosine_decay=False, imagined_share=0.0
+            horizon=20, steps=100, batch_size=128, lr=1e-3, cosine_decay=False, imagined_share=0.0, row_cap=0.0
         )
     )
     """π_φ and the optimizer steps it is trained per iteration (``steps``) through the world model on the discounted
     tracking loss plus k_smooth × the action's change (:func:`efficienttrack.learn.policy.train_policy`); its
     ``max_adjust`` is replaced by the system's bound in the closed loop and not used in the open loop;
-    ``imagined_share`` 0: SuperTrack's loss on its world model's windows, not EfficientTrack's imagined deployments."""
+    ``imagined_share`` 0 and ``row_cap`` 0: SuperTrack's loss on its world model's windows, without EfficientTrack's
+    imagined deployments or its cap on the gradient."""
     steps_per_iteration: int = setting(4096, ge=1, le=MAX_STEPS)
     """Interaction steps collected per iteration (whole episodes on training references drawn at random, seeded)."""
     buffer_steps: int = setting(200_000, ge=1, le=100 * MAX_STEPS)
@@ -66,12 +67,13 @@ SUPERTRACK_PRESETS: dict[str, SuperTrackSettings] = {
     "tiny": SuperTrackSettings(
         model=ModelConfig(hidden=32, layers=2, horizon=4, history=3, batch_size=64, steps=20, lr=3e-3, cosine_decay=False),
         policy=PolicyConfig(
-            hidden=32, layers=2, horizon=4, batch_size=64, steps=20, lr=3e-3, cosine_decay=False, imagined_share=0.0
+            hidden=32, layers=2, horizon=4, batch_size=64, steps=20, lr=3e-3, cosine_decay=False, imagined_share=0.0,
+            row_cap=0.0,
         ),
         steps_per_iteration=1000,
         buffer_steps=20_000,
     ),
-}
+}  # fmt: skip
 """``cpu``: minutes per 50,000 interaction steps on a CPU; ``tiny``: seconds (tests; its curves say nothing)."""
 
 
