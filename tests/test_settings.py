@@ -354,8 +354,9 @@ def test_config_show_runs_without_torch():
 @pytest.mark.parametrize("method", ["supertrack", "efficienttrack"])
 @pytest.mark.parametrize("preset_name", ["tiny", "cpu"])
 def test_the_baselines_and_the_open_loop_keep_the_loss_they_were_measured_with(method, preset_name):
-    assert PolicyConfig().imagined_share == 0.5  # the closed loop's default
-    assert preset_settings(method, preset_name).policy.imagined_share == 0.0  # SuperTrack's loss; the open loop's
+    assert (PolicyConfig().imagined_share, PolicyConfig().row_cap) == (0.5, 10.0)  # the closed loop's defaults
+    policy = preset_settings(method, preset_name).policy  # SuperTrack's loss; the open loop's
+    assert (policy.imagined_share, policy.row_cap) == (0.0, 0.0)
 
 
 def test_settings_that_train_before_they_could_fail_refuse_a_device_this_machine_lacks():
