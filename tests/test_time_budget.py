@@ -22,7 +22,9 @@ from efficienttrack.workflow.ledger import Ledger, read_spent
 from efficienttrack.workflow.pipeline import run_pipeline
 from efficienttrack.workflow.stages import COLLECT, RunLog, evaluation
 from efficienttrack.workflow.time_budget import (
+    KEPT_FOR_POLICIES,
     LAST_PLAN_MARGIN,
+    MAX_MODEL_SCALE,
     MAX_POLICY_SCALE,
     RESERVE,
     Planner,
@@ -132,19 +134,26 @@ def test_a_one_round_run_keeps_the_margin_in_its_policy_plan_the_last_one(tmp_pa
     assert planner.scale(1, "policy") == pytest.approx(expected)
 
 
-def test_minutes_to_spare_go_to_the_policies_and_no_model_trains_more_than_configured(tmp_path, monkeypatch):
+def test_minutes_to_spare_go_to_the_models_first_as_long_as_the_policies_keep_room_for_theirs(tmp_path, monkeypatch):
     planner, ledger, clock = _planning(tmp_path, monkeypatch, minutes=0.8)  # 45.6 s for 40 s of training
-    assert planner.scale(1, "model") == 1.0
+    assert planner.scale(1, "model") == 1.0  # more would leave the three policies (20 s) less than 1.5 × their time
     _train(ledger, clock, 1, "model", 10)
-    spare = planner.scale(1, "policy")  # the two models left keep their 10 s; the three policies (20 s) share the rest
+    spare = planner.scale(1, "policy")  # the two models left keep their 10 s; the three policies share the rest
     assert spare == pytest.approx((38 * (1 - RESERVE) - 10) / 20) and 1 < spare < MAX_POLICY_SCALE
     _train(ledger, clock, 1, "policy", 10 * spare)
     assert planner.scale(2, "model") == 1.0
+    one, ledger, clock = _planning(tmp_path / "one", monkeypatch, minutes=0.6, rounds=1)  # 34.2 s for 20 s of training
+    model = one.scale(1, "model")  # what is left after 1.5 × the policy's 10 s
+    assert model == pytest.approx((36 * (1 - RESERVE) - KEPT_FOR_POLICIES * 10) / 10) and 1 < model < MAX_MODEL_SCALE
+    _train(ledger, clock, 1, "model", 10 * model)
+    policy = one.scale(1, "policy")  # the policy takes the rest, its last plan's margin kept
+    assert policy == pytest.approx((36 - 10 * model) * (1 - RESERVE) / (10 * (1 + LAST_PLAN_MARGIN))) and policy > 1
     roomy, ledger, clock = _planning(tmp_path / "roomy", monkeypatch, minutes=60)
-    assert roomy.scale(1, "model") == 1.0
-    _train(ledger, clock, 1, "model", 10)
+    assert roomy.scale(1, "model") == MAX_MODEL_SCALE
+    _train(ledger, clock, 1, "model", 10 * MAX_MODEL_SCALE)
     assert roomy.scale(1, "policy") == MAX_POLICY_SCALE
-    assert "round 1's policy trains 150% of its steps" in (tmp_path / "roomy" / "run.log").read_text()
+    log = (tmp_path / "roomy" / "run.log").read_text()
+    assert "round 1's model trains 3.00 × its steps" in log and "round 1's policy trains 1.50 × its steps" in log
 
 
 def test_a_budget_too_small_to_train_is_refused_and_none_plans_nothing(tmp_path, monkeypatch):

@@ -58,8 +58,8 @@ TimeBudgetOpt = Annotated[
     typer.Option(
         "--time-budget",
         help="Minutes for the whole run, all rounds: every training's steps are scaled down to fit, from step times "
-        "measured on this machine, or the policy's up to 1.5 × when the minutes leave room (a target, not a guarantee; "
-        "default: the configured steps).",
+        "measured on this machine, or, when the minutes leave room, the model's up to 3 ×, then the policy's up to 1.5 × "
+        "(a target, not a guarantee; default: the configured steps).",
     ),
 ]
 

@@ -69,8 +69,8 @@ class RunConfig:
     time_budget: float | None = setting(None, gt=0, before=None)
     """Minutes of wall time for the whole run, all rounds (``--time-budget``): every training's optimizer steps are
     scaled down by one factor, from step times measured on this machine when training starts, or, when the minutes
-    leave room, the policy's up to 1.5 times (:mod:`efficienttrack.workflow.time_budget`); None: the configured
-    steps."""
+    leave room, the model's up to 3 times, then the policy's up to 1.5 times (:mod:`efficienttrack.workflow.time_budget`);
+    None: the configured steps."""
 
     def __post_init__(self) -> None:
         """Check the fields (EfficientTrackError naming the field); ``collect.seed`` takes the run's seed."""

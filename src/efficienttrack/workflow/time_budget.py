@@ -7,8 +7,9 @@ evaluation it times short trainings of each network (:func:`measure_step_times`)
 evaluations left into the time left (:func:`fit`), at the step times corrected by how long the finished trainings took
 against the prediction (a short probe can run a third faster than the minutes of training after it), each network's by
 its own trainings once it has trained: in three 15-minute runs the policy's took 1.10–1.31 × their probe, the model's
-0.88–1.15 ×. Minutes to spare go to the policy's trainings, up to :data:`MAX_POLICY_SCALE` × their steps; the model's
-never train more than configured. The time spent and what each stage took come from the run's
+0.88–1.15 ×. Minutes to spare go to the models' trainings first, up to :data:`MAX_MODEL_SCALE` × their steps, as long
+as the policies keep room for theirs (:data:`KEPT_FOR_POLICIES`), then to the policies', up to :data:`MAX_POLICY_SCALE`
+× theirs. The time spent and what each stage took come from the run's
 :class:`~efficienttrack.workflow.ledger.Ledger`, so a killed and rerun run plans from what is actually left. Each
 factor is kept as a stage: a resumed training trains the steps its checkpoint was made for. The budget is a target, not
 a guarantee: work that starts beside the run after the last plan slows its steps.
@@ -46,13 +47,24 @@ refused, and a later plan trains at least this share."""
 RESERVE = 0.05
 """Share of the budget kept for what the estimate leaves out (model errors, saving, the report's plots): with 3 %, a
 15-minute run beside two training jobs took 15.3 minutes."""
+MAX_MODEL_SCALE = 3.0
+"""Most share of its configured steps a model's training takes when the budget leaves room. With the policy's gradient
+capped (``policy.row_cap``), three times the model's 4,000 steps gave a policy a fifth to a quarter better on the
+validation references of the paper's simulator and its variant with a delay, a lag and a dead band, and as good on the
+xe75 (docs/comparison.md, "Exploding gradients"); ten times was better still on one seed of the paper's simulator, worse
+on the other. Through a 20-minute budget, three times the model's steps beat 1.5 times the policy's by 21–39 % on the
+validation references of those two plants and was level on the xe75 (−2 % and +1 %; 2 seeds each, docs/rounds.md). Not
+tuned beyond those points."""
 MAX_POLICY_SCALE = 1.5
-"""Most share of its configured steps a policy's training takes when the budget leaves room. 2.7–2.8 times the
-policy's 1,500 steps of before 2026-11-29, with 20 minutes, tracked 5 % better on the validation references of the xe75
-and the paper's simulator (docs/rounds.md). Not tuned: 4,500 steps, 1.5 times today's 3,000, is the most measured. The
-models keep their steps, as three times the model's steps gave a worse policy (docs/comparison.md, "Training
-length"); with the policy's gradient capped (``policy.row_cap``, the default since 2026-11-29) they gave a better one
-on two plants of three, so minutes to spare may pay more on the model: not measured through a budget yet."""
+"""Most share of its configured steps a policy's training takes when the budget leaves room after the models. 2.7–2.8
+times the policy's 1,500 steps of before 2026-11-29, with 20 minutes, tracked 5 % better on the validation references
+of the xe75 and the paper's simulator (docs/rounds.md). Not tuned: 4,500 steps, 1.5 times today's 3,000, is the most
+measured."""
+KEPT_FOR_POLICIES = 1.5
+"""Times their predicted seconds that the policies' trainings are kept when the models take minutes to spare. A
+policy's trainings took 1.10–1.31 × their probe and the last plan keeps :data:`LAST_PLAN_MARGIN` free, so with 1.5 the
+policies still train their configured steps after a model that ran slower than planned; what they do not need is
+theirs at their own plans."""
 LAST_PLAN_MARGIN = 0.15
 """Extra share of its time that the last training's plan keeps free: nothing corrects it afterwards. On a 2-core
 machine a later round's trainings took 0.95–1.15 × what the plan before them predicted (10 plans in five 15-minute
@@ -150,7 +162,8 @@ class Planner:
     """The factor on each training's steps: 1 without a budget; with one, what fits the rest of the run into it.
 
     A tight budget scales every training left by one factor below 1. When everything fits at the configured steps,
-    the models keep theirs and the policies share the rest, up to :data:`MAX_POLICY_SCALE`.
+    the models share the rest up to :data:`MAX_MODEL_SCALE`, the policies' time kept (:data:`KEPT_FOR_POLICIES`), and
+    the policies share what the models leave, up to :data:`MAX_POLICY_SCALE`.
 
     Args:
         cfg: the run's config (``time_budget`` minutes, or None).
@@ -226,17 +239,23 @@ class Planner:
         left = cfg.time_budget * 60 - ledger.seconds_spent()
         last = now == len(order) - 1
         scale = fit(left, other, rest, last)
-        if scale > 1 and part == "policy":  # room to spare: every model keeps its steps, the policies share the rest
+        if scale > 1:  # room to spare: the models take it first, then the policies what the models leave
             names = [name for _, name in order[now:]]
-            kept = sum(sum(cost) for cost, name in zip(rest, names, strict=True) if name == "model")
-            scale = fit(left, other + kept, [cost for cost, name in zip(rest, names, strict=True) if name == "policy"], last)
+            models, policies = ([cost for cost, name in zip(rest, names, strict=True) if name == which] for which in PARTS)
+            kept = KEPT_FOR_POLICIES * sum(map(sum, policies))
+            model_scale = min(MAX_MODEL_SCALE, max(1.0, fit(left, other + kept, models, last=False))) if models else 1.0
+            if part == "policy":
+                kept = sum(model_scale * steps + evaluations for steps, evaluations in models)
+                scale = fit(left, other + kept, policies, last)
+            else:
+                scale = model_scale
         if not finished and scale < MIN_SCALE:
             training = sum(steps for steps, _ in rest)
             raise EfficientTrackError(
                 f"--time-budget {cfg.time_budget:g} min: less than {MIN_SCALE:.0%} of the {training / 60:.1f} min the "
                 "configured training steps take on this machine would fit; give more minutes or fewer steps"
             )
-        scale = min(MAX_POLICY_SCALE if part == "policy" else 1.0, max(scale, MIN_SCALE))
+        scale = min(MAX_POLICY_SCALE if part == "policy" else MAX_MODEL_SCALE, max(scale, MIN_SCALE))
         if overall is None:
             slowness = ""
         elif took(["policy"]) is None:
@@ -245,6 +264,6 @@ class Planner:
             slowness = (
                 f"the model's trainings took {slower['model']:.2f} ×, the policy's {slower['policy']:.2f} × the estimate; "
             )
-        share = "its full steps" if scale == 1 else f"{scale:.0%} of its steps"
+        share = "its full steps" if scale == 1 else f"{scale:.0%} of its steps" if scale < 1 else f"{scale:.2f} × its steps"
         self.log.print(f"time budget: {slowness}round {k}'s {part} trains {share}")
         return {"scale": scale, "slower_than_probed": slower, "other_seconds": other, "seconds_left": left}
