@@ -186,7 +186,8 @@ def test_step_seconds_and_evaluation_seconds_come_from_short_trainings_after_a_w
 def test_a_run_with_a_budget_trains_the_scaled_steps_plans_each_training_and_keeps_the_factors(tmp_path, monkeypatch):
     monkeypatch.setattr(pipeline, "measure_step_times", lambda cfg, records, held_out, device: StepTimes(0.3, 1.2, 500))
     # 40 s; round 1's training "takes" 50 × 0.3 + 25 × 1.2 = 45 s, round 2 half of it. The toy's steps are far faster
-    # than that, so the policies are given the minutes to spare (up to 3 ×): few steps keep the run short.
+    # than that, so later trainings are given the minutes to spare (models up to 3 ×, policies 1.5 ×): few steps keep
+    # the run short.
     cfg = replace(TOY_CFG, time_budget=40 / 60, rounds=2, collect=replace(TOY_CFG.collect, passes=1),
                   model=replace(TOY_CFG.model, steps=50), policy=replace(TOY_CFG.policy, steps=25))  # fmt: skip
     result = run_pipeline(TOY, *toy_split(), tmp_path, cfg, max_plots=0)  # no tracking plots: none is checked here
