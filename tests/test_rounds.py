@@ -42,8 +42,8 @@ def small_rounds(tmp_path_factory, refs):
 
     One collection pass and short trainings (nothing here depends on how well it tracks); later rounds train on their
     deployment alone (``round_data: new``), deploy on half the training references each (``round_share``) and ramp their
-    learning rates (``round_warmup``). ``trained_on``: the episodes each training (model, then policy; round 1, 2, 3)
-    is given.
+    learning rates (``round_warmup``; round 1's model ramps over its own ``warmup``). ``trained_on``: the episodes each
+    training (model, then policy; round 1, 2, 3) is given.
     """
     trained_on = []
 
@@ -54,9 +54,9 @@ def small_rounds(tmp_path_factory, refs):
 
         return wrapper
 
-    small = replace(TOY_CFG, collect=replace(TOY_CFG.collect, passes=1), model=replace(TOY_CFG.model, steps=40),
-                    policy=replace(TOY_CFG.policy, steps=40), rounds=3, round_data="new", round_share=0.5,
-                    round_warmup=0.25)  # fmt: skip
+    small = replace(TOY_CFG, collect=replace(TOY_CFG.collect, passes=1),
+                    model=replace(TOY_CFG.model, steps=40, warmup=0.1), policy=replace(TOY_CFG.policy, steps=40),
+                    rounds=3, round_data="new", round_share=0.5, round_warmup=0.25)  # fmt: skip
     out = tmp_path_factory.mktemp("small_rounds")
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(dynamics, "train_model", counting(dynamics.train_model, 1))  # (cfg, records, …)
@@ -144,12 +144,12 @@ def test_smaller_rounds_deploy_on_the_next_references_in_turn_and_a_warmup_ramps
     train = refs[0]  # four references: a share of a half deploys on two a round, the first two, then the last two
     check_round_outputs(out, result, [train[:2], train[2:]])
     assert "deploying the round-1 policy on 2 of the 4 training references" in (out / "run.log").read_text()
-    for part in ("model", "policy"):  # round 1 at the full rate from its first step; round 2 ramped over a quarter
+    for part, ramp in (("model", 4), ("policy", 1)):  # round 1 over its section's warmup: the model's 4 steps of 40
         _, first = read_scalars(out / "logs" / part)["train/lr"]
-        _, later = read_scalars(out / "rounds" / "2" / "logs" / part)["train/lr"]  # 20 steps: a ramp of 5
+        _, later = read_scalars(out / "rounds" / "2" / "logs" / part)["train/lr"]  # round 2: 20 steps, a ramp of 5
         lr = getattr(TOY_CFG, part).lr
         ramped = lr * 0.5 * (1 + np.cos(np.pi * np.arange(20) / 20)) * np.minimum(1, np.arange(1, 21) / 5)
-        assert first[0] == pytest.approx(lr) and later == pytest.approx(ramped, rel=1e-5)
+        assert first[0] == pytest.approx(lr / ramp) and later == pytest.approx(ramped, rel=1e-5)
 
 
 def test_round_references_move_on_by_a_window_and_the_study_counts_the_rounds_a_budget_holds(refs):

@@ -136,7 +136,7 @@ def test_overrides_apply_in_order_and_are_checked_naming_the_override():
 
 def test_the_tree_lists_every_leaf_with_its_bounds():
     rows = {path: (value, bounds) for path, value, bounds in settings_table(RunConfig())}
-    assert rows["model.lr"] == (1e-3, "in (0, 10]")
+    assert rows["model.lr"] == (3e-3, "in (0, 10]")
     assert rows["model.history"] == (5, "in [1, 400] or null")
     assert rows["policy.max_adjust"][1] == "4 numbers, each > 0"
     assert rows["device"] == ("auto", "one of auto, cpu, cuda, cuda:N")
@@ -148,6 +148,18 @@ def test_the_tree_lists_every_leaf_with_its_bounds():
         + len(dataclasses.fields(RunConfig))
         - 3
     )
+
+
+def test_the_closed_loop_model_ramps_up_to_its_higher_rate_and_the_models_measured_before_keep_their_rate():
+    from efficienttrack.baselines.openloop import OPEN_PRESETS
+    from efficienttrack.baselines.supertrack import SUPERTRACK_PRESETS
+
+    cpu = PRESETS["cpu"].model
+    assert (cpu.lr, cpu.warmup) == (3e-3, 0.1) and PRESETS["fastset"].model == cpu
+    kept = [MODEL_PRESETS["paper"], MODEL_PRESETS["tiny"]]
+    kept += [presets[name].model for presets in (SUPERTRACK_PRESETS, OPEN_PRESETS) for name in ("cpu", "tiny")]
+    assert all(cfg.warmup == 0 for cfg in kept)  # SuperTrack, the open loop and the paper as they were measured
+    assert SUPERTRACK_PRESETS["cpu"].model.lr == OPEN_PRESETS["cpu"].model.lr == 1e-3
 
 
 @pytest.mark.parametrize("name", list(PRESETS))

@@ -221,7 +221,7 @@ def test_the_cli_option_sets_the_budget_and_refuses_a_bad_one(tmp_path):
 
 def test_a_config_without_a_budget_serializes_as_before_the_field_existed():
     assert "time_budget" not in TOY_CFG.to_dict()  # folders made before it still match their settings and resume
-    assert from_dict(CFG.to_dict()) == CFG and from_dict(TOY_CFG.to_dict()) == TOY_CFG
+    assert from_dict(CFG.to_dict(), stored=True) == CFG and from_dict(TOY_CFG.to_dict(), stored=True) == TOY_CFG
 
 
 TOY_TIMES = StepTimes(300 / TOY_CFG.model.steps, 600 / TOY_CFG.policy.steps, 500)

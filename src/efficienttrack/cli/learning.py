@@ -266,9 +266,9 @@ def round_command(
     _set_threads(threads)
     settings = _settings(preset_name, config, overrides, seed=seed, device=device, warm_budget=warm_budget)
     seed, device = settings.seed, settings.device
-    ramp = {"warmup": settings.round_warmup} if settings.round_warmup else {}  # as a later round of `run --rounds`
-    model_schedule = dataclasses.replace(_schedule(settings.model, steps_model, settings.warm_budget), **ramp)
-    policy_schedule = dataclasses.replace(_schedule(settings.policy, steps_policy, settings.warm_budget), **ramp)
+    ramp = settings.round_warmup  # as a later round of `run --rounds`
+    model_schedule = dataclasses.replace(_schedule(settings.model, steps_model, settings.warm_budget), warmup=ramp)
+    policy_schedule = dataclasses.replace(_schedule(settings.policy, steps_policy, settings.warm_budget), warmup=ramp)
     g_theta, _ = _warm_start("--model", model, load_model, model_schedule, device)
     pi_phi, _ = _warm_start("--policy", policy, load_policy, policy_schedule, device)
     new, old = load_records(data, recursive), load_records(old_data, recursive) if old_data else []

@@ -62,10 +62,10 @@ class RunConfig:
     previous round's networks and need fewer."""
     round_warmup: float = setting(0.1, ge=0, le=0.5, before=0.0)
     """Share of a later round's optimizer steps over which each training's learning rate rises linearly to its value
-    (``warmup`` of both sections, in rounds k ≥ 2 only; 0: from the first step, as round 1, and as folders made before
-    2026-11-29 resume). A warm start's fresh Adam steps otherwise throw the trained networks off (one paper-simulator
-    seed diverged); 0.1 lowered round 4's validation MAE in eight runs of nine on three plants and the fastset's Round
-    3 on three seeds (docs/comparison.md)."""
+    (it replaces ``warmup`` of both sections in rounds k ≥ 2, round 1 keeps theirs; 0: from the first step, as folders
+    made before 2026-11-29 resume). A warm start's fresh Adam steps otherwise throw the trained networks off (one
+    paper-simulator seed diverged); 0.1 lowered round 4's validation MAE in eight runs of nine on three plants and the
+    fastset's Round 3 on three seeds (docs/comparison.md)."""
     time_budget: float | None = setting(None, gt=0, before=None)
     """Minutes of wall time for the whole run, all rounds (``--time-budget``): every training's optimizer steps are
     scaled down by one factor, from step times measured on this machine when training starts, or, when the minutes

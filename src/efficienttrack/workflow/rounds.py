@@ -217,14 +217,13 @@ def add_samples(*counts: int | None) -> int | None:
 
 
 def _warm(config: ConfigT, previous: ConfigT | None, run: RunConfig) -> ConfigT:
-    """A later round's ``config``: the sizes of the network it continues (:func:`continued_config`), ``round_warmup``.
+    """A later round's ``config``: the network's sizes it continues (:func:`continued_config`), ``round_warmup`` its ramp.
 
     Round 1's (``previous`` None) is ``config`` as it is.
     """
     if previous is None:
         return config
-    warm = continued_config(config, previous)
-    return replace(warm, warmup=run.round_warmup) if run.round_warmup else warm
+    return replace(continued_config(config, previous), warmup=run.round_warmup)
 
 
 def rounds_rows(pd: dict[str, Any], rounds: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:

@@ -20,7 +20,9 @@ class SuperTrackSettings:
     """
 
     model: ModelConfig = setting(
-        default_factory=lambda: ModelConfig(horizon=8, history=5, steps=100, batch_size=256, lr=1e-3, cosine_decay=False)
+        default_factory=lambda: ModelConfig(
+            horizon=8, history=5, steps=100, batch_size=256, lr=1e-3, warmup=0.0, cosine_decay=False
+        )
     )
     """The world model g_θ (closed loop: of the PD loop; open loop: of the plant) and the optimizer steps it is trained
     per iteration (``steps``); horizon 8: SuperTrack's world-model window; history 5 as our closed loop's ``cpu``."""
@@ -65,7 +67,9 @@ class SuperTrackSettings:
 SUPERTRACK_PRESETS: dict[str, SuperTrackSettings] = {
     "cpu": SuperTrackSettings(),
     "tiny": SuperTrackSettings(
-        model=ModelConfig(hidden=32, layers=2, horizon=4, history=3, batch_size=64, steps=20, lr=3e-3, cosine_decay=False),
+        model=ModelConfig(
+            hidden=32, layers=2, horizon=4, history=3, batch_size=64, steps=20, lr=3e-3, warmup=0.0, cosine_decay=False
+        ),
         policy=PolicyConfig(
             hidden=32, layers=2, horizon=4, batch_size=64, steps=20, lr=3e-3, cosine_decay=False, imagined_share=0.0,
             row_cap=0.0,
