@@ -147,8 +147,9 @@ class ModelConfig(TrainingSchedule):
     generalizes better on the XE75."""
     lr: float = inherit(TrainingSchedule, "lr", 3e-3)
     """Adam learning rate (paper 1e-5). 3e-3 with the warm-up: the preset's 4,000 steps go most of the way to the
-    accuracy of 12,000 steps at 1e-3, and the policy through the model tracks better; without the warm-up the first
-    steps' huge rollout losses throw it off on some plants (docs/comparison.md, "A model three times as fast")."""
+    accuracy of 12,000 steps at 1e-3, and the policy through the model tracks better on two plants of three (level on the
+    xe75); without the warm-up the first
+    steps' huge rollout losses throw it off on some plants (docs/comparison.md, "A model that learns faster")."""
     weight_decay: float = inherit(TrainingSchedule, "weight_decay", 0.003)
     """w: decoupled weight decay (paper 0.003)."""
     steps: int | None = inherit(TrainingSchedule, "steps", 4000)

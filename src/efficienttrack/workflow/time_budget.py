@@ -54,7 +54,8 @@ validation references of the paper's simulator and its variant with a delay, a l
 xe75 (docs/comparison.md, "Exploding gradients"); ten times was better still on one seed of the paper's simulator, worse
 on the other. Through a 20-minute budget, three times the model's steps beat 1.5 times the policy's by 21–39 % on the
 validation references of those two plants and was level on the xe75 (−2 % and +1 %; 2 seeds each, docs/rounds.md). Not
-tuned beyond those points."""
+tuned beyond those points, and measured at the model's rate before 2026-12-07 (1e-3): with today's faster rate the
+preset's steps are closer to converged, and three times them may buy less; not remeasured."""
 MAX_POLICY_SCALE = 1.5
 """Most share of its configured steps a policy's training takes when the budget leaves room after the models. 2.7–2.8
 times the policy's 1,500 steps of before 2026-11-29, with 20 minutes, tracked 5 % better on the validation references
@@ -242,11 +243,11 @@ class Planner:
         if scale > 1:  # room to spare: the models take it first, then the policies what the models leave
             names = [name for _, name in order[now:]]
             models, policies = ([cost for cost, name in zip(rest, names, strict=True) if name == which] for which in PARTS)
-            kept = KEPT_FOR_POLICIES * sum(map(sum, policies))
+            kept = KEPT_FOR_POLICIES * sum(map(sum, policies))  # the policies' room
             model_scale = min(MAX_MODEL_SCALE, max(1.0, fit(left, other + kept, models, last=False))) if models else 1.0
             if part == "policy":
-                kept = sum(model_scale * steps + evaluations for steps, evaluations in models)
-                scale = fit(left, other + kept, policies, last)
+                for_models = sum(model_scale * steps + evaluations for steps, evaluations in models)
+                scale = fit(left, other + for_models, policies, last)
             else:
                 scale = model_scale
         if not finished and scale < MIN_SCALE:
