@@ -9,7 +9,8 @@ converged; the CSV holds every point, to re-plot. Run (docs/ilc.md, "The floor o
       --system "paper, delay 1, lag 0.1 s, dead band 10=paper:delay=1,lag=0.1,dead_band=10|../shared/data/references/test" \
       --system "xe75=xe75|runs/study/test_refs"
 
-Each ``--system`` is ``LABEL=SPEC[:key=value,...]|TEST_REFS``. Writes ``OUT.png`` and ``OUT.csv`` (label, trial,
+Each ``--system`` is ``LABEL=SPEC[:key=value,...]|TEST_REFS[|POLICY]``; with a policy checkpoint the oracle learns its
+corrections on top of that policy's adjustments (trial 0: the policy alone). Writes ``OUT.png`` and ``OUT.csv`` (label, trial,
 interaction_steps, mae_deg) and prints a Markdown table with the identified leads. ``--trials`` and ``--cutoff`` run
 the oracle with more trials or another low-pass than its ``cpu`` preset (80 trials, 1.5 Hz), the same on every system.
 """
@@ -39,20 +40,21 @@ from efficienttrack.data.references import load_references
 from efficienttrack.systems.spec import SystemSpec
 
 
-def parse_system(text: str) -> tuple[str, SystemSpec, Path]:
-    """``LABEL=SPEC[:key=value,...]|TEST_REFS`` as (label, spec, test references folder)."""
+def parse_system(text: str) -> tuple[str, SystemSpec, Path, Path | None]:
+    """``LABEL=SPEC[:key=value,...]|TEST_REFS[|POLICY]`` as (label, spec, test references folder, policy or None)."""
     label, _, rest = text.partition("=")
-    spec, _, refs = rest.partition("|")
+    spec, _, rest = rest.partition("|")
+    refs, _, policy = rest.partition("|")
     name, _, options = spec.partition(":")
     if not (label and name and refs):
-        sys.exit(f"--system '{text}': expected LABEL=SPEC[:key=value,...]|TEST_REFS")
+        sys.exit(f"--system '{text}': expected LABEL=SPEC[:key=value,...]|TEST_REFS[|POLICY]")
     opts = parse_options(options.split(",") if options else None, "--system")
-    return label, SystemSpec(system=name, options=tuple(opts.items())), Path(refs)
+    return label, SystemSpec(system=name, options=tuple(opts.items())), Path(refs), Path(policy) if policy else None
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--system", action="append", required=True, help="LABEL=SPEC[:key=value,...]|TEST_REFS")
+    parser.add_argument("--system", action="append", required=True, help="LABEL=SPEC[:key=value,...]|TEST_REFS[|POLICY]")
     parser.add_argument("--out", type=Path, required=True, help="OUT.png and OUT.csv are written")
     parser.add_argument("--trials", type=int, default=ILC_PRESETS["cpu"].trials, help="learning trials after trial 0")
     parser.add_argument("--cutoff", type=float, default=ILC_PRESETS["cpu"].cutoff_hz, help="the low-pass Q's cut-off, Hz")
@@ -63,11 +65,11 @@ def main() -> None:
     trials = settings.trials
     rows, figure = [], plt.figure(figsize=(7, 4))
     for text in args.system:
-        label, spec, refs_dir = parse_system(text)
+        label, spec, refs_dir, policy = parse_system(text)
         refs = load_references(refs_dir)
         with tempfile.TemporaryDirectory() as folder:
             run = training_run("closed", spec, refs, refs, (trials + 1) * trial_steps(refs), 0, folder)
-            curve = train_ilc(run, preset=settings, progress=ProgressDisplay(label))
+            curve = train_ilc(run, preset=settings, progress=ProgressDisplay(label), policy=policy)
             lead = json.loads((Path(folder) / CURVE_FILE).read_text())["lead_identified"]
         mae = [point["metrics"]["mae_deg"] for point in curve]
         rows += [(label, k, point["interaction_steps"], m) for k, (point, m) in enumerate(zip(curve, mae, strict=True))]
@@ -75,7 +77,7 @@ def main() -> None:
         last = mae[-17:]
         print(f"| {label} | {lead} | {mae[0]:.3f} | {mae[10]:.3f} | {mae[40]:.3f} | {mae[-1]:.3f} ({trials}) | "
               f"{100 * (last[0] - last[-1]) / last[0]:.1f} % |", flush=True)  # fmt: skip
-    plt.xlabel("trial (trial 0: the PD controller alone)")
+    plt.xlabel("trial (trial 0: the PD controller alone, or the policy where a line names one)")
     plt.ylabel("test MAE (°)")
     plt.title(f"ILC oracle floor: lead identified per system, gain 0.35, low-pass {settings.cutoff_hz:g} Hz")
     plt.gca().yaxis.set_major_locator(ticker.FixedLocator([0.1, 0.2, 0.3, 0.5, 1, 2, 3, 5]))

@@ -5,6 +5,8 @@ import json
 import numpy as np
 import pytest
 
+import torch
+
 from efficienttrack.baselines.curve import CURVE_FILE, training_run
 from efficienttrack.baselines.ilc import (
     ILC_PRESETS,
@@ -20,7 +22,10 @@ from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.data.cycles import generate_references
 from efficienttrack.data.metrics import compute_metrics
 from efficienttrack.data.references import Reference
+from efficienttrack.deploy.runtime import track
 from efficienttrack.envs import evaluate
+from efficienttrack.learn.policy import AdjustmentPolicy, save_policy
+from efficienttrack.learn.settings import POLICY_PRESETS
 from efficienttrack.systems.spec import SystemSpec
 from toy_system import sine_refs
 
@@ -87,6 +92,24 @@ def test_xe75_trials_lower_the_error_and_trial_0_is_pd(tmp_path):
     mae = maes(curve)
     assert len(mae) == ILC_PRESETS["tiny"].trials + 1
     assert mae[-1] < 0.5 * mae[0], mae
+
+
+def test_on_top_of_a_policy_trial_0_is_the_policy_deployed_and_the_trials_lower_its_error(tmp_path):
+    refs = xe75_refs()
+    torch.manual_seed(0)
+    policy = AdjustmentPolicy(POLICY_PRESETS["tiny"])
+    torch.nn.init.normal_(policy.pi_phi.body[-1].weight, std=0.2)  # an untrained policy that adjusts
+    path = save_policy(policy, tmp_path / "policy.pt")
+    curve = train_ilc(training_run("closed", SystemSpec(), refs, refs, 10**6, 0, tmp_path), preset="tiny", policy=path)
+    deployed = compute_metrics(track(SystemSpec().open(), policy, refs, progress=False))
+    pd = compute_metrics(evaluate(lambda obs: np.zeros((len(obs), 4)), refs, system=SystemSpec()))
+    assert curve[0]["metrics"]["mae_deg"] == pytest.approx(deployed["mae_deg"], rel=1e-6)
+    assert abs(deployed["mae_deg"] - pd["mae_deg"]) > 0.01 * pd["mae_deg"]  # the policy did adjust: trial 0 is not PD
+    mae = maes(curve)
+    assert all(b < a for a, b in zip(mae, mae[1:], strict=False)) and mae[-1] < 0.6 * mae[0], mae
+    assert json.loads((tmp_path / CURVE_FILE).read_text())["policy"] == str(path)
+    with pytest.raises(EfficientTrackError, match="missing.pt"):
+        train_ilc(training_run("closed", SystemSpec(), refs, refs, 10**6, 0, tmp_path / "b"), "tiny", policy=tmp_path / "missing.pt")
 
 
 def test_curve_points_and_file(tmp_path):

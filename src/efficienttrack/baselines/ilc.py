@@ -21,13 +21,27 @@ exactly what the fair methods are scored on and never generalizes to a new refer
 tracking error any reference adjustment can remove on this system (within the adjustment bound): the error left to
 win. It has the closed loop only: on the open loop (PWM sent to the plant) a pure feed-forward correction of a
 hydraulic integrator without feedback drifts trial after trial, which no fair comparison needs.
+
+On top of a policy (``train_ilc(..., policy=PATH)``) each trial deploys a trained adjustment policy through the guarded
+runtime and adds the learned correction to its adjustment, within the same bound:
+
+    q^r_k(t+1) = clamp(q*(t+1) + clip(π(o_H, q^r_H, q*_F) + a_k(t), ±max_adjust)),      a_0 = 0,
+
+the policy's history holding its own references, as it was trained and is deployed: the correction is a feed-forward
+it does not see, and the loop the ILC learns on is the deployed one. (With the correction in its history, as sent, the
+policy answered it and the oracle ended higher on two plants of three, docs/ilc.md.) Trial 0 is then the policy alone,
+and the lead is identified from its run. Where the update law by itself stops above what a policy reaches (a delay and
+a dead band), the policy's feedback and the correction's feed-forward together go lower: each trial is still a run of
+the true system, so its figure still bounds the limit from above.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -44,6 +58,9 @@ from efficienttrack.data.metrics import compute_metrics
 from efficienttrack.data.records import EpisodeRecord
 from efficienttrack.data.references import Reference
 from efficienttrack.deploy.episodes import Sent, batches, rollout
+from efficienttrack.deploy.guard import GuardedRuntime
+from efficienttrack.deploy.runtime import Runtime
+from efficienttrack.learn.policy import AdjustmentPolicy, load_policy
 from efficienttrack.systems.protocol import BatchedSystem
 
 AUTO = "auto"
@@ -195,11 +212,17 @@ def check_cutoff(settings: ILCSettings, dt: float) -> float | None:
 
 
 class _CorrectionDriver:
-    """The driver of :func:`rollout` that sends the desired position plus the stored correction, and keeps the errors."""
+    """The driver of :func:`rollout` that sends the desired position plus the stored correction, and keeps the errors.
 
-    def __init__(self, system: BatchedSystem, correction: np.ndarray) -> None:
+    With a runtime (a policy behind the guard) it adds the correction to the policy's adjustment, within the runtime's
+    bound; the policy's history keeps the policy's own references (module docstring).
+    """
+
+    def __init__(self, system: BatchedSystem, correction: np.ndarray, runtime: GuardedRuntime | None = None) -> None:
         self._limits = system.limits
         self._correction = correction
+        self._runtime = runtime
+        self._max_adjust = np.asarray(system.limits.max_adjust if runtime is None else runtime.max_adjust, dtype=np.float64)
         self.target = np.zeros_like(correction)
         """(T, N, 4) rad, q*(t+1) of each step."""
         self.measured = np.zeros_like(correction)
@@ -208,13 +231,22 @@ class _CorrectionDriver:
 
     def start(self, obs0: np.ndarray) -> None:
         self._t = 0
+        if self._runtime is not None:
+            self._runtime.start(obs0)
 
     def step(self, obs: np.ndarray, q_des_future: np.ndarray) -> Sent:
         t, q_next = self._t, q_des_future[:, 0]
-        q_ref = self._limits.clamp(q_next + self._correction[t])
+        if self._runtime is None:
+            q_ref = self._limits.clamp(q_next + self._correction[t])
+            fallback = np.zeros(len(obs), dtype=bool)
+        else:
+            sent = self._runtime.step(obs, q_des_future)
+            adjustment = np.clip(sent.adjustment + self._correction[t], -self._max_adjust, self._max_adjust)
+            q_ref = self._limits.clamp(q_next + adjustment)
+            fallback = sent.fallback
         self.target[t], self.measured[t] = q_next, obs[:, :N_JOINTS]
         self._t += 1
-        return Sent(q_ref=q_ref, adjustment=q_ref - q_next, fallback=np.zeros(len(obs), dtype=bool))
+        return Sent(q_ref=q_ref, adjustment=q_ref - q_next, fallback=fallback)
 
     def error(self) -> np.ndarray:
         """(T, N, 4) rad, ``wrap(q*(t+1) − q(t+1))``; the last step's (after the last observation seen) is zero."""
@@ -224,7 +256,10 @@ class _CorrectionDriver:
 
 
 def run_trial(
-    system: BatchedSystem, refs: Sequence[Reference], correction: np.ndarray
+    system: BatchedSystem,
+    refs: Sequence[Reference],
+    correction: np.ndarray,
+    policy: AdjustmentPolicy | None = None,
 ) -> tuple[list[EpisodeRecord], np.ndarray]:
     """Run every reference once with its correction, all together on the batched system (the closed loop).
 
@@ -235,6 +270,8 @@ def run_trial(
         system: the closed-loop system, checked and opened.
         refs: the N references (each ≥ 3 positions).
         correction: (T, N, 4) rad, the correction of each step, T = the longest reference's steps.
+        policy: a trained adjustment policy the correction is added to (deployed through the guarded runtime with the
+            system's limits), or None for the correction alone.
 
     Returns:
         One record per reference (meta ``name``, ``loop`` = closed) and the errors (T, N, 4) rad,
@@ -245,8 +282,11 @@ def run_trial(
     for part in batches(system, len(refs)):
         group = refs[part]
         steps = max(len(ref) for ref in group) - 1
-        driver = _CorrectionDriver(system, correction[:steps, part])
-        group_records = rollout(system, [ref.q for ref in group], driver)
+        runtime = None if policy is None else Runtime(policy, limits=system.limits, dt=system.dt)
+        driver = _CorrectionDriver(system, correction[:steps, part], runtime)
+        horizon = 1 if runtime is None else runtime.future_length
+        with runtime if runtime is not None else nullcontext():
+            group_records = rollout(system, [ref.q for ref in group], driver, horizon)
         for record, ref in zip(group_records, group, strict=True):
             record.meta.update(name=ref.name, loop="closed")
         records += group_records
@@ -267,16 +307,20 @@ def trial_steps(test_refs: Sequence[Reference]) -> int:
 
 
 def train_ilc(
-    run: TrainingRun, preset: str | ILCSettings = "cpu", progress: ProgressDisplay | None = None
+    run: TrainingRun,
+    preset: str | ILCSettings = "cpu",
+    progress: ProgressDisplay | None = None,
+    policy: str | Path | None = None,
 ) -> list[dict[str, Any]]:
     """The ORACLE: iterative learning control on the test references themselves, trial after trial (not a fair method).
 
-    Trial 0 runs every test reference with no correction (the PD controller alone); each later trial runs them all
+    Trial 0 runs every test reference with no correction (the PD controller alone, or the policy alone when there is
+    one: the module docstring's "on top of a policy"); each later trial runs them all
     again with the corrections learned from the trial before (:func:`ilc_update`), all references together on the
     batched system. A trial's own run is its measurement: the point of trial k has ``interaction_steps = k ·`` the
     steps of one trial (:func:`trial_steps`; the trials it learned from) and the metrics of its records. Trials run
     while ``k ≤ settings.trials`` and ``k · trial_steps ≤ budget``. ``folder/curve.json`` (``{"method": "ilc",
-    "oracle": true, "loop", "seed", "budget", "system", "settings", "curve": [point, ...]}``) is rewritten atomically
+    "oracle": true, "loop", "seed", "budget", "system", "settings", "policy", "curve": [point, ...]}``) is rewritten atomically
     after each point. Deterministic: the same inputs give the same curve (wall times aside).
 
     Args:
@@ -290,6 +334,8 @@ def train_ilc(
             measure on others.
         preset: ``"cpu"``, ``"tiny"`` (:data:`ILC_PRESETS`) or an :class:`ILCSettings`.
         progress: a display to show the interaction count and the last MAE on, or None for no progress.
+        policy: a policy checkpoint (``policy.pt``, its JSON next to it) whose adjustments the corrections are added
+            to, deployed through the guarded runtime; None: the corrections alone.
 
     Returns:
         One point per recorded trial, trial 0 first: ``{"interaction_steps": int, "wall_seconds": float (time of the
@@ -298,7 +344,8 @@ def train_ilc(
     Raises:
         EfficientTrackError: a run that is no TrainingRun, in the open loop or with validation references, an unknown
             preset, a budget smaller than one trial, a cut-off at or above the Nyquist frequency, a test reference
-            outside the system's limits, an output folder being written by another process.
+            outside the system's limits, an output folder being written by another process, a policy file that is
+            missing or no adjustment policy (:func:`~efficienttrack.learn.policy.load_policy`'s message).
     """
     run = check_training_run(run)
     if run.loop == "open":
@@ -324,7 +371,9 @@ def train_ilc(
         "budget": budget,
         "system": run.system.to_dict(),
         "settings": asdict(settings),
+        "policy": None if policy is None else str(policy),
     }
+    adjustments = None if policy is None else load_policy(policy)
     with output_lock(folder / CURVE_FILE, "folder", folder=False):
         opened = run.system.open()
         check_cutoff(settings, opened.dt)
@@ -337,7 +386,7 @@ def train_ilc(
         try:
             for k in range(trials + 1):
                 wall = time.perf_counter() - recorder.start - scoring
-                records, error = run_trial(opened, test_refs, correction)
+                records, error = run_trial(opened, test_refs, correction, adjustments)
                 if k == 0 and auto_lead:
                     lead = identify_lead(records)
                     settings = replace(settings, lead=lead)
