@@ -73,11 +73,11 @@ def main() -> None:
             lead = json.loads((Path(folder) / CURVE_FILE).read_text())["lead_identified"]
         mae = [point["metrics"]["mae_deg"] for point in curve]
         rows += [(label, k, point["interaction_steps"], m) for k, (point, m) in enumerate(zip(curve, mae, strict=True))]
-        plt.semilogy(range(len(mae)), mae, label=f"{label} (lead {lead})")
+        plt.semilogy(range(len(mae)), mae, label=f"{label} (lead {lead}{', on its policy' if policy else ''})")
         last = mae[-17:]
         print(f"| {label} | {lead} | {mae[0]:.3f} | {mae[10]:.3f} | {mae[40]:.3f} | {mae[-1]:.3f} ({trials}) | "
               f"{100 * (last[0] - last[-1]) / last[0]:.1f} % |", flush=True)  # fmt: skip
-    plt.xlabel("trial (trial 0: the PD controller alone, or the policy where a line names one)")
+    plt.xlabel("trial (trial 0: the PD controller alone, or the policy where a line runs on one)")
     plt.ylabel("test MAE (°)")
     plt.title(f"ILC oracle floor: lead identified per system, gain 0.35, low-pass {settings.cutoff_hz:g} Hz")
     plt.gca().yaxis.set_major_locator(ticker.FixedLocator([0.1, 0.2, 0.3, 0.5, 1, 2, 3, 5]))
