@@ -150,16 +150,18 @@ def test_the_tree_lists_every_leaf_with_its_bounds():
     )
 
 
-def test_the_closed_loop_model_ramps_up_to_its_higher_rate_and_the_models_measured_before_keep_their_rate():
+def test_the_closed_loop_networks_ramp_up_to_their_higher_rate_and_those_measured_before_keep_their_rate():
     from efficienttrack.baselines.openloop import OPEN_PRESETS
     from efficienttrack.baselines.supertrack import SUPERTRACK_PRESETS
 
-    cpu = PRESETS["cpu"].model
-    assert (cpu.lr, cpu.warmup) == (3e-3, 0.1) and PRESETS["fastset"].model == cpu
-    kept = [MODEL_PRESETS["paper"], MODEL_PRESETS["tiny"]]
-    kept += [presets[name].model for presets in (SUPERTRACK_PRESETS, OPEN_PRESETS) for name in ("cpu", "tiny")]
-    assert all(cfg.warmup == 0 for cfg in kept)  # SuperTrack, the open loop and the paper as they were measured
-    assert SUPERTRACK_PRESETS["cpu"].model.lr == OPEN_PRESETS["cpu"].model.lr == 1e-3
+    own = {"model": MODEL_PRESETS, "policy": POLICY_PRESETS}
+    for part, presets in own.items():
+        cpu = getattr(PRESETS["cpu"], part)
+        assert (cpu.lr, cpu.warmup) == (3e-3, 0.1) and getattr(PRESETS["fastset"], part) == cpu, part
+        kept = [presets["paper"], presets["tiny"]]
+        kept += [getattr(baseline[name], part) for baseline in (SUPERTRACK_PRESETS, OPEN_PRESETS) for name in ("cpu", "tiny")]
+        assert all(cfg.warmup == 0 for cfg in kept), part  # SuperTrack, the open loop and the paper as they were measured
+        assert getattr(SUPERTRACK_PRESETS["cpu"], part).lr == getattr(OPEN_PRESETS["cpu"], part).lr == 1e-3, part
 
 
 @pytest.mark.parametrize("name", list(PRESETS))

@@ -58,12 +58,13 @@ class OpenLoopSettings:
     units, weight decay 0.003 as in the paper; 1000 steps instead of 4000 to keep a pass count within minutes; the
     learning rate 1e-3 from the first step, as the open loop was measured: the closed loop's 3e-3 with a warm-up is not)."""
     policy: PolicyConfig = setting(
-        default_factory=lambda: PolicyConfig(horizon=20, steps=500, imagined_share=0.0, row_cap=0.0)
+        default_factory=lambda: PolicyConfig(horizon=20, steps=500, lr=1e-3, warmup=0.0, imagined_share=0.0, row_cap=0.0)
     )
     """π_φ and its training: the paper's horizon 20, γ 0.98 and k_smooth 1.0; 128 × 3 units. ``k_smooth`` weighs the
     change of the command in (PWM / 1000)², as the research code's open loop does (docs/openloop.md measures 0.01
     against 1.0: with 0.01 the policy switches the valves between dead zone and full speed). ``imagined_share`` 0 and
-    ``row_cap`` 0, the paper's loss: imagined deployments and the gradient's cap were measured in the closed loop only."""
+    ``row_cap`` 0, the paper's loss: imagined deployments, the gradient's cap and the rate 3e-3 with a warm-up were
+    measured in the closed loop only."""
     sigma_max: float = inherit(CollectConfig, "sigma_max", 0.05)
     """Collection: bound of the per-episode noise level on the PD reference, rad (the paper's 0.05, white in time as
     the open loop was measured; the closed loop's default is slower and larger)."""
@@ -86,7 +87,9 @@ OPEN_PRESETS: dict[str, OpenLoopSettings] = {
     "cpu": OpenLoopSettings(),
     "tiny": OpenLoopSettings(
         model=ModelConfig(hidden=32, layers=2, horizon=4, history=None, batch_size=64, lr=3e-3, warmup=0.0, steps=100),
-        policy=PolicyConfig(hidden=32, layers=2, horizon=4, batch_size=64, lr=3e-3, steps=60, imagined_share=0.0, row_cap=0.0),
+        policy=PolicyConfig(
+            hidden=32, layers=2, horizon=4, batch_size=64, lr=3e-3, warmup=0.0, steps=60, imagined_share=0.0, row_cap=0.0
+        ),
         imitation_steps=60,
     ),
 }

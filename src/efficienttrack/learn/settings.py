@@ -200,6 +200,11 @@ class PolicyConfig(TrainingSchedule):
     """Optimizer steps; None to use ``epochs``. The policy's training, not the model, limits the tracking: 3,000 steps
     tracked better than 1,500 (the preset until 2026-11-29) in nine of nine runs on three plants (docs/comparison.md,
     "Twice the policy's steps")."""
+    lr: float = inherit(TrainingSchedule, "lr", 3e-3)
+    """Adam learning rate (paper 1e-5). 3e-3 with the warm-up, the model's rate: it tracked better than 1e-3 (the rate
+    until 2026-12-07) in nine of nine runs on three plants (docs/comparison.md, "The policy at the model's rate")."""
+    warmup: float = inherit(TrainingSchedule, "warmup", 0.1)
+    """Share of the steps over which the learning rate rises to ``lr`` (0: from the first step, the paper's)."""
     horizon: int = setting(20, ge=2, le=MAX_HORIZON)
     """h: the paper's one length of the policy, read as :attr:`history_length`, :attr:`future_length` and
     :attr:`rollout_length` (paper 20); at least 2, for the smoothness term needs two actions."""
@@ -280,10 +285,10 @@ class PolicyConfig(TrainingSchedule):
 
 POLICY_PRESETS: dict[str, PolicyConfig] = {
     "paper": PolicyConfig(
-        hidden=512, layers=6, horizon=20, batch_size=2048, lr=1e-5,
+        hidden=512, layers=6, horizon=20, batch_size=2048, lr=1e-5, warmup=0.0,
         steps=None, epochs=2000, cosine_decay=False, grad_clip=None, save_every=1000,
     ),
     "cpu": PolicyConfig(),
-    "tiny": PolicyConfig(hidden=32, layers=2, horizon=4, batch_size=64, lr=3e-3, steps=200, save_every=100),
+    "tiny": PolicyConfig(hidden=32, layers=2, horizon=4, batch_size=64, lr=3e-3, warmup=0.0, steps=200, save_every=100),
 }  # fmt: skip
 """Named policy configs: the paper's (a GPU job), ``cpu`` (minutes on 2 cores), ``tiny`` (tests, seconds)."""

@@ -28,7 +28,7 @@ class SuperTrackSettings:
     per iteration (``steps``); horizon 8: SuperTrack's world-model window; history 5 as our closed loop's ``cpu``."""
     policy: PolicyConfig = setting(
         default_factory=lambda: PolicyConfig(
-            horizon=20, steps=100, batch_size=128, lr=1e-3, cosine_decay=False, imagined_share=0.0, row_cap=0.0
+            horizon=20, steps=100, batch_size=128, lr=1e-3, warmup=0.0, cosine_decay=False, imagined_share=0.0, row_cap=0.0
         )
     )
     """π_φ and the optimizer steps it is trained per iteration (``steps``) through the world model on the discounted
@@ -71,8 +71,8 @@ SUPERTRACK_PRESETS: dict[str, SuperTrackSettings] = {
             hidden=32, layers=2, horizon=4, history=3, batch_size=64, steps=20, lr=3e-3, warmup=0.0, cosine_decay=False
         ),
         policy=PolicyConfig(
-            hidden=32, layers=2, horizon=4, batch_size=64, steps=20, lr=3e-3, cosine_decay=False, imagined_share=0.0,
-            row_cap=0.0,
+            hidden=32, layers=2, horizon=4, batch_size=64, steps=20, lr=3e-3, warmup=0.0, cosine_decay=False,
+            imagined_share=0.0, row_cap=0.0,
         ),
         steps_per_iteration=1000,
         buffer_steps=20_000,
