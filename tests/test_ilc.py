@@ -4,7 +4,6 @@ import json
 
 import numpy as np
 import pytest
-
 import torch
 
 from efficienttrack.baselines.curve import CURVE_FILE, training_run
@@ -109,7 +108,8 @@ def test_on_top_of_a_policy_trial_0_is_the_policy_deployed_and_the_trials_lower_
     assert all(b < a for a, b in zip(mae, mae[1:], strict=False)) and mae[-1] < 0.6 * mae[0], mae
     assert json.loads((tmp_path / CURVE_FILE).read_text())["policy"] == str(path)
     with pytest.raises(EfficientTrackError, match="missing.pt"):
-        train_ilc(training_run("closed", SystemSpec(), refs, refs, 10**6, 0, tmp_path / "b"), "tiny", policy=tmp_path / "missing.pt")
+        missing = training_run("closed", SystemSpec(), refs, refs, 10**6, 0, tmp_path / "b")
+        train_ilc(missing, "tiny", policy=tmp_path / "missing.pt")
 
 
 def test_curve_points_and_file(tmp_path):
