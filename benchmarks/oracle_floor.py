@@ -35,6 +35,7 @@ from matplotlib import ticker
 from efficienttrack.baselines.curve import CURVE_FILE, training_run
 from efficienttrack.baselines.ilc import ILC_PRESETS, train_ilc, trial_steps
 from efficienttrack.cli.common import parse_options
+from efficienttrack.core.errors import EfficientTrackError
 from efficienttrack.core.progress import ProgressDisplay
 from efficienttrack.data.references import load_references
 from efficienttrack.systems.spec import SystemSpec
@@ -61,12 +62,16 @@ def main() -> None:
     args = parser.parse_args()
     if args.trials < 40:
         sys.exit(f"--trials {args.trials}: the table reads trials 10 and 40 and the last 16; give at least 40")
+    # every input read before the first system runs, so that a bad one stops it at once rather than minutes later
     settings = replace(ILC_PRESETS["cpu"], trials=args.trials, cutoff_hz=args.cutoff)
+    systems = [parse_system(text) for text in args.system]
+    loaded = [(label, spec, load_references(refs_dir), policy) for label, spec, refs_dir, policy in systems]
+    for label, _, _, policy in loaded:
+        if policy is not None and not policy.is_file():
+            sys.exit(f"--system '{label}': policy {policy}: no such file")
     trials = settings.trials
     rows, figure = [], plt.figure(figsize=(7, 4))
-    for text in args.system:
-        label, spec, refs_dir, policy = parse_system(text)
-        refs = load_references(refs_dir)
+    for label, spec, refs, policy in loaded:
         with tempfile.TemporaryDirectory() as folder:
             run = training_run("closed", spec, refs, refs, (trials + 1) * trial_steps(refs), 0, folder)
             curve = train_ilc(run, preset=settings, progress=ProgressDisplay(label), policy=policy)
@@ -95,4 +100,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except EfficientTrackError as error:  # bad settings, references, policy or system: the message, not a traceback
+        sys.exit(f"oracle_floor: {error}")

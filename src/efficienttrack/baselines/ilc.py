@@ -222,7 +222,6 @@ class _CorrectionDriver:
         self._limits = system.limits
         self._correction = correction
         self._runtime = runtime
-        self._max_adjust = np.asarray(system.limits.max_adjust if runtime is None else runtime.max_adjust, dtype=np.float64)
         self.target = np.zeros_like(correction)
         """(T, N, 4) rad, q*(t+1) of each step."""
         self.measured = np.zeros_like(correction)
@@ -241,7 +240,8 @@ class _CorrectionDriver:
             fallback = np.zeros(len(obs), dtype=bool)
         else:
             sent = self._runtime.step(obs, q_des_future)
-            adjustment = np.clip(sent.adjustment + self._correction[t], -self._max_adjust, self._max_adjust)
+            bound = self._runtime.max_adjust
+            adjustment = np.clip(sent.adjustment + self._correction[t], -bound, bound)
             q_ref = self._limits.clamp(q_next + adjustment)
             fallback = sent.fallback
         self.target[t], self.measured[t] = q_next, obs[:, :N_JOINTS]
